@@ -1,0 +1,57 @@
+# fleetbrake — `make help` lists the targets.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.fleetbrake-installed
+DEMO_OUT ?= demo-out
+export CARGO_TERM_COLOR ?= never
+
+.PHONY: help setup build demo test test-all test-rust test-python lint format bench clean
+
+help:  ## list the targets
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "} {printf "  %-12s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+setup: $(STAMP)  ## create .venv and install fleetbrake with its dev tools
+
+build: setup  ## (re)build the Rust extension into .venv (release)
+	$(VENV)/bin/maturin develop --release -q
+
+demo: build  ## synthetic fleet through the whole pipeline into $(DEMO_OUT)/
+	$(VENV)/bin/fleetbrake demo --out $(DEMO_OUT)
+
+test: build test-rust test-python  ## every test that matters (slow ones skipped)
+
+test-rust:  ## Rust unit and integration tests
+	cargo test --release --workspace --exclude fleetbrake_py
+
+test-python: build  ## Python tests, slow ones skipped
+	$(PY) -m pytest -m "not slow" -n 2 -q
+
+test-all: build test-rust  ## every test, slow ones included
+	$(PY) -m pytest -n 2 -q
+
+lint: setup  ## rustfmt, clippy and ruff, as CI would want them
+	cargo fmt --all -- --check
+	cargo clippy --workspace --all-targets --release -- -D warnings
+	$(VENV)/bin/ruff check python tests
+	$(VENV)/bin/ruff format --check python tests
+
+format: setup  ## format Rust and Python in place
+	cargo fmt --all
+	$(VENV)/bin/ruff format python tests
+	$(VENV)/bin/ruff check --fix python tests
+
+bench: build  ## the solver benchmark against scikit-fem (see docs/benchmarks.md)
+	$(VENV)/bin/fleetbrake bench solver --json
+
+clean:  ## remove build products and the virtualenv
+	cargo clean
+	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache
