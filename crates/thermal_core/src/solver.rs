@@ -1,0 +1,186 @@
+//! Sparse Cholesky factorisation with faer: symbolic analysis (AMD ordering, simplicial or
+//! supernodal) once per pattern, numeric factorisation once per matrix, solves reused.
+
+use std::sync::Arc;
+
+use faer::dyn_stack::{MemBuffer, MemStack};
+use faer::linalg::cholesky::llt::factor::LltParams;
+use faer::mat::MatMut;
+use faer::sparse::linalg::cholesky::{
+    factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
+    SymbolicCholeskyRaw, SymmetricOrdering,
+};
+use faer::sparse::linalg::SupernodalThreshold;
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMatRef};
+use faer::{Conj, Par, Side, Spec};
+
+use crate::assembly::Pattern;
+use crate::error::{Result, ThermalError};
+
+/// Which Cholesky variant faer uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum CholeskyKind {
+    /// faer decides from the flop count of the symbolic analysis.
+    Auto,
+    /// Column by column (sparse triangular solves, no dense blocks).
+    Simplicial,
+    /// Dense supernodes (BLAS-3 kernels).
+    Supernodal,
+}
+
+impl CholeskyKind {
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name.to_ascii_lowercase().as_str() {
+            "auto" => Some(CholeskyKind::Auto),
+            "simplicial" => Some(CholeskyKind::Simplicial),
+            "supernodal" => Some(CholeskyKind::Supernodal),
+            _ => None,
+        }
+    }
+}
+
+/// The symbolic factorisation of a pattern (ordering, elimination tree, structure of L).
+#[derive(Debug, Clone)]
+pub struct SymbolicAnalysis {
+    symbolic: Arc<SymbolicCholesky<usize>>,
+}
+
+impl SymbolicAnalysis {
+    pub fn new(pattern: &Pattern, kind: CholeskyKind) -> Result<Self> {
+        let threshold = match kind {
+            CholeskyKind::Auto => SupernodalThreshold::AUTO,
+            CholeskyKind::Simplicial => SupernodalThreshold::FORCE_SIMPLICIAL,
+            CholeskyKind::Supernodal => SupernodalThreshold::FORCE_SUPERNODAL,
+        };
+        let structure = symbolic_view(pattern)?;
+        let symbolic = factorize_symbolic_cholesky(
+            structure,
+            Side::Lower,
+            SymmetricOrdering::Amd,
+            CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold: threshold,
+                ..Default::default()
+            },
+        )
+        .map_err(|e| ThermalError::LinearAlgebra(format!("symbolic Cholesky: {e:?}")))?;
+        Ok(SymbolicAnalysis {
+            symbolic: Arc::new(symbolic),
+        })
+    }
+
+    /// Stored entries of the factor L.
+    pub fn factor_nnz(&self) -> usize {
+        self.symbolic.len_val()
+    }
+
+    /// Whether faer chose (or was told) the supernodal variant.
+    pub fn is_supernodal(&self) -> bool {
+        matches!(self.symbolic.raw(), SymbolicCholeskyRaw::Supernodal(_))
+    }
+
+    /// Numeric factorisation of the matrix with these values on `pattern`.
+    pub fn factorize(&self, pattern: &Pattern, values: &[f64], par: Par) -> Result<CholeskyFactor> {
+        if values.len() != pattern.nnz() {
+            return Err(ThermalError::LengthMismatch {
+                name: "matrix values".into(),
+                expected: pattern.nnz(),
+                got: values.len(),
+            });
+        }
+        if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
+            return Err(ThermalError::NotPositiveDefinite(format!(
+                "matrix holds {bad}"
+            )));
+        }
+        let structure = symbolic_view(pattern)?;
+        let matrix = SparseColMatRef::new(structure, values);
+        let mut l_values = vec![0.0f64; self.symbolic.len_val()];
+        let mut buffer = MemBuffer::new(
+            self.symbolic
+                .factorize_numeric_llt_scratch::<f64>(par, Spec::<LltParams, f64>::default()),
+        );
+        self.symbolic
+            .factorize_numeric_llt(
+                &mut l_values,
+                matrix,
+                Side::Lower,
+                Default::default(),
+                par,
+                MemStack::new(&mut buffer),
+                Spec::<LltParams, f64>::default(),
+            )
+            .map_err(|e| ThermalError::NotPositiveDefinite(format!("{e:?}")))?;
+        Ok(CholeskyFactor {
+            symbolic: self.symbolic.clone(),
+            values: l_values,
+        })
+    }
+}
+
+/// A view of the pattern for faer. `Pattern` is built sorted and in range, which is what
+/// `new_checked` verifies.
+fn symbolic_view(pattern: &Pattern) -> Result<SymbolicSparseColMatRef<'_, usize>> {
+    if pattern.col_ptr.len() != pattern.n + 1
+        || pattern.col_ptr.last() != Some(&pattern.row_idx.len())
+    {
+        return Err(ThermalError::LinearAlgebra(
+            "inconsistent sparsity pattern".into(),
+        ));
+    }
+    Ok(SymbolicSparseColMatRef::new_checked(
+        pattern.n,
+        pattern.n,
+        &pattern.col_ptr,
+        None,
+        &pattern.row_idx,
+    ))
+}
+
+/// A numeric Cholesky factor `A = L Lᵀ` (with its fill-reducing permutation).
+#[derive(Debug, Clone)]
+pub struct CholeskyFactor {
+    symbolic: Arc<SymbolicCholesky<usize>>,
+    values: Vec<f64>,
+}
+
+impl CholeskyFactor {
+    pub fn n(&self) -> usize {
+        self.symbolic.nrows()
+    }
+
+    /// Scratch a solve with `ncols` right-hand sides needs.
+    pub fn scratch(&self, ncols: usize) -> MemBuffer {
+        MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(ncols, Par::Seq))
+    }
+
+    /// Solve `A X = B` in place for the columns of `rhs`.
+    pub fn solve_mat_in_place(&self, rhs: MatMut<'_, f64>, scratch: &mut MemBuffer) {
+        let llt = LltRef::<'_, usize, f64>::new(&self.symbolic, &self.values);
+        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(scratch));
+    }
+
+    /// Solve `A x = b` in place for one right-hand side.
+    pub fn solve_in_place(&self, rhs: &mut [f64], scratch: &mut MemBuffer) {
+        let n = rhs.len();
+        let view = MatMut::from_column_major_slice_mut(rhs, n, 1);
+        self.solve_mat_in_place(view, scratch);
+    }
+}
+
+/// Relative residual ‖A x − b‖ / ‖b‖.
+pub fn relative_residual(pattern: &Pattern, values: &[f64], x: &[f64], b: &[f64]) -> f64 {
+    let mut ax = vec![0.0; x.len()];
+    pattern.matvec(values, x, &mut ax);
+    let num: f64 = ax
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (p - q) * (p - q))
+        .sum::<f64>()
+        .sqrt();
+    let den: f64 = b.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if den == 0.0 {
+        num
+    } else {
+        num / den
+    }
+}

@@ -1,0 +1,190 @@
+//! Time integration of `M dT/dt + K(t) T = f(t)` by the theta method, driven step by step by
+//! time series (flux, convection coefficients, ambient), with a damped (Rannacher) start.
+//!
+//! Inputs of step n hold on the interval [t_n, t_n+1]. With `K_n = K_cond + Σ_s h_s,n H_s` and
+//! `f_n = q_n G_flux + Σ_s h_s,n T_amb,n G_s`:
+//! `(M/dt + θ K_n) T_n+1 = (M/dt − (1−θ) K_n) T_n + f_n`.
+
+use crate::error::{check_finite, check_non_negative, Result, ThermalError};
+
+/// Crank–Nicolson (θ = 1/2) or backward Euler (θ = 1), and how many first steps are each
+/// replaced by two backward-Euler half steps (damps the spurious oscillation Crank–Nicolson
+/// leaves after a non-smooth start).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Scheme {
+    pub theta: f64,
+    pub damped_steps: usize,
+}
+
+impl Scheme {
+    pub const CRANK_NICOLSON: Scheme = Scheme {
+        theta: 0.5,
+        damped_steps: 1,
+    };
+    pub const BACKWARD_EULER: Scheme = Scheme {
+        theta: 1.0,
+        damped_steps: 0,
+    };
+
+    pub fn from_name(name: &str, damped_steps: usize) -> Option<Scheme> {
+        match name.to_ascii_lowercase().replace('_', "-").as_str() {
+            "crank-nicolson" | "cn" => Some(Scheme {
+                theta: 0.5,
+                damped_steps,
+            }),
+            "backward-euler" | "be" | "implicit-euler" => Some(Scheme {
+                theta: 1.0,
+                damped_steps,
+            }),
+            _ => None,
+        }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        if !(self.theta >= 0.5 && self.theta <= 1.0) {
+            return Err(ThermalError::InvalidParameter {
+                name: "theta".into(),
+                value: self.theta,
+                reason: "must lie in [0.5, 1] for an unconditionally stable scheme".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// A quantity that is constant or given per step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Series<'a> {
+    Constant(f64),
+    Steps(&'a [f64]),
+}
+
+impl Series<'_> {
+    #[inline]
+    pub fn at(&self, n: usize) -> f64 {
+        match self {
+            Series::Constant(v) => *v,
+            Series::Steps(s) => s[n],
+        }
+    }
+
+    /// Length and finiteness (and sign, when `non_negative`) against the number of steps.
+    pub fn check(&self, name: &str, n_steps: usize, non_negative: bool) -> Result<()> {
+        let values: &[f64] = match self {
+            Series::Constant(v) => std::slice::from_ref(v),
+            Series::Steps(s) => {
+                if s.len() != n_steps {
+                    return Err(ThermalError::LengthMismatch {
+                        name: name.to_string(),
+                        expected: n_steps,
+                        got: s.len(),
+                    });
+                }
+                s
+            }
+        };
+        for (i, v) in values.iter().enumerate() {
+            let label = format!("{name}[{i}]");
+            if non_negative {
+                check_non_negative(&label, *v)?;
+            } else {
+                check_finite(&label, *v)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Convection on one face set: coefficient (W/m² K) per step; the air is at the ambient.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Convection<'a> {
+    pub face: usize,
+    pub h_w_m2k: Series<'a>,
+}
+
+/// The initial temperature.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Initial<'a> {
+    Uniform(f64),
+    Field(&'a [f64]),
+}
+
+/// Everything that drives one simulation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Loading<'a> {
+    pub dt_s: f64,
+    pub n_steps: usize,
+    /// Heat flux into the flux face (W/m²), per step.
+    pub flux_w_m2: Series<'a>,
+    pub ambient_c: Series<'a>,
+    pub convection: Vec<Convection<'a>>,
+    pub initial: Initial<'a>,
+}
+
+impl Loading<'_> {
+    pub fn validate(&self, n_nodes: usize, n_faces: usize) -> Result<()> {
+        if !(self.dt_s.is_finite() && self.dt_s > 0.0) {
+            return Err(ThermalError::InvalidTimeStep(self.dt_s));
+        }
+        self.flux_w_m2.check("flux_w_m2", self.n_steps, false)?;
+        self.ambient_c.check("ambient_c", self.n_steps, false)?;
+        for c in &self.convection {
+            if c.face >= n_faces {
+                return Err(ThermalError::InvalidMesh(format!(
+                    "face operator {} does not exist",
+                    c.face
+                )));
+            }
+            c.h_w_m2k.check("h_w_m2k", self.n_steps, true)?;
+        }
+        match self.initial {
+            Initial::Uniform(v) => check_finite("initial_c", v)?,
+            Initial::Field(f) => {
+                if f.len() != n_nodes {
+                    return Err(ThermalError::LengthMismatch {
+                        name: "initial_c field".into(),
+                        expected: n_nodes,
+                        got: f.len(),
+                    });
+                }
+                for (i, v) in f.iter().enumerate() {
+                    check_finite(&format!("initial_c[{i}]"), *v)?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Heat bookkeeping of a run (joules), exact for the time-discrete scheme.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct EnergyLedger {
+    /// Heat stored in the block: Σ_i (M 1)_i (T_i − T0_i).
+    pub stored_j: f64,
+    /// Heat that entered through the flux face.
+    pub flux_in_j: f64,
+    /// Heat that left by convection (negative when the air heats the block).
+    pub convected_out_j: f64,
+}
+
+/// What a simulation returns.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Outputs {
+    pub time_s: Vec<f64>,
+    /// Row-major (n_steps + 1) x n_probes.
+    pub probe_c: Vec<f64>,
+    pub n_probes: usize,
+    /// Area-weighted mean over the friction (flux) face, per output time.
+    pub face_mean_c: Vec<f64>,
+    /// Nodal maximum over the friction (flux) face.
+    pub face_max_c: Vec<f64>,
+    /// Row-major fields (one per kept step) of n_nodes values.
+    pub fields_c: Vec<f64>,
+    pub field_steps: Vec<usize>,
+    /// The state after the last step (to continue a simulation).
+    pub final_c: Vec<f64>,
+    pub energy: EnergyLedger,
+    pub factorizations: usize,
+    pub seconds_factorization: f64,
+    pub seconds_stepping: f64,
+}

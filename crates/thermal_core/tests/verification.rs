@@ -1,0 +1,259 @@
+//! Verification of the thermal core against exact answers: energy conservation, the 1D
+//! analytical series solution, spatial convergence rates, and factor residuals.
+
+use thermal_core::assembly::{face_load_fn, l2_error, Material};
+use thermal_core::mesh::box_mesh;
+use thermal_core::model::default_block_model;
+use thermal_core::solver::{relative_residual, CholeskyKind, SymbolicAnalysis};
+use thermal_core::{Convection, ElementKind, Initial, Loading, Scheme, Series, ThermalModel};
+
+const CAST_IRON: Material = Material::CAST_IRON;
+
+/// Manoeuvre A's block flux with the registry defaults (physics.py computes 44,526 W/m²).
+const FLUX_A_W_M2: f64 = 44_526.0;
+
+fn manoeuvre_a_flux(n_steps: usize, duration_s: usize) -> Vec<f64> {
+    (0..n_steps)
+        .map(|k| if k < duration_s { FLUX_A_W_M2 } else { 0.0 })
+        .collect()
+}
+
+fn air_and_holder(model: &ThermalModel, h: f64) -> Vec<Convection<'static>> {
+    ["air", "holder"]
+        .iter()
+        .map(|name| Convection {
+            face: model.ops.face_index(name).expect("face set"),
+            h_w_m2k: Series::Constant(h),
+        })
+        .collect()
+}
+
+#[test]
+fn energy_is_conserved_on_the_reference_block() {
+    let model = default_block_model(ElementKind::Hex20).unwrap();
+    let flux = manoeuvre_a_flux(300, 47);
+    for scheme in [Scheme::CRANK_NICOLSON, Scheme::BACKWARD_EULER] {
+        let loading = Loading {
+            dt_s: 1.0,
+            n_steps: flux.len(),
+            flux_w_m2: Series::Steps(&flux),
+            ambient_c: Series::Constant(10.0),
+            convection: air_and_holder(&model, 10.0),
+            initial: Initial::Uniform(23.0),
+        };
+        let probes = model.probes(&[[0.0, 0.515, 0.0]]).unwrap();
+        let out = model.simulate(&loading, scheme, &probes, 0).unwrap();
+        let e = out.energy;
+        let expected_in = FLUX_A_W_M2 * 47.0 * model.flux_area_m2();
+        assert!((e.flux_in_j - expected_in).abs() / expected_in < 1e-12);
+        assert!(e.convected_out_j > 0.0, "a block above ambient loses heat");
+        let imbalance = (e.stored_j - (e.flux_in_j - e.convected_out_j)).abs() / e.flux_in_j;
+        assert!(
+            imbalance < 1e-9,
+            "{scheme:?}: relative imbalance {imbalance:e}"
+        );
+        // and the sensor did heat up and then start to cool
+        let sensor = &out.probe_c;
+        let peak = sensor.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        assert!(peak > 23.5 && peak < 60.0, "sensor peak {peak}");
+    }
+}
+
+#[test]
+fn a_block_at_ambient_with_no_flux_stays_at_ambient() {
+    let model = default_block_model(ElementKind::Hex8).unwrap();
+    let loading = Loading {
+        dt_s: 1.0,
+        n_steps: 20,
+        flux_w_m2: Series::Constant(0.0),
+        ambient_c: Series::Constant(17.5),
+        convection: air_and_holder(&model, 25.0),
+        initial: Initial::Uniform(17.5),
+    };
+    let probes = model
+        .probes(&[[0.0, 0.515, 0.0], [0.05, 0.47, 0.02]])
+        .unwrap();
+    let out = model
+        .simulate(&loading, Scheme::CRANK_NICOLSON, &probes, 0)
+        .unwrap();
+    for v in out
+        .probe_c
+        .iter()
+        .chain(&out.face_mean_c)
+        .chain(&out.face_max_c)
+    {
+        assert!((v - 17.5).abs() < 1e-10, "{v}");
+    }
+}
+
+/// T(L, t) − T0 for a bar heated by flux q at x = 0, insulated elsewhere:
+/// (q L / k) [τ − 1/6 − (2/π²) Σ (−1)ⁿ/n² exp(−n²π²τ)], τ = α t / L².
+fn bar_far_end_rise(q: f64, length: f64, t: f64) -> f64 {
+    let alpha =
+        CAST_IRON.conductivity_w_mk / (CAST_IRON.density_kg_m3 * CAST_IRON.specific_heat_j_kgk);
+    let tau = alpha * t / (length * length);
+    let pi2 = std::f64::consts::PI.powi(2);
+    let series: f64 = (1..400)
+        .map(|n| {
+            let n = n as f64;
+            let sign = if n as i64 % 2 == 0 { 1.0 } else { -1.0 };
+            sign / (n * n) * (-n * n * pi2 * tau).exp()
+        })
+        .sum();
+    q * length / CAST_IRON.conductivity_w_mk * (tau - 1.0 / 6.0 - 2.0 / pi2 * series)
+}
+
+#[test]
+fn bar_matches_the_one_dimensional_series_solution() {
+    let length = 0.1;
+    let q = 50_000.0;
+    for (kind, cells) in [(ElementKind::Hex20, 20), (ElementKind::Hex8, 40)] {
+        let mesh = box_mesh([length, 0.01, 0.01], [cells, 1, 1], kind).unwrap();
+        let model = ThermalModel::new(mesh, CAST_IRON, CholeskyKind::Auto, "x0").unwrap();
+        let n_steps = 400;
+        let dt = 0.5;
+        let loading = Loading {
+            dt_s: dt,
+            n_steps,
+            flux_w_m2: Series::Constant(q),
+            ambient_c: Series::Constant(0.0),
+            convection: vec![],
+            initial: Initial::Uniform(20.0),
+        };
+        let probes = model.probes(&[[length, 0.005, 0.005]]).unwrap();
+        let out = model
+            .simulate(&loading, Scheme::CRANK_NICOLSON, &probes, 0)
+            .unwrap();
+        let exact: Vec<f64> = out
+            .time_s
+            .iter()
+            .map(|t| bar_far_end_rise(q, length, *t))
+            .collect();
+        let scale = exact.iter().cloned().fold(0.0, f64::max);
+        assert!(scale > 10.0, "the far end heats by {scale} K");
+        let worst = out
+            .probe_c
+            .iter()
+            .zip(&exact)
+            .map(|(num, ex)| (num - 20.0 - ex).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst / scale < 0.005,
+            "{kind:?}: far-end error {:.4} % of the rise",
+            100.0 * worst / scale
+        );
+    }
+}
+
+/// Steady problem with the harmonic field u = exp(a x) cos(a y) + z: convection (h) on every
+/// face with the exact boundary data as a face load, `(K + h Σ H_s) T = ∫ N (k ∂u/∂n + h u) dA`.
+fn harmonic_l2_error(kind: ElementKind, cells: usize) -> f64 {
+    let a = 10.0;
+    let k = CAST_IRON.conductivity_w_mk;
+    let h = 50.0;
+    let u = move |x: [f64; 3]| (a * x[0]).exp() * (a * x[1]).cos() + x[2];
+    let grad = move |x: [f64; 3]| {
+        [
+            a * (a * x[0]).exp() * (a * x[1]).cos(),
+            -a * (a * x[0]).exp() * (a * x[1]).sin(),
+            1.0,
+        ]
+    };
+    let mesh = box_mesh([0.1, 0.1, 0.1], [cells, cells, cells], kind).unwrap();
+    let model = ThermalModel::new(mesh, CAST_IRON, CholeskyKind::Auto, "x0").unwrap();
+    let faces: Vec<String> = model.mesh.face_set_names();
+    let mut b = vec![0.0; model.n_nodes()];
+    for name in &faces {
+        let load = face_load_fn(&model.mesh, name, |x, n| {
+            let g = grad(x);
+            k * (g[0] * n[0] + g[1] * n[1] + g[2] * n[2]) + h * u(x)
+        })
+        .unwrap();
+        b.iter_mut().zip(load).for_each(|(bi, li)| *bi += li);
+    }
+    // M/dt with dt → ∞ is zero: the steady operator is K + h Σ H_s (θ = 1, no capacity term)
+    let mut terms: Vec<(f64, &[f64])> = vec![(1.0, &model.ops.conduction)];
+    for f in &model.ops.faces {
+        terms.push((h, &f.mass));
+    }
+    let values = model.ops.pattern.combine(&terms);
+    let (factor, _) = model.factorize_checked(&values).unwrap();
+    let mut x = b.clone();
+    let mut scratch = factor.scratch(1);
+    factor.solve_in_place(&mut x, &mut scratch);
+    assert!(relative_residual(&model.ops.pattern, &values, &x, &b) < 1e-10);
+    l2_error(&model.mesh, &x, u)
+}
+
+fn fitted_rate(cells: &[usize], errors: &[f64]) -> f64 {
+    // least-squares slope of log(error) against log(h), h = 1 / cells
+    let xs: Vec<f64> = cells.iter().map(|c| (1.0 / *c as f64).ln()).collect();
+    let ys: Vec<f64> = errors.iter().map(|e| e.ln()).collect();
+    let n = xs.len() as f64;
+    let mx = xs.iter().sum::<f64>() / n;
+    let my = ys.iter().sum::<f64>() / n;
+    let sxy: f64 = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    let sxx: f64 = xs.iter().map(|x| (x - mx) * (x - mx)).sum();
+    sxy / sxx
+}
+
+#[test]
+fn spatial_convergence_rates_are_measured_not_assumed() {
+    let cells = [2, 4, 8];
+    let e8: Vec<f64> = cells
+        .iter()
+        .map(|c| harmonic_l2_error(ElementKind::Hex8, *c))
+        .collect();
+    let e20: Vec<f64> = cells
+        .iter()
+        .map(|c| harmonic_l2_error(ElementKind::Hex20, *c))
+        .collect();
+    let r8 = fitted_rate(&cells, &e8);
+    let r20 = fitted_rate(&cells, &e20);
+    eprintln!("L2 errors hex8 {e8:?} rate {r8:.3}; hex20 {e20:?} rate {r20:.3}");
+    assert!((r8 - 2.0).abs() < 0.3, "hex8 L2 rate {r8}");
+    assert!((r20 - 3.0).abs() < 0.3, "hex20 L2 rate {r20}");
+    assert!(r20 - r8 > 0.7, "hex20 should gain one order over hex8");
+    assert!(e20[2] < e8[2] / 10.0);
+}
+
+#[test]
+fn factor_residuals_are_tiny_for_simplicial_and_supernodal() {
+    let model = default_block_model(ElementKind::Hex20).unwrap();
+    let dt = 1.0;
+    let h: Vec<f64> = model
+        .ops
+        .faces
+        .iter()
+        .map(|f| if f.name == "friction" { 0.0 } else { 10.0 })
+        .collect();
+    let values = model.system_values(dt, 0.5, &h);
+    let pattern = &model.ops.pattern;
+    let n = pattern.n;
+    let b: Vec<f64> = (0..n).map(|i| ((i * 37) % 17) as f64 - 8.0).collect();
+    for kind in [CholeskyKind::Simplicial, CholeskyKind::Supernodal] {
+        let analysis = SymbolicAnalysis::new(pattern, kind).unwrap();
+        assert_eq!(analysis.is_supernodal(), kind == CholeskyKind::Supernodal);
+        for par in [faer::Par::Seq, faer::Par::rayon(2)] {
+            let factor = analysis.factorize(pattern, &values, par).unwrap();
+            let mut x = b.clone();
+            let mut scratch = factor.scratch(1);
+            factor.solve_in_place(&mut x, &mut scratch);
+            let r = relative_residual(pattern, &values, &x, &b);
+            assert!(r < 1e-10, "{kind:?} {par:?}: residual {r:e}");
+        }
+    }
+}
+
+#[test]
+fn indefinite_matrices_are_reported_not_panicked() {
+    let model = default_block_model(ElementKind::Hex8).unwrap();
+    let h = vec![0.0; model.ops.faces.len()];
+    let mut values = model.system_values(1.0, 0.5, &h);
+    values.iter_mut().for_each(|v| *v = -*v);
+    let err = model.factorize_checked(&values).unwrap_err();
+    assert!(
+        matches!(err, thermal_core::ThermalError::NotPositiveDefinite(_)),
+        "{err}"
+    );
+}

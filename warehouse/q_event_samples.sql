@@ -1,0 +1,17 @@
+-- The samples of one wagon in a time window, for the event detection (fleetbrake.events).
+-- Parameters: $wagon_id, $from_utc, $to_utc.
+WITH staged AS (
+    SELECT
+        CAST(time_utc AS TIMESTAMP)        AS time_utc,
+        CAST(file_id AS BIGINT)            AS file_id,
+        CAST(speed_kmh AS DOUBLE)          AS speed_kmh,
+        CAST(distance_m AS DOUBLE)         AS distance_m,
+        CAST(brake_pressure_bar AS DOUBLE) AS brake_pressure_bar,
+        CAST(block_temp_c AS DOUBLE)       AS block_temp_c
+    FROM samples
+    WHERE wagon_id = $wagon_id
+      AND time_utc BETWEEN $from_utc AND $to_utc
+)
+SELECT time_utc, file_id, speed_kmh, distance_m, brake_pressure_bar, block_temp_c
+FROM staged
+ORDER BY time_utc, file_id;

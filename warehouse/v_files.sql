@@ -1,0 +1,14 @@
+-- v_files: one row per log file seen (interface.md).
+CREATE OR REPLACE VIEW v_files AS
+WITH staged AS (
+    SELECT
+        CAST(path AS VARCHAR)           AS path,
+        CAST(wagon_id AS VARCHAR)       AS wagon_id,
+        CAST(status AS VARCHAR)         AS status,
+        CAST(rows AS BIGINT)            AS rows,
+        CAST(reason AS VARCHAR)         AS reason,
+        CAST(ingested_utc AS TIMESTAMP) AS ingested_utc
+    FROM files
+)
+SELECT path, wagon_id, status, rows, reason, ingested_utc
+FROM staged;
