@@ -409,12 +409,13 @@ def test_scheme_is_the_contracts_including_the_damped_start(order):
     H = model.convection_matrix("air").toarray()
     F, G = model.face_load("friction"), model.face_load("air")
 
-    def reference(theta, damped):
+    def reference(theta, damped, flux=flux, damped_at=()):
         T, out = T0.copy(), [T0.copy()]
         for n in range(n_steps):
             Kn = Kc + h_air[n] * H
             f = flux[n] * F + h_air[n] * ambient[n] * G
-            sub = [(dt / 2, 1.0)] * 2 if n < damped else [(dt, theta)]
+            is_damped = n < damped or any(k <= n < k + damped for k in damped_at)
+            sub = [(dt / 2, 1.0)] * 2 if is_damped else [(dt, theta)]
             for d, th in sub:
                 T = np.linalg.solve(M / d + th * Kn, (M / d - (1 - th) * Kn) @ T + f)
             out.append(T)
@@ -424,7 +425,16 @@ def test_scheme_is_the_contracts_including_the_damped_start(order):
     for scheme, theta in (("crank-nicolson", 0.5), ("backward-euler", 1.0)):
         for damped in (0, 1, 3):
             res = model.simulate(
-                dt, flux, ambient, T0, {"air": h_air}, probes, scheme, damped, field_every=1
+                dt,
+                flux,
+                ambient,
+                T0,
+                {"air": h_air},
+                probes,
+                scheme,
+                damped,
+                field_every=1,
+                jump_fraction=0.0,
             )
             ref = reference(theta, damped)
             np.testing.assert_allclose(res.fields_c, ref, rtol=0, atol=1e-11 * scale)
@@ -435,6 +445,27 @@ def test_scheme_is_the_contracts_including_the_damped_start(order):
             np.testing.assert_allclose(res.face_mean_c, mean, atol=1e-11 * scale)
             fnodes = np.unique(sets["friction"])
             np.testing.assert_allclose(res.face_max_c, ref[:, fnodes].max(axis=1), rtol=1e-13)
+    # the damping restarts after a jump of an input (Crank-Nicolson only): a step of flux at
+    # step 5 on an otherwise smooth run (ambient and h held constant)
+    steady_amb, steady_h = np.full(n_steps, 12.0), np.full(n_steps, 40.0)
+    step_flux = np.where(np.arange(n_steps) < 5, 0.0, 2e5)
+    ambient[:], h_air[:] = steady_amb, steady_h
+    for damped in (1, 2):
+        res = model.simulate(
+            dt,
+            step_flux,
+            ambient,
+            T0,
+            {"air": h_air},
+            probes,
+            "crank-nicolson",
+            damped,
+            field_every=1,
+        )
+        ref = reference(0.5, damped, flux=step_flux, damped_at=(5,))
+        np.testing.assert_allclose(res.fields_c, ref, rtol=0, atol=1e-11 * scale)
+        plain = reference(0.5, damped, flux=step_flux)
+        assert np.abs(plain - ref).max() > 1e-3 * scale  # the restart changes the answer
     # the damped start changes the answer (so the comparison above is not vacuous)
     a = model.simulate(dt, flux, ambient, T0, {"air": h_air}, probes, damped_steps=0)
     b = model.simulate(dt, flux, ambient, T0, {"air": h_air}, probes, damped_steps=1)

@@ -7,11 +7,13 @@ WITH staged AS (
         CAST(speed_kmh AS DOUBLE)          AS speed_kmh,
         CAST(distance_m AS DOUBLE)         AS distance_m,
         CAST(brake_pressure_bar AS DOUBLE) AS brake_pressure_bar,
-        CAST(block_temp_c AS DOUBLE)       AS block_temp_c
+        CAST(block_temp_c AS DOUBLE)       AS block_temp_c,
+        CAST(block_temp_fault AS BOOLEAN)  AS block_temp_fault
     FROM samples
     WHERE wagon_id = $wagon_id
       AND time_utc BETWEEN $from_utc AND $to_utc
 )
-SELECT time_utc, file_id, speed_kmh, distance_m, brake_pressure_bar, block_temp_c
+SELECT
+    time_utc, file_id, speed_kmh, distance_m, brake_pressure_bar, block_temp_c, block_temp_fault
 FROM staged
 ORDER BY time_utc, file_id;

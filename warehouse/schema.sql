@@ -18,7 +18,8 @@ CREATE TABLE IF NOT EXISTS files (
     size_bytes           BIGINT    NOT NULL,
     mtime_ns             BIGINT    NOT NULL,              -- unchanged size and mtime: not re-read
     status               VARCHAR   NOT NULL CHECK (status IN ('ingested', 'quarantined')),
-    quarantine_code      VARCHAR,  -- name, place, registry, empty, gzip, binary, header, size
+    quarantine_code      VARCHAR,  -- name, registry, size, empty, gzip, binary, header,
+                                   -- unreadable, error (the last two and registry: retried)
     reason               VARCHAR,  -- why quarantined, naming the file (and line)
     rows                 BIGINT    NOT NULL,              -- samples stored from this file
     rows_in_file         BIGINT,   -- complete data lines read (after the header)
@@ -48,7 +49,8 @@ CREATE TABLE IF NOT EXISTS samples (
     brake_pressure_bar DOUBLE,
     block_temp_c       DOUBLE,    -- valid readings only: null where missing or faulty
     block_temp_raw_c   DOUBLE,    -- the raw reading where block_temp_fault is set, else null
-    block_temp_fault   VARCHAR,   -- null, or 'out_of_range' (below -60 or above 600 degC)
+    block_temp_fault   BOOLEAN   NOT NULL,  -- reading out of range (below -60 or above 600 degC):
+                                          -- a broken wire, not a temperature
     ambient_temp_c     DOUBLE
 );
 

@@ -1,27 +1,31 @@
 """``fleetbrake bench ingest``: how fast a gzip fleet goes into the warehouse, and in how much memory.
 
 A synthetic fleet of ``rows`` samples (simple made-up signals; only the volume matters) is
-written as gzip log files by child processes, then ingested by this process into a fresh
-database, events excluded. The figures: rows, seconds, rows per second and the peak resident
-memory of this process (``resource.getrusage``; the fleet writers are other processes, so it
-is the ingestion's own peak). Memory that does not grow with the fleet shows as the same
-peak for 5 M and 50 M rows.
+written as gzip log files (20,000 rows each, 25 per wagon) by child processes, then ingested
+by this process into a fresh database, events excluded. The figures: rows, seconds, rows per
+second, the peak resident memory of this process (``resource.getrusage``; the fleet writers
+are other processes, so it is the ingestion's own peak) and the peak of each quarter of the
+run (flat when memory does not grow with the fleet), with the machine's CPU count and load
+(other processes on the machine slow the figure down).
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import multiprocessing
+import os
 import resource
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import polars as pl
+import psutil
 
 from fleetbrake.ingest import IngestConfig, ingest_fleet
 from fleetbrake.logfile import log_relpath, write_log
@@ -110,28 +114,69 @@ def _peak_rss_mb() -> float:
     return peak / (1 << 20) if sys.platform == "darwin" else peak / 1024
 
 
+class _RssSampler:
+    """Samples this process's resident memory every ``every_s`` seconds, in a thread."""
+
+    def __init__(self, every_s: float = 0.2) -> None:
+        self._every_s = every_s
+        self._stop = threading.Event()
+        self.samples_mb: list[float] = []
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        process = psutil.Process()
+        while not self._stop.is_set():
+            self.samples_mb.append(process.memory_info().rss / 1e6)
+            self._stop.wait(self._every_s)
+
+    def __enter__(self) -> _RssSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def quarter_peaks_mb(self) -> list[float]:
+        """Highest resident memory in each quarter of the run (flat: no growth)."""
+        n = len(self.samples_mb)
+        quarters = [
+            self.samples_mb[n * q // 4 : max(n * (q + 1) // 4, n * q // 4 + 1)] for q in range(4)
+        ]
+        return [round(max(part), 1) if part else 0.0 for part in quarters]
+
+
 def bench_ingest(
     rows: int = 2_000_000,
     *,
     workdir: Path | None = None,
-    keep: bool = False,
+    fleet_dir: Path | None = None,
     rows_per_file: int = 20_000,
     config: IngestConfig | None = None,
-) -> dict[str, float | int]:
-    """Build a synthetic fleet, ingest it into a fresh database, return the figures."""
+) -> dict[str, float | int | list[float]]:
+    """Ingest a synthetic gzip fleet into a fresh database; return the figures.
+
+    The fleet is made in a temporary directory (under ``workdir``) and removed afterwards,
+    unless ``fleet_dir`` is given: then it is made there if it holds no ``fleet.toml`` yet,
+    reused if it does (``rows`` is then what it holds), and kept.
+    """
     root = Path(tempfile.mkdtemp(prefix="fleetbrake-bench-", dir=workdir))
     try:
-        fleet_dir = root / "fleet"
-        make_started = time.perf_counter()
-        written = make_bench_fleet(fleet_dir, rows, rows_per_file=rows_per_file)
-        make_s = time.perf_counter() - make_started
+        make_s = 0.0
+        if fleet_dir is None or not (fleet_dir / "fleet.toml").exists():
+            fleet_dir = fleet_dir or root / "fleet"
+            make_started = time.perf_counter()
+            written: int | None = make_bench_fleet(fleet_dir, rows, rows_per_file=rows_per_file)
+            make_s = time.perf_counter() - make_started
+        else:
+            written = None
         gzip_mb = sum(p.stat().st_size for p in fleet_dir.rglob("*.csv.gz")) / 1e6
-        with open_warehouse(root / "bench.duckdb") as wh:
+        with open_warehouse(root / "bench.duckdb") as wh, _RssSampler() as rss:
             started = time.perf_counter()
             report = ingest_fleet(fleet_dir, wh, config=config, progress=False)
             seconds = time.perf_counter() - started
             (stored,) = wh.con.execute("SELECT count(*) FROM samples").fetchone()
-        if stored != written or report.quarantined:
+        if (written is not None and stored != written) or report.quarantined:
             raise RuntimeError(
                 f"bench ingest: wrote {written} rows, stored {stored}, "
                 f"{len(report.quarantined)} files quarantined"
@@ -144,8 +189,10 @@ def bench_ingest(
             "seconds": round(seconds, 3),
             "rows_per_s": round(stored / seconds),
             "peak_rss_mb": round(_peak_rss_mb(), 1),
+            "rss_mb_quarter_peaks": rss.quarter_peaks_mb(),
+            "cpus": os.cpu_count() or 0,
+            "load_avg_1min": round(os.getloadavg()[0], 2),
             "db_mb": round((root / "bench.duckdb").stat().st_size / 1e6, 1),
         }
     finally:
-        if not keep:
-            shutil.rmtree(root, ignore_errors=True)
+        shutil.rmtree(root, ignore_errors=True)

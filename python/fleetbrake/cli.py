@@ -67,19 +67,102 @@ def bench_ingest_command(
     workdir: Annotated[
         Path | None, typer.Option("--workdir", help="Where to make the temporary directory.")
     ] = None,
+    fleet_dir: Annotated[
+        Path | None,
+        typer.Option("--fleet", help="Make the fleet here and keep it; reuse it if it exists."),
+    ] = None,
 ) -> None:
     """Ingestion speed and peak memory on a synthetic gzip fleet (events excluded)."""
     import json
 
     from fleetbrake.bench_ingest import bench_ingest
 
-    figures = bench_ingest(rows, workdir=workdir)
+    figures = bench_ingest(rows, workdir=workdir, fleet_dir=fleet_dir)
     typer.echo(
         f"ingested {figures['rows']:,} rows ({figures['files']} gzip files, "
         f"{figures['gzip_mb']} MB) in {figures['seconds']} s: "
         f"{figures['rows_per_s']:,} rows/s, peak RSS {figures['peak_rss_mb']} MB"
     )
     if json_out:
+        typer.echo(json.dumps(figures))
+
+
+@bench_app.command("solver")
+def bench_solver_command(
+    json_out: Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")] = False,
+    element: Annotated[str, typer.Option("--element", help="hex20 or hex8.")] = "hex20",
+    steps: Annotated[int, typer.Option("--steps", help="Time steps of 1 s.")] = 600,
+    refinement: Annotated[
+        float, typer.Option("--refinement", help="Mesh refinement (1.0: ~21,600 hex20 nodes).")
+    ] = 1.0,
+    cholesky: Annotated[
+        str, typer.Option("--cholesky", help="auto, simplicial or supernodal (ours).")
+    ] = "auto",
+) -> None:
+    """Our block model against scikit-fem on manoeuvre A: time, memory, traffic bound."""
+    import json
+
+    from fleetbrake.bench_solver import bench_solver, print_table
+
+    try:
+        figures = bench_solver(element, steps, refinement, cholesky)
+    except (ValueError, RuntimeError) as error:
+        typer.echo(f"fleetbrake bench solver: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    print_table(figures)
+    if json_out:
+        typer.echo(json.dumps(figures))
+
+
+@app.command("paper")
+def paper_command(
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", help="Write the pictures (PNG) and fields (VTU) into this directory."
+        ),
+    ] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")] = False,
+    study: Annotated[
+        bool,
+        typer.Option(
+            "--study", help="Also the study: sensor depth, convection, cylinder bore (minutes)."
+        ),
+    ] = False,
+) -> None:
+    """The paper's manoeuvres A and B in the declared model with the registry defaults.
+
+    Force chain, heat input, sensor temperature over 1200 s, time to the sensor's maximum
+    against the paper's 271 s and 220 s, friction-face temperatures, and one sensor depth
+    calibrated to both manoeuvres. See docs/paper-reproduction.md.
+    """
+    import json
+
+    from fleetbrake.paper import (
+        print_report,
+        print_study,
+        reproduce_paper,
+        run_study,
+        write_outputs,
+    )
+
+    try:
+        rep = reproduce_paper()
+        print_report(rep)
+        studied = None
+        if study:
+            studied = run_study(rep)
+            print_study(studied)
+        if out is not None:
+            for path in write_outputs(rep, out, studied):
+                typer.echo(f"wrote {path}")
+    except (ValueError, RuntimeError, OSError) as error:
+        typer.echo(f"fleetbrake paper: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    if json_out:
+        figures = rep.to_dict()
+        if studied is not None:
+            figures["study"] = studied.to_dict()
         typer.echo(json.dumps(figures))
 
 

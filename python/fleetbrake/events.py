@@ -10,7 +10,8 @@
 
 How an event is found (defaults of :class:`EventConfig`):
 
-1. **Samples.** Samples without a pressure value are left out of the detection. A data gap of
+1. **Samples.** Of samples with the same time (files that overlap), the one of the earliest
+   file counts. Samples without a pressure value are left out of the detection. A data gap of
    more than ``max_gap_s`` (15 s) between two pressure values splits the data into segments:
    an event never bridges such a gap (the pressure in it is unknown); an event cut by a gap
    or by the start or end of the data is kept with ``complete = false``. Shorter gaps are
@@ -31,8 +32,9 @@ How an event is found (defaults of :class:`EventConfig`):
    ``v_start_kmh``/``v_end_kmh`` at start and end, null if no speed within ``speed_near_s``.
    ``p_mean_bar`` is the time average of the pressure over [start, end] (paper eq. 1,
    trapezoidal), ``p_max_bar`` its maximum. ``t_block_start_c`` is the valid block temperature
-   at the activation, or the latest valid one up to ``temp_lookback_s`` (5 s) before it; null
-   when the sensor was faulty or silent.
+   at the activation; where the reading there is missing (empty cell, dropped row), the latest
+   valid one up to ``temp_lookback_s`` (5 s) before; null when the reading at the activation
+   is a fault (out of range) or no valid one is that close.
 6. **Kind.** ``stop`` when ``v_end_kmh`` <= ``stop_speed_kmh`` (5 km/h); ``drag`` for a long
    low-pressure application at speed: at least ``drag_min_duration_s`` (120 s), ``p_mean_bar``
    <= ``drag_max_p_mean_bar`` (1.2 bar), speed never below ``drag_min_speed_kmh`` (15 km/h);
@@ -45,11 +47,13 @@ events depend only on its own samples. Every chain touching a dirty range is det
 and the events table is brought in line in one transaction per wagon: events that are the
 same are left alone (their ``detected_utc`` unchanged), changed or vanished ones are replaced
 or deleted, new ones inserted, and the wagon's dirty ranges removed. A run killed half-way
-leaves the dirty ranges in place, so the next run does the work again.
+leaves the dirty ranges in place, so the next run does the work again. Samples are loaded a
+few whole chains (at most about 500,000 rows, unless one chain is longer) at a time.
 """
 
 from __future__ import annotations
 
+import bisect
 import datetime as dt
 import itertools
 import math
@@ -200,32 +204,56 @@ class _Series:
     pressure_bar: np.ndarray
     distance_m: np.ndarray
     block_temp_c: np.ndarray
+    block_temp_fault: np.ndarray
+    """True where the Pt1000 reading was out of range (a broken wire)."""
     speed_time_s: np.ndarray
     """Times of the samples with a speed."""
     speed_kmh: np.ndarray
     """Running median of the speed at ``speed_time_s``."""
+    distance_by_file: dict[int, tuple[np.ndarray, np.ndarray]]
+    """Per file: times and values of its ``distance_m`` readings."""
 
     @classmethod
     def of(cls, samples: pl.DataFrame, config: EventConfig) -> _Series:
-        frame = samples.sort("time_utc", maintain_order=True).unique(
-            subset="time_utc", keep="first", maintain_order=True
-        )
-        time_us = frame["time_utc"].cast(pl.Datetime("us")).cast(pl.Int64).to_numpy()
+        frame = samples.with_columns(pl.col("time_utc").cast(pl.Datetime("us")))
+        time_us = frame["time_utc"].to_physical().to_numpy()
+        if not np.all(np.diff(time_us) > 0):  # not sorted, or a time repeated
+            frame = frame.sort("time_utc", maintain_order=True).unique(
+                subset="time_utc", keep="first", maintain_order=True
+            )
+            time_us = frame["time_utc"].to_physical().to_numpy()
         speed = frame.select("time_utc", "speed_kmh").drop_nulls().drop_nans()
         smooth = speed["speed_kmh"].rolling_median(
             window_size=config.speed_median_samples, center=True, min_samples=1
         )
+        time_s = time_us / _US_PER_S
+        file_id = (
+            frame["file_id"].to_numpy()
+            if "file_id" in frame.columns
+            else np.zeros(frame.height, dtype=np.int64)
+        )
+        distance_m = frame["distance_m"].cast(pl.Float64).to_numpy()
+        has_distance = ~np.isnan(distance_m)
+        distance_by_file = {
+            int(f): (
+                time_s[(file_id == f) & has_distance],
+                distance_m[(file_id == f) & has_distance],
+            )
+            for f in np.unique(file_id)
+        }
         return cls(
-            time_s=time_us / _US_PER_S,
+            time_s=time_s,
             time_us=time_us,
-            file_id=(
-                frame["file_id"].to_numpy()
-                if "file_id" in frame.columns
-                else np.zeros(frame.height, dtype=np.int64)
-            ),
+            file_id=file_id,
             pressure_bar=frame["brake_pressure_bar"].cast(pl.Float64).to_numpy(),
-            distance_m=frame["distance_m"].cast(pl.Float64).to_numpy(),
+            distance_m=distance_m,
+            distance_by_file=distance_by_file,
             block_temp_c=frame["block_temp_c"].cast(pl.Float64).to_numpy(),
+            block_temp_fault=(
+                frame["block_temp_fault"].fill_null(False).to_numpy()
+                if "block_temp_fault" in frame.columns
+                else np.zeros(frame.height, dtype=bool)
+            ),
             speed_time_s=speed["time_utc"].cast(pl.Datetime("us")).cast(pl.Int64).to_numpy()
             / _US_PER_S,
             speed_kmh=smooth.to_numpy(),
@@ -259,29 +287,38 @@ class _Series:
         return float(np.trapezoid(self.speed_kmh[a:b] / 3.6, self.speed_time_s[a:b]))
 
     def distance(self, start_s: float, end_s: float) -> float:
-        """Distance travelled in [start_s, end_s]: per file, from ``distance_m`` where the file
-        has at least two values (interpolated), else from the speed."""
-        a = np.searchsorted(self.time_s, start_s, side="left")
-        b = np.searchsorted(self.time_s, end_s, side="right")
+        """Distance travelled in [start_s, end_s], NaN if unknown.
+
+        ``distance_m`` restarts in every file, so the window is cut into runs of one file:
+        within a run, from ``distance_m`` (interpolated) where the file has at least two
+        values, else from the speed; between runs, from the speed.
+        """
+        a = int(np.searchsorted(self.time_s, start_s, side="left"))
+        b = int(np.searchsorted(self.time_s, end_s, side="right"))
+        if b - a < 2:
+            return 0.0 if b > a else math.nan
+        files = self.file_id[a:b]
+        cuts = np.flatnonzero(files[1:] != files[:-1]) + 1
+        bounds = [a, *(a + cuts).tolist(), b]
         total = 0.0
-        for file_id in np.unique(self.file_id[a:b]):
-            in_file = self.file_id == file_id
-            piece = self.time_s[a:b][self.file_id[a:b] == file_id]
-            t0, t1 = float(piece[0]), float(piece[-1])
-            valid = in_file & ~np.isnan(self.distance_m)
-            if valid.sum() >= 2:
-                d0, d1 = np.interp([t0, t1], self.time_s[valid], self.distance_m[valid])
+        for first, stop in itertools.pairwise(bounds):
+            t0, t1 = float(self.time_s[first]), float(self.time_s[stop - 1])
+            times_s, values_m = self.distance_by_file[int(self.file_id[first])]
+            if len(times_s) >= 2:
+                d0, d1 = np.interp([t0, t1], times_s, values_m)
                 total += max(float(d1 - d0), 0.0)
             else:
-                part = self.speed_distance_m(t0, t1)
-                if math.isnan(part):
-                    return math.nan
-                total += part
+                total += self.speed_distance_m(t0, t1) if t1 > t0 else 0.0
+            if stop < b:  # the junction to the next file
+                total += self.speed_distance_m(t1, float(self.time_s[stop]))
         return total
 
     def block_temp_at(self, time_s: float, lookback_s: float) -> float:
-        """Valid block temperature at ``time_s`` or the latest one up to ``lookback_s`` before."""
-        b = np.searchsorted(self.time_s, time_s, side="right")
+        """Block temperature at ``time_s``: NaN if the sensor is faulty there, else the reading
+        there or, where it is missing, the latest one up to ``lookback_s`` before."""
+        b = int(np.searchsorted(self.time_s, time_s, side="right"))
+        if b > 0 and self.time_s[b - 1] == time_s and self.block_temp_fault[b - 1]:
+            return math.nan
         a = np.searchsorted(self.time_s, time_s - lookback_s, side="left")
         window = self.block_temp_c[a:b]
         valid = np.flatnonzero(~np.isnan(window))
@@ -294,7 +331,8 @@ def detect_events(
     """The braking events in one wagon's samples (columns :data:`EVENT_COLUMNS`).
 
     ``samples`` needs ``time_utc``, ``speed_kmh``, ``distance_m``, ``brake_pressure_bar`` and
-    ``block_temp_c`` (null where missing or faulty); ``file_id`` if it spans several files
+    ``block_temp_c`` (null where missing or faulty); ``block_temp_fault`` (out of range) if
+    known; ``file_id`` if it spans several files
     (``distance_m`` restarts in each). Any order; of repeated times the first row counts.
     """
     config = config or EventConfig()
@@ -384,26 +422,51 @@ class EventUpdate:
     """Ids of the events inserted by this update."""
 
 
+_LOAD_ROWS = 500_000
+"""Samples loaded per query at most (whole chains; a longer chain is loaded alone)."""
+
+
 @dataclass(frozen=True)
 class _Chain:
+    """Files of one wagon closer than ``max_gap_s`` to each other: their time span, rows."""
+
     from_utc: dt.datetime
     to_utc: dt.datetime
+    rows: int
 
 
-def _chains(files: list[tuple[dt.datetime, dt.datetime]], max_gap_s: float) -> list[_Chain]:
-    """Files (first, last sample) sorted by first, grouped where closer than ``max_gap_s``."""
+def _chains(files: list[tuple[dt.datetime, dt.datetime, int]], max_gap_s: float) -> list[_Chain]:
+    """Files (first, last sample, rows) sorted by first, grouped where closer than ``max_gap_s``."""
     chains: list[_Chain] = []
     gap = dt.timedelta(seconds=max_gap_s)
-    for first, last in files:
+    for first, last, rows in files:
         if chains and first - chains[-1].to_utc <= gap:
-            chains[-1] = _Chain(chains[-1].from_utc, max(chains[-1].to_utc, last))
+            before = chains[-1]
+            chains[-1] = _Chain(before.from_utc, max(before.to_utc, last), before.rows + rows)
         else:
-            chains.append(_Chain(first, last))
+            chains.append(_Chain(first, last, rows))
     return chains
 
 
-def _touches(chain: _Chain, from_utc: dt.datetime, to_utc: dt.datetime, gap: dt.timedelta) -> bool:
-    return chain.from_utc - gap <= to_utc and from_utc <= chain.to_utc + gap
+def _merged(
+    ranges: list[tuple[dt.datetime, dt.datetime]], pad: dt.timedelta
+) -> list[tuple[dt.datetime, dt.datetime]]:
+    """Ranges widened by ``pad`` on both sides, sorted, overlapping ones merged."""
+    merged: list[tuple[dt.datetime, dt.datetime]] = []
+    for a, b in sorted((a - pad, b + pad) for a, b in ranges):
+        if merged and a <= merged[-1][1]:
+            merged[-1] = (merged[-1][0], max(merged[-1][1], b))
+        else:
+            merged.append((a, b))
+    return merged
+
+
+def _overlaps(
+    merged: list[tuple[dt.datetime, dt.datetime]], from_utc: dt.datetime, to_utc: dt.datetime
+) -> bool:
+    """[from_utc, to_utc] meets one of the sorted disjoint ranges ``merged``."""
+    i = bisect.bisect_right(merged, (to_utc, dt.datetime.max))
+    return i > 0 and merged[i - 1][1] >= from_utc
 
 
 def update_events(wh: Warehouse, config: EventConfig | None = None) -> EventUpdate:
@@ -431,33 +494,20 @@ def _update_wagon(
     config: EventConfig,
     update: EventUpdate,
 ) -> None:
+    """One wagon, one transaction: detect its touched chains again, bring its events in line."""
     con = wh.con
-    gap = dt.timedelta(seconds=config.max_gap_s)
     with wh.transaction():
         files = con.execute(
-            "SELECT first_utc, last_utc FROM files "
+            "SELECT first_utc, last_utc, rows FROM files "
             "WHERE wagon_id = $wagon_id AND status = 'ingested' AND rows > 0 "
             "ORDER BY first_utc, file_id",
             {"wagon_id": wagon_id},
         ).fetchall()
-        affected = [
-            chain
-            for chain in _chains(files, config.max_gap_s)
-            if any(_touches(chain, a, b, gap) for a, b in dirty)
-        ]
-        windows = [(c.from_utc, c.to_utc) for c in affected] + dirty
-        detected = [
-            detect_events(
-                con.execute(
-                    sql("q_event_samples"),
-                    {"wagon_id": wagon_id, "from_utc": c.from_utc, "to_utc": c.to_utc},
-                ).pl(),
-                wagon_id,
-                config,
-            )
-            for c in affected
-        ]
-        new = pl.concat(detected) if detected else pl.DataFrame(schema=EVENT_COLUMNS)
+        chains = _chains(files, config.max_gap_s)
+        touched = _merged(dirty, dt.timedelta(seconds=config.max_gap_s))
+        affected = [c for c in chains if _overlaps(touched, c.from_utc, c.to_utc)]
+        new = _detect_chains(wh, wagon_id, chains, affected, config)
+        windows = _merged([(c.from_utc, c.to_utc) for c in affected] + dirty, dt.timedelta(0))
         old = _events_in(wh, wagon_id, windows)
         new_rows = {row["event_id"]: row for row in new.iter_rows(named=True)}
         old_rows = {row["event_id"]: row for row in old.iter_rows(named=True)}
@@ -471,9 +521,7 @@ def _update_wagon(
             )
             con.register("event_batch", batch)
             try:
-                con.execute(
-                    "INSERT INTO events BY NAME SELECT * FROM event_batch",
-                )
+                con.execute(sql("q_insert_events"))
             finally:
                 con.unregister("event_batch")
         con.execute("DELETE FROM event_dirty WHERE wagon_id = $wagon_id", {"wagon_id": wagon_id})
@@ -484,21 +532,59 @@ def _update_wagon(
     update.changed_ids.extend(sorted(fresh))
 
 
+def _detect_chains(
+    wh: Warehouse,
+    wagon_id: str,
+    chains: list[_Chain],
+    affected: list[_Chain],
+    config: EventConfig,
+) -> pl.DataFrame:
+    """Events of the ``affected`` chains, their samples loaded a few chains at a time."""
+    found = [pl.DataFrame(schema=EVENT_COLUMNS)]
+    position = {chain: i for i, chain in enumerate(chains)}
+    rows_before = list(itertools.accumulate((c.rows for c in chains), initial=0))
+    group: list[_Chain] = []
+    for chain in [*affected, None]:
+        if group and (
+            chain is None
+            or rows_before[position[chain] + 1] - rows_before[position[group[0]]] > _LOAD_ROWS
+        ):
+            samples = _samples(wh, wagon_id, group[0].from_utc, group[-1].to_utc)
+            times = samples["time_utc"]
+            for member in group:
+                lo = times.search_sorted(member.from_utc, side="left")
+                hi = times.search_sorted(member.to_utc, side="right")
+                found.append(detect_events(samples.slice(lo, hi - lo), wagon_id, config))
+            group = []
+        if chain is not None:
+            group.append(chain)
+    return pl.concat(found)
+
+
+def _samples(
+    wh: Warehouse, wagon_id: str, from_utc: dt.datetime, to_utc: dt.datetime
+) -> pl.DataFrame:
+    """A wagon's samples in [from_utc, to_utc], sorted by time (then file)."""
+    params = {"wagon_id": wagon_id, "from_utc": from_utc, "to_utc": to_utc}
+    return wh.con.sql(sql("q_event_samples"), params=params).pl()
+
+
 def _events_in(
     wh: Warehouse, wagon_id: str, windows: list[tuple[dt.datetime, dt.datetime]]
 ) -> pl.DataFrame:
-    """The stored events of a wagon overlapping any window (columns :data:`EVENT_COLUMNS`)."""
-    frames = [
-        wh.con.execute(
-            f"SELECT {', '.join(EVENT_COLUMNS)} FROM events "
-            "WHERE wagon_id = $wagon_id AND start_utc <= $to_utc AND end_utc >= $from_utc",
-            {"wagon_id": wagon_id, "from_utc": a, "to_utc": b},
-        ).pl()
-        for a, b in windows
-    ]
-    if not frames:
+    """The stored events of a wagon overlapping one of the sorted disjoint ``windows``."""
+    if not windows:
         return pl.DataFrame(schema=EVENT_COLUMNS)
-    return pl.concat(frames).unique(subset="event_id", keep="first").cast(EVENT_COLUMNS)
+    stored = wh.con.sql(
+        f"SELECT {', '.join(EVENT_COLUMNS)} FROM events "
+        "WHERE wagon_id = $wagon_id AND start_utc <= $to_utc AND end_utc >= $from_utc",
+        params={"wagon_id": wagon_id, "from_utc": windows[0][0], "to_utc": windows[-1][1]},
+    ).pl()
+    keep = [
+        _overlaps(windows, start, end)
+        for start, end in zip(stored["start_utc"], stored["end_utc"], strict=True)
+    ]
+    return stored.filter(pl.Series(keep, dtype=pl.Boolean)).cast(EVENT_COLUMNS)
 
 
 def _utc_now() -> dt.datetime:

@@ -25,22 +25,24 @@ ignored: they are temporary files of copies in progress):
   not of the form ``logs/<wagon_id>/<wagon_id>_<YYYYMMDDTHHMMSSZ>.csv[.gz]`` (or a wagon
   directory not matching the file name), a wagon that has no valid registry entry (retried at
   every run, so it is taken once the registry is fixed), an empty file, a gzip stream that is
-  corrupt or truncated, content that is not text, a first line that is not a header with every
-  required column (or names one twice).
+  corrupt or truncated (its rows up to the cut could be read, but nothing vouches for them: no
+  end of stream, no checksum), content that is not text, a first line that is not a header
+  with every required column (or names one twice). Whether a file is gzip is decided by its
+  content, not its name (a mismatch is noted in ``repairs``).
 * **Repairs** (file ingested, counted in ``files`` and described in ``files.repairs`` with line
   numbers): a last row cut short (the file does not end in a newline) is dropped; a row whose
   time cell is empty or not a time is dropped; a row timed before the file name's time or more
   than ``max_session_s`` after it is dropped; a repeated time keeps its first row; rows out of
   order are sorted; a numeric cell that is not a finite number becomes empty (the row is kept);
   a ``block_temp_c`` reading outside [-60, 600] °C is a broken wire: stored as
-  ``block_temp_raw_c`` with ``block_temp_fault = 'out_of_range'``, ``block_temp_c`` null. A
+  ``block_temp_raw_c`` with ``block_temp_fault = true``, ``block_temp_c`` null. A
   line with fewer cells than the header has empty trailing cells, one with more has its extra
   cells ignored.
 
-Speed: files are read, hashed, decompressed and parsed by ``workers`` threads (zlib, hashlib,
-polars and DuckDB release the GIL) while the main thread writes; at most ``in_flight_files``
-files are held in memory, and DuckDB's buffer pool is bounded, so memory does not grow with
-the fleet.
+Speed: files are read, hashed, decompressed and parsed by ``workers`` threads (zlib, hashlib
+and polars release the GIL) while the main thread writes batches to DuckDB; at most
+``in_flight_files`` files and one batch are held in memory, and DuckDB's buffer pool is
+bounded (``warehouse.DEFAULT_MEMORY_LIMIT``), so memory does not grow with the fleet.
 """
 
 from __future__ import annotations
@@ -54,11 +56,22 @@ import zlib
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import duckdb
 import numpy as np
 import polars as pl
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeRemainingColumn,
+)
 
 from fleetbrake.events import EventConfig, EventUpdate, update_events
 from fleetbrake.logfile import (
@@ -107,18 +120,22 @@ class IngestConfig:
 
     workers: int = 2
     """Threads reading, hashing, decompressing and parsing files while the main thread writes."""
-    in_flight_files: int = 4
-    """Most files read but not yet written, held in memory at once."""
+    in_flight_files: int = 16
+    """Most files read but not yet handed to the writer, held in memory at once (enough for
+    the workers to go on while a batch is written)."""
     max_session_s: int = 48 * 3600
     """A row timed more than this after the file name's time is not of this session."""
     max_file_bytes: int = 1 << 30
     """A larger file is quarantined unread (a session at 1 Hz is a few MB)."""
     batch_rows: int = 250_000
-    """Whole files are committed together until they hold this many rows (see _Transactions)."""
+    """Whole files are committed together until they hold this many rows (see _Batch)."""
     batch_files: int = 500
     """... or this many files."""
     verify_hashes: bool = False
     """Re-read and hash recorded files even when their size and mtime are unchanged."""
+    memory_limit: str = "256MB"
+    """DuckDB's buffer pool during the ingestion (restored afterwards): the written blocks it
+    caches would otherwise grow with the fleet up to the connection's limit."""
     block_temp_valid_c: tuple[float, float] = BLOCK_TEMP_VALID_C
     """Pt1000 readings outside this closed range are faults, not temperatures."""
 
@@ -294,23 +311,25 @@ def _complete_rows(body: bytes, repairs: Repairs, relpath: str) -> bytes:
 def _parse_cells(body: bytes, names: list[str]) -> tuple[pl.DataFrame, pl.DataFrame | None]:
     """The known columns of ``body``: ``time_utc`` as text, numbers as Float64.
 
-    Fast path: typed parse. If a cell is not a number, a line has more cells than the header,
-    or the bytes are not UTF-8, every column is parsed as text (extra cells ignored, bad bytes
-    replaced) and cast cell by cell; then the text is returned too, for the notes.
+    The body is parsed under a clean copy of its header (so the header, not the first data
+    line, says how many cells a line has). Fast path: typed parse. If a cell is not a number,
+    a line has more cells than the header, or the bytes are not UTF-8, every column is parsed
+    as text (extra cells ignored, bad bytes replaced) and cast cell by cell; then the text is
+    returned too, for the notes. A line with fewer cells has empty trailing cells.
     """
     wanted = [i for i, name in enumerate(names) if name in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
     placeholders = [name if i in wanted else f"_ignored_{i}" for i, name in enumerate(names)]
+    data = ",".join(placeholders).encode() + b"\n" + body
     typed = pl.Schema(
         {name: (pl.Float64 if name in FLOAT_COLUMNS else pl.String) for name in placeholders}
     )
     try:
-        frame = pl.read_csv(body, has_header=False, schema=typed, columns=wanted, quote_char=None)
+        frame = pl.read_csv(data, schema=typed, columns=wanted, quote_char=None)
         return frame, None
-    except pl.exceptions.ComputeError:
+    except pl.exceptions.PolarsError:
         pass
     text = pl.read_csv(
-        body,
-        has_header=False,
+        data,
         schema=pl.Schema({name: pl.String for name in placeholders}),
         columns=wanted,
         quote_char=None,
@@ -397,7 +416,7 @@ def _times(
     """Parse ``time_utc``, drop rows without a usable time, keep the first of repeated times,
     sort; counted and noted. Adds ``_line`` (file line numbers) when rows move or go."""
     frame = frame.with_columns(
-        pl.col("time_utc").str.to_datetime(TIME_FORMAT, time_unit="us", strict=False)
+        pl.col("time_utc").str.to_datetime(TIME_FORMAT, time_unit="us", strict=False, cache=False)
     )
     latest_utc = start_utc + dt.timedelta(seconds=config.max_session_s)
     if _in_order(frame["time_utc"], start_utc, latest_utc):
@@ -461,20 +480,21 @@ def _block_temp_faults(frame: pl.DataFrame, config: IngestConfig, repairs: Repai
     if not count:
         return frame.with_columns(
             pl.lit(None, dtype=pl.Float64).alias("block_temp_raw_c"),
-            pl.lit(None, dtype=pl.String).alias("block_temp_fault"),
+            pl.lit(False).alias("block_temp_fault"),
         )
     lines = _line_numbers(frame, faulty)
     values = frame.filter(faulty)["block_temp_c"]
+    lowest, highest = float(values.min()), float(values.max())  # type: ignore[arg-type]
     repairs.block_temp_faults = count
     repairs.notes.append(
         f"{count} block_temp_c reading{'s' if count > 1 else ''} outside "
-        f"[{low_c:g}, {high_c:g}] degC (broken wire; {values.min():g} to {values.max():g}) "
+        f"[{low_c:g}, {high_c:g}] degC (broken wire; {lowest:g} to {highest:g}) "
         f"kept as faults, not temperatures: {_lines(lines, count)}"
     )
     return frame.with_columns(
         pl.when(fault).then(None).otherwise(raw).alias("block_temp_c"),
         pl.when(fault).then(raw).otherwise(None).alias("block_temp_raw_c"),
-        pl.when(fault).then(pl.lit("out_of_range")).otherwise(None).alias("block_temp_fault"),
+        faulty.alias("block_temp_fault"),
     )
 
 
@@ -504,15 +524,15 @@ def read_log(
     body = _complete_rows(body, repairs, relpath)
     frame, text = _parse_cells(body, names)
     repairs.rows_in_file = frame.height
+    frame = _clear_unparsable(frame, text, repairs)
     for name in OPTIONAL_COLUMNS:
         if name not in frame.columns:
             frame = frame.with_columns(pl.lit(None, dtype=pl.Float64).alias(name))
-    frame = _clear_unparsable(frame, text, repairs)
     text_time = (text if text is not None else frame)["time_utc"]
     frame = _times(frame, text_time, start_utc, config, repairs)
     frame = _block_temp_faults(frame, config, repairs)
     frame = frame.select("time_utc", *FLOAT_COLUMNS, "block_temp_raw_c", "block_temp_fault")
-    return ParsedLog(frame.rechunk(), repairs)
+    return ParsedLog(frame, repairs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -577,7 +597,7 @@ def _known_files(wh: Warehouse) -> dict[str, _Known]:
 
 
 def _needs_reading(entry: LogEntry, known: _Known | None, config: IngestConfig) -> bool:
-    if known is None or config.verify_hashes or known.quarantine_code == "registry":
+    if known is None or config.verify_hashes or known.quarantine_code in _RETRIED_CODES:
         return True
     return (known.size_bytes, known.mtime_ns) != (entry.size_bytes, entry.mtime_ns)
 
@@ -601,15 +621,39 @@ def _sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _prepare(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prepared:
-    """Read, hash and judge one file (runs in a worker thread)."""
+_RETRIED_CODES = frozenset({"registry", "unreadable", "error"})
+"""Quarantine reasons judged again at every run, as their cause may have gone away: the
+registry fixed, the file made readable, the reader fixed."""
+
+
+def _path_wagon(relpath: str) -> str | None:
+    """The wagon directory of a path ``logs/<wagon>/<file>``, None for any other shape."""
+    parts = relpath.split("/")
+    return parts[1] if len(parts) == 3 else None
+
+
+def _prepare(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prepared | None:
+    """Read, hash and judge one file (runs in a worker thread); None if it vanished."""
+    try:
+        return _judge(entry, registry, config)
+    except FileNotFoundError:
+        return None
+    except OSError as error:
+        reason = f"{entry.relpath}: cannot be read ({error.strerror or error})"
+        return _Prepared(
+            entry, "", _path_wagon(entry.relpath), quarantine=Quarantine("unreadable", reason)
+        )
+
+
+def _judge(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prepared:
     try:
         name = parse_log_path(entry.relpath)
     except LogNameError as error:
-        parts = entry.relpath.split("/")
-        wagon_id = parts[1] if len(parts) == 3 else None
         return _Prepared(
-            entry, _sha256_file(entry.path), wagon_id, quarantine=Quarantine("name", str(error))
+            entry,
+            _sha256_file(entry.path),
+            _path_wagon(entry.relpath),
+            quarantine=Quarantine("name", str(error)),
         )
     if entry.size_bytes > config.max_file_bytes:
         reason = (
@@ -637,6 +681,9 @@ def _prepare(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prep
         parsed = read_log(data, entry.relpath, name.start_utc, config)
     except Quarantine as problem:
         return _Prepared(entry, sha256, name.wagon_id, quarantine=problem)
+    except Exception as error:  # a reader bug must not stop the fleet: the file says which
+        reason = f"{entry.relpath}: could not be read ({type(error).__name__}: {error})"
+        return _Prepared(entry, sha256, name.wagon_id, quarantine=Quarantine("error", reason))
     return _Prepared(entry, sha256, name.wagon_id, parsed=parsed)
 
 
@@ -644,26 +691,59 @@ def _utc_now() -> dt.datetime:
     return dt.datetime.now(dt.UTC).replace(tzinfo=None)
 
 
-def _write_file(
-    wh: Warehouse, prepared: _Prepared, known: _Known | None, file_id: int
-) -> FileResult:
-    """Replace what the path held, record the file, store its samples and its dirty time
-    range; inside the caller's transaction."""
+_FILES_SCHEMA = pl.Schema(
+    {
+        "file_id": pl.Int64,
+        "path": pl.String,
+        "wagon_id": pl.String,
+        "sha256": pl.String,
+        "size_bytes": pl.Int64,
+        "mtime_ns": pl.Int64,
+        "status": pl.String,
+        "quarantine_code": pl.String,
+        "reason": pl.String,
+        "rows": pl.Int64,
+        "rows_in_file": pl.Int64,
+        "rows_no_time": pl.Int64,
+        "rows_outside_session": pl.Int64,
+        "rows_duplicate": pl.Int64,
+        "rows_out_of_order": pl.Int64,
+        "cells_unparsable": pl.Int64,
+        "block_temp_faults": pl.Int64,
+        "partial_row_dropped": pl.Boolean,
+        "repairs": pl.String,
+        "first_utc": pl.Datetime("us"),
+        "last_utc": pl.Datetime("us"),
+        "ingested_utc": pl.Datetime("us"),
+    }
+)
+"""Columns of a ``files`` row, as :class:`_Batch` collects them."""
+
+_DIRTY_SCHEMA = pl.Schema(
+    {
+        "wagon_id": pl.String,
+        "from_utc": pl.Datetime("us"),
+        "to_utc": pl.Datetime("us"),
+        "file_id": pl.Int64,
+    }
+)
+
+
+def _file_row(prepared: _Prepared, file_id: int) -> dict[str, object]:
+    """The ``files`` row of a prepared file."""
     entry, parsed, problem = prepared.entry, prepared.parsed, prepared.quarantine
     repairs = parsed.repairs if parsed is not None else Repairs()
-    status = "ingested" if parsed is not None else "quarantined"
-    rows = parsed.frame.height if parsed is not None else 0
-    params = {
+    return {
         "file_id": file_id,
         "path": entry.relpath,
         "wagon_id": prepared.wagon_id,
         "sha256": prepared.sha256,
         "size_bytes": entry.size_bytes,
         "mtime_ns": entry.mtime_ns,
-        "status": status,
+        "status": "ingested" if parsed is not None else "quarantined",
         "quarantine_code": problem.code if problem else None,
         "reason": problem.reason if problem else None,
-        "rows": rows,
+        "rows": parsed.frame.height if parsed is not None else 0,
         "rows_in_file": repairs.rows_in_file if parsed is not None else None,
         "rows_no_time": repairs.rows_no_time,
         "rows_outside_session": repairs.rows_outside_session,
@@ -677,106 +757,133 @@ def _write_file(
         "last_utc": parsed.last_utc if parsed is not None else None,
         "ingested_utc": _utc_now(),
     }
-    con = wh.con
-    if known is not None:
-        con.execute("DELETE FROM samples WHERE file_id = $id", {"id": known.file_id})
-        con.execute("DELETE FROM files WHERE file_id = $id", {"id": known.file_id})
-        if known.status == "ingested" and known.first_utc is not None:
-            _mark_dirty(wh, known.wagon_id, known.first_utc, known.last_utc, file_id)
-    con.execute(sql("q_insert_file"), params)
-    if parsed is not None and rows:
-        con.register("batch", parsed.frame)
-        try:
-            con.execute(
-                sql("q_insert_samples"), {"wagon_id": prepared.wagon_id, "file_id": file_id}
-            )
-        finally:
-            con.unregister("batch")
-        _mark_dirty(wh, prepared.wagon_id, parsed.first_utc, parsed.last_utc, file_id)
-    return FileResult(
-        path=entry.relpath,
-        wagon_id=prepared.wagon_id,
-        status=status,
-        rows=rows,
-        reason=params["reason"],
-        repairs=params["repairs"],
-        replaced=known is not None,
-    )
 
 
-class _Transactions:
-    """Groups whole files into transactions of about ``batch_rows`` rows.
+class _Batch:
+    """Files written together, in one transaction, when they hold ``batch_rows`` rows.
 
-    A file is never split: its ``files`` row, samples and dirty range commit together, with
-    the other files of its transaction. Grouping lets DuckDB write full row groups straight
-    to the database file instead of through its write-ahead log (small commits are about
-    twice as slow). On an exception the open transaction is rolled back.
+    A file is never split: its ``files`` row, its samples and its dirty time range (and the
+    removal of what its path held before) are in the same transaction, with the other files
+    of its batch. Few large inserts are much faster in DuckDB than many small ones (full row
+    groups are written straight to the database file, in parallel).
     """
 
     def __init__(self, wh: Warehouse, config: IngestConfig) -> None:
         self._wh = wh
         self._config = config
-        self._open = False
+        self._clear()
+
+    def _clear(self) -> None:
+        self._files: list[dict[str, object]] = []
+        self._samples: list[pl.DataFrame] = []
+        self._dirty: list[dict[str, object]] = []
+        self._replaced: list[int] = []
         self._rows = 0
-        self._files = 0
 
-    def write(self, prepared: _Prepared, known: _Known | None, file_id: int) -> FileResult:
-        if not self._open:
-            self._wh.con.execute("BEGIN TRANSACTION")
-            self._open, self._rows, self._files = True, 0, 0
-        result = _write_file(self._wh, prepared, known, file_id)
-        self._rows += result.rows
-        self._files += 1
-        if self._rows >= self._config.batch_rows or self._files >= self._config.batch_files:
-            self.commit()
-        return result
+    def add(self, prepared: _Prepared, known: _Known | None, file_id: int) -> FileResult:
+        """Queue one file (replacing what its path held); flush when the batch is full."""
+        row = _file_row(prepared, file_id)
+        if known is not None:
+            self._replaced.append(known.file_id)
+            if known.status == "ingested" and known.first_utc is not None:
+                self._dirty.append(
+                    _dirty_row(known.wagon_id, known.first_utc, known.last_utc, file_id)
+                )
+        self._files.append(row)
+        parsed = prepared.parsed
+        if parsed is not None and parsed.frame.height:
+            self._samples.append(
+                parsed.frame.with_columns(
+                    pl.lit(prepared.wagon_id, dtype=pl.String).alias("wagon_id"),
+                    pl.lit(file_id, dtype=pl.Int64).alias("file_id"),
+                )
+            )
+            self._dirty.append(
+                _dirty_row(prepared.wagon_id, parsed.first_utc, parsed.last_utc, file_id)
+            )
+            self._rows += parsed.frame.height
+        if self._rows >= self._config.batch_rows or len(self._files) >= self._config.batch_files:
+            self.flush()
+        return FileResult(
+            path=prepared.entry.relpath,
+            wagon_id=prepared.wagon_id,
+            status=str(row["status"]),
+            rows=int(row["rows"]),  # type: ignore[call-overload]
+            reason=row["reason"],  # type: ignore[arg-type]
+            repairs=row["repairs"],  # type: ignore[arg-type]
+            replaced=known is not None,
+        )
 
-    def commit(self) -> None:
-        if self._open:
-            self._wh.con.execute("COMMIT")
-            self._open = False
+    def flush(self) -> None:
+        """Write the queued files in one transaction."""
+        if not self._files:
+            return
+        con = self._wh.con
+        files = pl.DataFrame(self._files, schema=_FILES_SCHEMA, orient="row")
+        dirty = pl.DataFrame(self._dirty, schema=_DIRTY_SCHEMA, orient="row")
+        samples = pl.concat(self._samples) if self._samples else None
+        with self._wh.transaction():
+            if self._replaced:
+                ids = {"ids": self._replaced}
+                con.execute("DELETE FROM samples WHERE list_contains($ids, file_id)", ids)
+                con.execute("DELETE FROM files WHERE list_contains($ids, file_id)", ids)
+            _insert(con, "file_batch", files, sql("q_insert_files"))
+            if samples is not None:
+                _insert(con, "sample_batch", samples, sql("q_insert_samples"))
+            if dirty.height:
+                _insert(
+                    con,
+                    "dirty_batch",
+                    dirty,
+                    "INSERT INTO event_dirty BY NAME SELECT * FROM dirty_batch",
+                )
+        self._clear()
 
-    def __enter__(self) -> _Transactions:
+    def __enter__(self) -> _Batch:
         return self
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
         if exc_type is None:
-            self.commit()
-        elif self._open:
-            self._wh.con.execute("ROLLBACK")
-            self._open = False
+            self.flush()
 
 
-def _mark_dirty(
-    wh: Warehouse,
+def _insert(con: duckdb.DuckDBPyConnection, name: str, frame: pl.DataFrame, statement: str) -> None:
+    """Run ``statement`` with ``frame`` registered as ``name``."""
+    con.register(name, frame)
+    try:
+        con.execute(statement)
+    finally:
+        con.unregister(name)
+
+
+def _dirty_row(
     wagon_id: str | None,
     from_utc: dt.datetime | None,
     to_utc: dt.datetime | None,
     file_id: int,
-) -> None:
-    wh.con.execute(
-        "INSERT INTO event_dirty (wagon_id, from_utc, to_utc, file_id) "
-        "VALUES ($wagon_id, $from_utc, $to_utc, $file_id)",
-        {"wagon_id": wagon_id, "from_utc": from_utc, "to_utc": to_utc, "file_id": file_id},
-    )
+) -> dict[str, object]:
+    return {"wagon_id": wagon_id, "from_utc": from_utc, "to_utc": to_utc, "file_id": file_id}
 
 
 def _unchanged(prepared: _Prepared, known: _Known | None) -> bool:
     """The file is recorded with these bytes and would be recorded the same way again."""
     if known is None or known.sha256 != prepared.sha256:
         return False
-    if known.quarantine_code != "registry":
+    if known.quarantine_code not in _RETRIED_CODES:
         return True
     problem = prepared.quarantine
-    return problem is not None and problem.code == "registry" and problem.reason == known.reason
+    return problem is not None and (problem.code, problem.reason) == (
+        known.quarantine_code,
+        known.reason,
+    )
 
 
 def _prepared_in_order(
     entries: list[LogEntry], registry: Registry, config: IngestConfig
-) -> Iterator[_Prepared]:
+) -> Iterator[_Prepared | None]:
     """Prepare files on worker threads, yielding them in order, a bounded number ahead."""
     with ThreadPoolExecutor(max_workers=max(1, config.workers)) as pool:
-        pending: deque[Future[_Prepared]] = deque()
+        pending: deque[Future[_Prepared | None]] = deque()
         queue = iter(entries)
         for entry in queue:
             pending.append(pool.submit(_prepare, entry, registry, config))
@@ -835,38 +942,59 @@ def ingest_fleet(
     (last_id,) = wh.con.execute("SELECT coalesce(max(file_id), 0) FROM files").fetchone()
     next_id = int(last_id) + 1
 
-    with (
-        _Progress(len(todo), enabled=_show_progress(progress)) as bar,
-        _Transactions(wh, config) as transactions,
-    ):
-        for prepared in _prepared_in_order(todo, registry, config):
-            before = known.get(prepared.entry.relpath)
-            if _unchanged(prepared, before):
-                report.files_unchanged += 1
-            else:
-                report.results.append(transactions.write(prepared, before, next_id))
-                next_id += 1
-            bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
+    # rows of a batch need not keep their order: inserts are cheaper in parallel
+    with _duckdb_settings(wh, memory_limit=config.memory_limit, preserve_insertion_order=False):
+        with (
+            _Progress(len(todo), enabled=_show_progress(progress)) as bar,
+            _Batch(wh, config) as batch,
+        ):
+            for prepared in _prepared_in_order(todo, registry, config):
+                if prepared is None:  # removed since the scan
+                    report.files_seen -= 1
+                    bar.advance(0)
+                    continue
+                before = known.get(prepared.entry.relpath)
+                if _unchanged(prepared, before):
+                    report.files_unchanged += 1
+                else:
+                    report.results.append(batch.add(prepared, before, next_id))
+                    next_id += 1
+                bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
+        if report.results:
+            wh.con.execute("CHECKPOINT")  # while the memory is bounded, not at close
     report.seconds = time.perf_counter() - started
     return report
+
+
+_SETTINGS_SQL = {
+    "memory_limit": "SET memory_limit = $value",
+    "preserve_insertion_order": "SET preserve_insertion_order = $value",
+}
+
+
+@contextmanager
+def _duckdb_settings(wh: Warehouse, **values: object) -> Iterator[None]:
+    """DuckDB settings changed for the block, then restored."""
+    before = {
+        name: wh.con.execute("SELECT current_setting($name)", {"name": name}).fetchone()[0]
+        for name in values
+    }
+    for name, value in values.items():
+        wh.con.execute(_SETTINGS_SQL[name], {"value": value})
+    try:
+        yield
+    finally:
+        for name, value in before.items():
+            wh.con.execute(_SETTINGS_SQL[name], {"value": value})
 
 
 class _Progress:
     """A rich progress bar over files (with a row count), or nothing."""
 
     def __init__(self, total_files: int, *, enabled: bool) -> None:
-        self._bar = None
+        self._bar: Progress | None = None
         self._rows = 0
         if enabled and total_files:
-            from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeRemainingColumn,
-            )
-
             self._bar = Progress(
                 TextColumn("ingesting"),
                 BarColumn(),
@@ -915,12 +1043,9 @@ def run_ingest(
     return report
 
 
-def print_report(report: IngestReport, console: object | None = None) -> None:
+def print_report(report: IngestReport, console: Console | None = None) -> None:
     """Summary of a run for people: counts, every quarantined file with its reason."""
-    from rich.console import Console
-    from rich.markup import escape
-
-    out = console if isinstance(console, Console) else Console()
+    out = console or Console()
     ingested, quarantined = report.ingested, report.quarantined
     out.print(
         f"{report.fleet_dir} -> {report.db_path}: {report.files_seen} files seen, "

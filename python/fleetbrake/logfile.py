@@ -499,8 +499,8 @@ def garbage_bytes(rng: np.random.Generator, size: int = 4096, *, kind: str = "bi
         return bytes(size)
     if kind == "text":
         words = ["error", "unit", "restart", "flash", "sector", "retry", "ok", "0x1f", "boot"]
-        lines = []
+        lines: list[str] = []
         while sum(len(line) + 1 for line in lines) < size:
-            lines.append(" ".join(rng.choice(words, size=int(rng.integers(3, 9)))))
+            lines.append(" ".join(str(w) for w in rng.choice(words, size=int(rng.integers(3, 9)))))
         return ("\n".join(lines) + "\n").encode()[:size]
     raise ValueError(f"kind must be 'binary', 'text' or 'zeros', got {kind!r}")

@@ -42,6 +42,21 @@ pub enum ThermalError {
     /// Failure inside the sparse linear algebra that is not a definiteness problem.
     #[error("sparse linear algebra failed: {0}")]
     LinearAlgebra(String),
+    /// A bug: a panic caught at the boundary of the library.
+    #[error("internal error in the thermal core (please report): {0}")]
+    Internal(String),
+}
+
+/// Run `f`, turning a panic into [`ThermalError::Internal`] so that none crosses an FFI boundary.
+pub fn catch_panic<T>(f: impl FnOnce() -> Result<T> + std::panic::UnwindSafe) -> Result<T> {
+    std::panic::catch_unwind(f).unwrap_or_else(|payload| {
+        let message = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic".to_string());
+        Err(ThermalError::Internal(message))
+    })
 }
 
 /// Result alias of the thermal core.

@@ -16,6 +16,7 @@ pub mod mesh;
 pub mod model;
 pub mod probe;
 pub mod quadrature;
+pub mod rom;
 pub mod solver;
 pub mod transient;
 

@@ -22,6 +22,9 @@ pub struct Mesh {
     /// Flat connectivity, `kind.n_nodes()` entries per element.
     pub elements: Vec<usize>,
     pub face_sets: Vec<FaceSet>,
+    /// A fill-reducing elimination order proposed by the mesher (nested dissection of a
+    /// structured mesh): `ordering[k]` is the node eliminated k-th.
+    pub ordering: Option<Vec<usize>>,
 }
 
 impl Mesh {
@@ -212,6 +215,7 @@ fn segment_sizes(n: usize, grading: Grading) -> Result<Vec<f64>> {
 /// map puts them on the curve.
 pub fn structured_mesh(
     axes: [&Axis; 3],
+    scales: [f64; 3],
     kind: ElementKind,
     include: impl Fn([f64; 3]) -> bool,
     map: impl Fn([f64; 3]) -> [f64; 3],
@@ -236,6 +240,7 @@ pub fn structured_mesh(
     let mut node_of = vec![usize::MAX; nd[0] * nd[1] * nd[2]];
     let mut nodes: Vec<[f64; 3]> = Vec::new();
     let mut params: Vec<[f64; 3]> = Vec::new();
+    let mut doubled: Vec<[usize; 3]> = Vec::new();
     let mut elements = Vec::new();
     let mut cells = Vec::new();
     let nn = kind.n_nodes();
@@ -262,6 +267,7 @@ pub fn structured_mesh(
                         node_of[key] = nodes.len();
                         nodes.push(map(param));
                         params.push(param);
+                        doubled.push(d);
                     }
                     elements.push(node_of[key]);
                 }
@@ -306,14 +312,93 @@ pub fn structured_mesh(
             FaceSet { name, faces }
         })
         .collect();
+    let extents: [Vec<f64>; 3] = [0, 1, 2].map(|d| {
+        axes[d]
+            .points
+            .windows(2)
+            .map(|w| (w[1] - w[0]) * scales[d])
+            .collect()
+    });
+    let ordering = Some(nested_dissection(&doubled, &extents));
     let mesh = Mesh {
         kind,
         nodes,
         elements,
         face_sets,
+        ordering,
     };
     mesh.check_jacobians()?;
     Ok(mesh)
+}
+
+/// Nested dissection of a structured mesh in index space: split the region of cells along its
+/// physically longest direction at an element boundary; the nodes on that plane form the
+/// separator, ordered after both halves. `doubled[i]` is node i's doubled-grid index and
+/// `cell_sizes[d]` the physical size of each cell along direction d.
+fn nested_dissection(doubled: &[[usize; 3]], cell_sizes: &[Vec<f64>; 3]) -> Vec<usize> {
+    let mut order = Vec::with_capacity(doubled.len());
+    let all: Vec<usize> = (0..doubled.len()).collect();
+    let full = [0, 1, 2].map(|d| (0, cell_sizes[d].len()));
+    dissect(doubled, cell_sizes, all, full, &mut order);
+    order
+}
+
+fn dissect(
+    doubled: &[[usize; 3]],
+    cell_sizes: &[Vec<f64>; 3],
+    nodes: Vec<usize>,
+    region: [(usize, usize); 3],
+    order: &mut Vec<usize>,
+) {
+    if nodes.is_empty() {
+        return;
+    }
+    let extent = |d: usize| -> f64 { cell_sizes[d][region[d].0..region[d].1].iter().sum() };
+    // the cell boundary closest to the physical middle of direction d
+    let middle = |d: usize| -> usize {
+        let (lo, hi) = region[d];
+        let half = 0.5 * extent(d);
+        let mut acc = 0.0;
+        let mut mid = lo + 1;
+        for (c, size) in cell_sizes[d].iter().enumerate().take(hi - 1).skip(lo) {
+            acc += size;
+            mid = c + 1;
+            if acc >= half {
+                break;
+            }
+        }
+        mid
+    };
+    // split where the separator is smallest (fewest nodes on the middle plane)
+    let candidates: Vec<(usize, usize, usize)> = (0..3)
+        .filter(|&d| region[d].1 - region[d].0 >= 2)
+        .map(|d| {
+            let mid = middle(d);
+            let size = nodes.iter().filter(|&&i| doubled[i][d] == 2 * mid).count();
+            (size, d, mid)
+        })
+        .collect();
+    let Some(&(_, axis, mid)) = candidates.iter().min_by_key(|c| (c.0, c.1)) else {
+        order.extend(nodes);
+        return;
+    };
+    let (lo, hi) = region[axis];
+    let plane = 2 * mid;
+    let (mut left, mut right, mut separator) = (Vec::new(), Vec::new(), Vec::new());
+    for i in nodes {
+        match doubled[i][axis].cmp(&plane) {
+            std::cmp::Ordering::Less => left.push(i),
+            std::cmp::Ordering::Greater => right.push(i),
+            std::cmp::Ordering::Equal => separator.push(i),
+        }
+    }
+    let mut left_region = region;
+    left_region[axis] = (lo, mid);
+    let mut right_region = region;
+    right_region[axis] = (mid, hi);
+    dissect(doubled, cell_sizes, left, left_region, order);
+    dissect(doubled, cell_sizes, right, right_region, order);
+    order.extend(separator);
 }
 
 /// A rectangular box [0, lx] x [0, ly] x [0, lz] with `n` cells per direction (uniform), faces
@@ -330,6 +415,7 @@ pub fn box_mesh(lengths_m: [f64; 3], cells: [usize; 3], kind: ElementKind) -> Re
     let tol = 1e-12 * lengths_m.iter().fold(0.0f64, |a, b| a.max(*b));
     structured_mesh(
         [&axes[0], &axes[1], &axes[2]],
+        [1.0; 3],
         kind,
         |_| true,
         |p| p,
@@ -562,6 +648,7 @@ pub fn block_mesh(geometry: &BlockGeometry, spec: &BlockMeshSpec) -> Result<Mesh
     let tol_r = 1e-9 * r2;
     structured_mesh(
         [&axes[0], &axes[1], &axes[2]],
+        [r0, 1.0, 1.0],
         spec.kind,
         |c| geom.contains_param(c, 0.0),
         |q| [q[1] * q[0].sin(), q[1] * q[0].cos(), q[2]],
@@ -615,6 +702,10 @@ mod tests {
         assert_eq!(m.face_set("x0").unwrap().faces.len(), 2);
         assert_eq!(m.face_set("z1").unwrap().faces.len(), 8);
         assert!(m.face_set("interior").is_err());
+        // the proposed ordering is a permutation
+        let mut ord = m.ordering.clone().unwrap();
+        ord.sort_unstable();
+        assert!(ord.iter().enumerate().all(|(i, v)| i == *v));
     }
 
     #[test]

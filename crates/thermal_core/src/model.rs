@@ -36,6 +36,8 @@ pub struct ThermalModel {
     pub analysis: SymbolicAnalysis,
     /// Face operator that takes the heat flux and whose mean and maximum are reported.
     pub flux_face: usize,
+    /// Fill-reducing ordering in use: "amd" or "nested-dissection".
+    pub ordering: &'static str,
     /// `M 1`: the heat capacity attached to each node (J/K).
     pub nodal_capacity: Vec<f64>,
     flux_face_nodes: Vec<usize>,
@@ -53,7 +55,17 @@ impl ThermalModel {
     ) -> Result<Self> {
         let ops = assemble(&mesh, &material)?;
         let flux = ops.face_index(flux_face)?;
-        let analysis = SymbolicAnalysis::new(&ops.pattern, cholesky)?;
+        // fill-reducing order: faer's AMD, or the mesher's nested dissection where it has
+        // one, whichever leaves the smaller factor (symbolic analysis costs milliseconds)
+        let mut analysis = SymbolicAnalysis::new(&ops.pattern, cholesky)?;
+        let mut ordering = "amd";
+        if let Some(order) = mesh.ordering.as_deref() {
+            let nd = SymbolicAnalysis::with_ordering(&ops.pattern, cholesky, Some(order))?;
+            if nd.factor_nnz() < analysis.factor_nnz() {
+                analysis = nd;
+                ordering = "nested-dissection";
+            }
+        }
         let mut nodal_capacity = vec![0.0; mesh.n_nodes()];
         ops.pattern.matvec(
             &ops.capacity,
@@ -68,6 +80,7 @@ impl ThermalModel {
             ops,
             analysis,
             flux_face: flux,
+            ordering,
             nodal_capacity,
             flux_face_nodes,
             cache: Mutex::new(HashMap::new()),
@@ -157,6 +170,64 @@ impl ThermalModel {
         Ok((sys, true))
     }
 
+    /// Solve `(s M + K_cond + Σ_s h_s H_s) X = B` for the columns of `rhs` (column-major,
+    /// n rows), with the factor cached like a step system's (`s` = 1/dt, θ = 1). `s` = 0 is
+    /// the steady operator, definite when some face has h > 0.
+    pub fn solve_shifted(&self, shift: f64, h_by_face: &[f64], rhs: &mut [f64]) -> Result<()> {
+        crate::error::check_non_negative("shift", shift)?;
+        if h_by_face.len() != self.ops.faces.len() {
+            return Err(ThermalError::LengthMismatch {
+                name: "h_by_face".into(),
+                expected: self.ops.faces.len(),
+                got: h_by_face.len(),
+            });
+        }
+        let n = self.n_nodes();
+        if n == 0 || rhs.len() % n != 0 {
+            return Err(ThermalError::LengthMismatch {
+                name: "right-hand sides".into(),
+                expected: n,
+                got: rhs.len(),
+            });
+        }
+        let dt = if shift == 0.0 {
+            f64::INFINITY
+        } else {
+            1.0 / shift
+        };
+        let (sys, _) = self.step_system(dt, 1.0, h_by_face)?;
+        let k = rhs.len() / n;
+        let mut scratch = sys.factor.scratch(k);
+        sys.factor.solve_mat_in_place(
+            faer::MatMut::from_column_major_slice_mut(rhs, n, k),
+            &mut scratch,
+        );
+        Ok(())
+    }
+
+    /// `y = (a_m M + a_k K_cond + Σ_s h_s H_s) x` for the columns of `x` (column-major).
+    pub fn apply(&self, a_m: f64, a_k: f64, h_by_face: &[f64], x: &[f64]) -> Result<Vec<f64>> {
+        let n = self.n_nodes();
+        if h_by_face.len() != self.ops.faces.len() || n == 0 || x.len() % n != 0 {
+            return Err(ThermalError::LengthMismatch {
+                name: "apply arguments".into(),
+                expected: n,
+                got: x.len(),
+            });
+        }
+        let mut terms: Vec<(f64, &[f64])> =
+            vec![(a_m, &self.ops.capacity), (a_k, &self.ops.conduction)];
+        for (face, h) in self.ops.faces.iter().zip(h_by_face) {
+            terms.push((*h, &face.mass));
+        }
+        let values = self.ops.pattern.combine(&terms);
+        let mut y = vec![0.0; x.len()];
+        for (xc, yc) in x.chunks(n).zip(y.chunks_mut(n)) {
+            self.ops.pattern.matvec(&values, xc, yc);
+        }
+        Ok(y)
+    }
+
     /// Factorise and verify with one solve; returns the factor and its relative residual.
     pub fn factorize_checked(&self, values: &[f64]) -> Result<(CholeskyFactor, f64)> {
         let pattern = &self.ops.pattern;
@@ -238,16 +309,16 @@ impl ThermalModel {
         let mut h = vec![0.0; n_faces];
         let mut rhs = vec![0.0; n];
         let mut scratch = None;
+        let damped_mask = scheme.damped_mask(loading);
         let stepping_start = Instant::now();
         let mut seconds_factorization = 0.0;
-        for step in 0..loading.n_steps {
+        for (step, &damped) in damped_mask.iter().enumerate() {
             h.iter_mut().for_each(|v| *v = 0.0);
             for c in &loading.convection {
                 h[c.face] += c.h_w_m2k.at(step);
             }
             let q = loading.flux_w_m2.at(step);
             let t_amb = loading.ambient_c.at(step);
-            let damped = step < scheme.damped_steps;
             let (substeps, dt, theta) = if damped {
                 (2, 0.5 * loading.dt_s, 1.0)
             } else {

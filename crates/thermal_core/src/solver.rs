@@ -6,6 +6,7 @@ use std::sync::Arc;
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltParams;
 use faer::mat::MatMut;
+use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, CholeskySymbolicParams, LltRef, SymbolicCholesky,
     SymbolicCholeskyRaw, SymmetricOrdering,
@@ -46,17 +47,51 @@ pub struct SymbolicAnalysis {
 }
 
 impl SymbolicAnalysis {
+    /// Symbolic factorisation with faer's AMD ordering.
     pub fn new(pattern: &Pattern, kind: CholeskyKind) -> Result<Self> {
+        SymbolicAnalysis::with_ordering(pattern, kind, None)
+    }
+
+    /// Symbolic factorisation with a given elimination order (`order[k]` = the node
+    /// eliminated k-th), or AMD when `None`.
+    pub fn with_ordering(
+        pattern: &Pattern,
+        kind: CholeskyKind,
+        order: Option<&[usize]>,
+    ) -> Result<Self> {
         let threshold = match kind {
             CholeskyKind::Auto => SupernodalThreshold::AUTO,
             CholeskyKind::Simplicial => SupernodalThreshold::FORCE_SIMPLICIAL,
             CholeskyKind::Supernodal => SupernodalThreshold::FORCE_SUPERNODAL,
         };
         let structure = symbolic_view(pattern)?;
+        let inverse: Vec<usize>;
+        let ordering = match order {
+            None => SymmetricOrdering::Amd,
+            Some(fwd) => {
+                let n = pattern.n;
+                let mut inv = vec![usize::MAX; n];
+                for (k, &i) in fwd.iter().enumerate() {
+                    if i >= n || inv[i] != usize::MAX {
+                        return Err(ThermalError::LinearAlgebra(
+                            "ordering is not a permutation".into(),
+                        ));
+                    }
+                    inv[i] = k;
+                }
+                if fwd.len() != n {
+                    return Err(ThermalError::LinearAlgebra(
+                        "ordering is not a permutation".into(),
+                    ));
+                }
+                inverse = inv;
+                SymmetricOrdering::Custom(PermRef::new_checked(fwd, &inverse, n))
+            }
+        };
         let symbolic = factorize_symbolic_cholesky(
             structure,
             Side::Lower,
-            SymmetricOrdering::Amd,
+            ordering,
             CholeskySymbolicParams {
                 supernodal_flop_ratio_threshold: threshold,
                 ..Default::default()
@@ -155,8 +190,18 @@ impl CholeskyFactor {
 
     /// Solve `A X = B` in place for the columns of `rhs`.
     pub fn solve_mat_in_place(&self, rhs: MatMut<'_, f64>, scratch: &mut MemBuffer) {
+        self.solve_mat_in_place_par(rhs, scratch, Par::Seq);
+    }
+
+    /// Solve `A X = B` in place, letting faer use `par` threads inside the solve.
+    pub fn solve_mat_in_place_par(&self, rhs: MatMut<'_, f64>, scratch: &mut MemBuffer, par: Par) {
         let llt = LltRef::<'_, usize, f64>::new(&self.symbolic, &self.values);
-        llt.solve_in_place_with_conj(Conj::No, rhs, Par::Seq, MemStack::new(scratch));
+        llt.solve_in_place_with_conj(Conj::No, rhs, par, MemStack::new(scratch));
+    }
+
+    /// Scratch for a solve with `ncols` right-hand sides using `par` threads.
+    pub fn scratch_par(&self, ncols: usize, par: Par) -> MemBuffer {
+        MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(ncols, par))
     }
 
     /// Solve `A x = b` in place for one right-hand side.

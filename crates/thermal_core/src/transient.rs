@@ -7,37 +7,73 @@
 
 use crate::error::{check_finite, check_non_negative, Result, ThermalError};
 
-/// Crank–Nicolson (θ = 1/2) or backward Euler (θ = 1), and how many first steps are each
-/// replaced by two backward-Euler half steps (damps the spurious oscillation Crank–Nicolson
-/// leaves after a non-smooth start).
+/// Crank–Nicolson (θ = 1/2) or backward Euler (θ = 1), and how many steps are each replaced
+/// by two backward-Euler half steps after the start (damps the spurious oscillation
+/// Crank–Nicolson leaves after a non-smooth start).
+///
+/// Crank–Nicolson also rings after every discontinuity of its inputs (a brake applied or
+/// released as a step of flux): with `jump_fraction` > 0, a step whose flux, ambient or
+/// convection changes by more than that fraction of the series' largest magnitude restarts
+/// the damping (Rannacher's remedy; second order is kept).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Scheme {
     pub theta: f64,
     pub damped_steps: usize,
+    pub jump_fraction: f64,
 }
 
 impl Scheme {
     pub const CRANK_NICOLSON: Scheme = Scheme {
         theta: 0.5,
         damped_steps: 1,
+        jump_fraction: 0.05,
     };
     pub const BACKWARD_EULER: Scheme = Scheme {
         theta: 1.0,
         damped_steps: 0,
+        jump_fraction: 0.0,
     };
 
     pub fn from_name(name: &str, damped_steps: usize) -> Option<Scheme> {
         match name.to_ascii_lowercase().replace('_', "-").as_str() {
             "crank-nicolson" | "cn" => Some(Scheme {
-                theta: 0.5,
                 damped_steps,
+                ..Scheme::CRANK_NICOLSON
             }),
             "backward-euler" | "be" | "implicit-euler" => Some(Scheme {
-                theta: 1.0,
                 damped_steps,
+                ..Scheme::BACKWARD_EULER
             }),
             _ => None,
         }
+    }
+
+    /// For each step, whether it is taken as two backward-Euler half steps.
+    pub fn damped_mask(&self, loading: &Loading) -> Vec<bool> {
+        let n = loading.n_steps;
+        let mut mask = vec![false; n];
+        let mut mark = |from: usize| {
+            for m in mask.iter_mut().skip(from).take(self.damped_steps) {
+                *m = true;
+            }
+        };
+        mark(0);
+        if self.jump_fraction > 0.0 && self.theta < 1.0 {
+            let mut series: Vec<Series> = vec![loading.flux_w_m2, loading.ambient_c];
+            series.extend(loading.convection.iter().map(|c| c.h_w_m2k));
+            for s in series {
+                if let Series::Steps(values) = s {
+                    let scale = values.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+                    let threshold = self.jump_fraction * scale;
+                    for k in 1..values.len() {
+                        if scale > 0.0 && (values[k] - values[k - 1]).abs() > threshold {
+                            mark(k);
+                        }
+                    }
+                }
+            }
+        }
+        mask
     }
 
     pub fn validate(&self) -> Result<()> {
@@ -46,6 +82,13 @@ impl Scheme {
                 name: "theta".into(),
                 value: self.theta,
                 reason: "must lie in [0.5, 1] for an unconditionally stable scheme".into(),
+            });
+        }
+        if !(self.jump_fraction >= 0.0) || !self.jump_fraction.is_finite() {
+            return Err(ThermalError::InvalidParameter {
+                name: "jump_fraction".into(),
+                value: self.jump_fraction,
+                reason: "must be a non-negative fraction".into(),
             });
         }
         Ok(())

@@ -8,7 +8,9 @@ two codes can be compared like with like:
 - inputs of step ``n`` hold on ``[t_n, t_n+1]``;
 - ``K_n = K_cond + sum_s h_s,n H_s``, ``f_n = q_n F + sum_s h_s,n T_amb,n G_s``;
 - ``(M/dt + theta K_n) T_n+1 = (M/dt - (1 - theta) K_n) T_n + f_n``, theta = 1/2 or 1;
-- the first ``damped_steps`` steps are each two backward-Euler steps of ``dt/2``.
+- the first ``damped_steps`` steps are each two backward-Euler steps of ``dt/2``, and so are
+  the ``damped_steps`` steps from every input jump (a change between consecutive steps of more
+  than ``jump_fraction`` of the series' largest magnitude), for Crank-Nicolson only.
 
 Elements: the contract's 8-node (VTK_HEXAHEDRON) and 20-node (VTK_QUADRATIC_HEXAHEDRON)
 hexahedra. The scikit-fem mesh is always a ``MeshHex1`` built from the corner nodes, so the
@@ -483,6 +485,7 @@ class SkfemBlockModel:
         scheme: str = "crank-nicolson",
         damped_steps: int = 1,
         field_every: int = 0,
+        jump_fraction: float = 0.05,
     ) -> SkfemResult:
         """Run the contract's time scheme; see the module docstring and thermal-api.md.
 
@@ -538,6 +541,10 @@ class SkfemBlockModel:
                 field_steps.append(n)
 
         record(0, T)
+        damped = _damped_mask(
+            n_steps, damped_steps, jump_fraction if theta < 1.0 else 0.0,
+            [flux, ambient, *(h for _, h in conv)],
+        )
         factorise = SOLVERS[self.solver]
         cache: dict[tuple[float, float, tuple[float, ...]], tuple[Any, Any]] = {}
         t_fact = 0.0
@@ -568,7 +575,7 @@ class SkfemBlockModel:
             f = flux[n] * self._G["friction"]
             for (s, _), h in zip(conv, hs, strict=True):
                 f = f + (h * ambient[n]) * self._G[s]
-            if n < damped_steps:
+            if damped[n]:
                 solve, B = system(0.5 * dt_s, 1.0, hs)
                 T = solve(B @ T + f)
                 T = solve(B @ T + f)
@@ -600,3 +607,24 @@ def _per_step(value: float | ArrayLike, n_steps: int, name: str) -> NDArray[np.f
     if a.shape != (n_steps,) or not np.isfinite(a).all():
         raise ValueError(f"{name} must be a finite float or ({n_steps},) array")
     return a
+
+
+def _damped_mask(
+    n_steps: int, damped_steps: int, jump_fraction: float, series: list[Any]
+) -> list[bool]:
+    """Steps taken as two backward-Euler half steps: the first ``damped_steps`` and the
+    ``damped_steps`` from every jump of an input series (the contract's rule)."""
+    mask = [False] * n_steps
+    starts = [0]
+    if jump_fraction > 0.0:
+        for s in series:
+            values = np.asarray(s, dtype=np.float64).reshape(-1)
+            if values.size != n_steps:
+                continue
+            scale = float(np.abs(values).max()) if values.size else 0.0
+            if scale > 0.0:
+                starts += (np.flatnonzero(np.abs(np.diff(values)) > jump_fraction * scale) + 1).tolist()
+    for k in starts:
+        for m in range(k, min(k + damped_steps, n_steps)):
+            mask[m] = True
+    return mask

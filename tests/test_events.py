@@ -1,0 +1,419 @@
+"""Braking event detection (fleetbrake.events): accuracy on generated sessions, rules, increments."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import duckdb
+import numpy as np
+import polars as pl
+import pytest
+
+from fleetbrake import events as events_module
+from fleetbrake import logfile as lf
+from fleetbrake.events import EVENT_COLUMNS, EventConfig, detect_events
+from fleetbrake.ingest import IngestConfig, run_ingest
+from fleetgen import T0_UTC, Session, TrueEvent, make_session, write_registry, write_session
+
+WAGON = "SGG-0001"
+START_TOLERANCE_S = 3.0
+
+
+def score(truth: list[TrueEvent], found: pl.DataFrame) -> tuple[float, float, float]:
+    """(share of true events found with a start within 3 s, share of detected events that are
+    spurious, share of found events of the right kind)."""
+    starts = found["start_utc"].to_list()
+    kinds = found["kind"].to_list()
+    matched: set[int] = set()
+    right_kind = 0
+    for event in truth:
+        best = None
+        for i, start in enumerate(starts):
+            gap_s = abs((start - event.onset_utc).total_seconds())
+            if i not in matched and gap_s <= START_TOLERANCE_S:
+                best = i
+                break
+        if best is not None:
+            matched.add(best)
+            right_kind += kinds[best] == event.kind
+    found_share = len(matched) / len(truth)
+    spurious_share = (len(starts) - len(matched)) / max(len(starts), 1)
+    return found_share, spurious_share, right_kind / max(len(matched), 1)
+
+
+def frame_of(
+    pressure_bar: list[float] | np.ndarray,
+    *,
+    speed_kmh: float | np.ndarray = 72.0,
+    start_utc: dt.datetime = T0_UTC,
+    block_temp_c: float | np.ndarray = 30.0,
+) -> pl.DataFrame:
+    """A session at 1 Hz from a pressure series (speed and temperature constant unless given),
+    with every column of a log file."""
+    n = len(pressure_bar)
+    speed = np.broadcast_to(np.asarray(speed_kmh, dtype=float), (n,))
+    return pl.DataFrame(
+        {
+            "time_utc": pl.datetime_range(
+                start_utc, start_utc + dt.timedelta(seconds=n - 1), "1s", eager=True
+            ),
+            "speed_kmh": speed,
+            "distance_m": np.cumsum(speed / 3.6) - speed[0] / 3.6,
+            "elevation_m": np.full(n, 400.0),
+            "lat_deg": np.full(n, 46.0),
+            "lon_deg": np.full(n, 8.0),
+            "brake_pressure_bar": np.asarray(pressure_bar, dtype=float),
+            "block_temp_c": np.broadcast_to(np.asarray(block_temp_c, dtype=float), (n,)),
+            "ambient_temp_c": np.full(n, 10.0),
+        }
+    )
+
+
+def pulse(before_s: int, on_s: int, after_s: int, p_bar: float = 2.0) -> list[float]:
+    return [0.0] * before_s + [p_bar] * on_s + [0.0] * after_s
+
+
+# --------------------------------------------------------------------------------------------
+# Accuracy on generated sessions
+
+
+def test_generated_sessions_clean() -> None:
+    truth: list[TrueEvent] = []
+    found = []
+    for seed in range(12):
+        session = make_session(np.random.default_rng(seed), T0_UTC + dt.timedelta(days=seed))
+        truth += session.events
+        found.append(detect_events(session.frame, WAGON))
+    events = pl.concat(found)
+    assert len(truth) >= 140
+    assert {e.kind for e in truth} == {"stop", "slowdown", "drag"}
+    found_share, spurious, right_kind = score(truth, events)
+    assert found_share >= 0.98
+    assert spurious <= 0.02
+    assert right_kind >= 0.95
+    assert events["complete"].all()
+    assert (events["p_mean_bar"] > 0.2).all() and (events["p_mean_bar"] < 3.8).all()
+
+
+def test_low_pressure_brakings_are_found() -> None:
+    truth: list[TrueEvent] = []
+    found = []
+    for seed in range(6):
+        session = make_session(
+            np.random.default_rng(100 + seed),
+            T0_UTC + dt.timedelta(days=seed),
+            kinds=("slowdown",),
+            p_range_bar=(0.4, 0.6),
+        )
+        truth += session.events
+        found.append(detect_events(session.frame, WAGON))
+    found_share, spurious, _ = score(truth, pl.concat(found))
+    assert found_share >= 0.98 and spurious <= 0.02
+
+
+def _imperfect(session: Session, rng: np.random.Generator) -> pl.DataFrame:
+    """Every imperfection of fleet-data.md that a readable file can have."""
+    frame = session.frame
+    # long gaps (30 s to 2 min) while cruising, from the end so that row numbers hold
+    quiet = [q for q in session.quiet if q[1] - q[0] > 150]
+    for a, _ in sorted(rng.choice(quiet, size=min(3, len(quiet)), replace=False).tolist())[::-1]:
+        frame = lf.drop_gap(frame, rng, int(rng.integers(30, 120)), start=a + 5)
+    for _ in range(8):  # short gaps anywhere
+        frame = lf.drop_gap(frame, rng, int(rng.integers(2, 9)))
+    frame = lf.drop_rows(frame, rng, 0.02)
+    frame = lf.duplicate_rows(frame, rng, 0.01)
+    frame = lf.swap_neighbours(frame, rng, 0.01)
+    frame = lf.jump_speed(frame, rng, 10)
+    frame = lf.freeze_speed(frame, rng, 60)
+    frame = lf.pt1000_open_circuit(frame, rng, 120)
+    frame = lf.pt1000_frozen(frame, rng, 200)
+    frame = lf.blank_cells(frame, rng, 0.01)
+    return lf.garble_cells(frame, rng, 0.002, ("brake_pressure_bar", "speed_kmh"))
+
+
+def test_generated_fleet_with_every_imperfection_end_to_end(tmp_path: Path) -> None:
+    fleet, db = tmp_path / "fleet", tmp_path / "fleet.duckdb"
+    wagons = ["SGG-0001", "SGG-0002", "SGG-0003"]
+    write_registry(fleet, wagons)
+    rng = np.random.default_rng(7)
+    truth: dict[str, list[TrueEvent]] = {w: [] for w in wagons}
+    for w, wagon in enumerate(wagons):
+        for k in range(4):
+            start = T0_UTC + dt.timedelta(days=k, hours=w)
+            session = make_session(rng, start, n_events=14)
+            truth[wagon] += session.events
+            frame = _imperfect(session, rng)
+            write_session(fleet, wagon, frame, start, gzip=bool(k % 2))
+    report = run_ingest(fleet, db, progress=False)
+    assert not report.quarantined
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        events = con.sql("SELECT * FROM events ORDER BY wagon_id, start_utc").pl()
+        view = con.sql("SELECT * FROM v_events").pl()
+    finally:
+        con.close()
+    assert view.height == events.height
+    all_truth = [e for w in wagons for e in truth[w]]
+    found_share, spurious, right_kind = score(
+        [e for w in wagons for e in truth[w]],
+        pl.concat([events.filter(pl.col("wagon_id") == w) for w in wagons]),
+    )
+    assert len(all_truth) == 168
+    for w in wagons:
+        per_wagon, _, _ = score(truth[w], events.filter(pl.col("wagon_id") == w))
+        assert per_wagon >= 0.95, w
+    assert found_share >= 0.98
+    assert spurious <= 0.02
+    assert right_kind >= 0.95
+    assert events["event_id"].n_unique() == events.height
+    assert (
+        events["event_id"]
+        == events["wagon_id"] + "-" + events["start_utc"].dt.strftime("%Y%m%dT%H%M%S")
+    ).all()
+
+
+# --------------------------------------------------------------------------------------------
+# Rules
+
+
+def test_attributes_of_a_known_application() -> None:
+    pressure = pulse(100, 40, 100)
+    temp = np.full(240, 30.0)
+    temp[100] = np.nan  # no reading at the activation: the one 3 s before counts
+    temp[97] = 27.5
+    temp[98:100] = np.nan
+    events = detect_events(frame_of(pressure, block_temp_c=temp), WAGON)
+    assert events.columns == list(EVENT_COLUMNS)
+    (event,) = events.iter_rows(named=True)
+    assert event["event_id"] == "SGG-0001-20240301T060140"
+    assert event["start_utc"] == T0_UTC + dt.timedelta(seconds=100)
+    assert event["end_utc"] == T0_UTC + dt.timedelta(seconds=140)
+    assert event["duration_s"] == 40.0
+    assert event["p_mean_bar"] == pytest.approx((39 * 2.0 + 1.0) / 40)  # eq. 1, trapezoidal
+    assert event["p_max_bar"] == 2.0
+    assert event["distance_m"] == pytest.approx(800.0)
+    assert event["v_start_kmh"] == event["v_end_kmh"] == pytest.approx(72.0)
+    assert event["t_block_start_c"] == 27.5
+    assert event["kind"] == "slowdown"
+    assert event["complete"] is True
+
+
+def test_block_temperature_at_activation_is_null_when_faulty() -> None:
+    temp = np.full(240, 30.0)
+    temp[90:120] = np.nan  # out of range readings are stored as null temperatures
+    (event,) = detect_events(frame_of(pulse(100, 40, 100), block_temp_c=temp), WAGON).iter_rows(
+        named=True
+    )
+    assert event["t_block_start_c"] is None
+
+
+def test_block_temperature_of_a_broken_wire_at_activation_is_null(tmp_path: Path) -> None:
+    fleet, db = tmp_path / "fleet", tmp_path / "fleet.duckdb"
+    write_registry(fleet, [WAGON])
+    temp = np.full(240, 30.0)
+    temp[100:110] = 950.0  # open circuit from the activation on; valid 1 s before
+    missing = np.full(240, 30.0)
+    missing[100] = np.nan  # no reading at the activation: the one 1 s before counts
+    start = T0_UTC + dt.timedelta(hours=1)
+    write_session(fleet, WAGON, frame_of(pulse(100, 40, 100), block_temp_c=temp), T0_UTC)
+    write_session(
+        fleet, WAGON, frame_of(pulse(100, 40, 100), block_temp_c=missing, start_utc=start), start
+    )
+    run_ingest(fleet, db, progress=False)
+    assert _events(db)["t_block_start_c"].to_list() == [None, 30.0]
+
+
+def test_distance_from_speed_when_the_file_has_none() -> None:
+    frame = frame_of(pulse(100, 40, 100)).with_columns(
+        pl.lit(None, dtype=pl.Float64).alias("distance_m")
+    )
+    (event,) = detect_events(frame, WAGON).iter_rows(named=True)
+    assert event["distance_m"] == pytest.approx(800.0)
+
+
+def test_hysteresis_does_not_fragment_a_hovering_application() -> None:
+    rng = np.random.default_rng(0)
+    hover = list(0.2 + 0.15 * rng.random(90))  # between 0.2 and 0.35, crossing 0.3 often
+    events = detect_events(frame_of([0.0] * 60 + [0.4] + hover + [0.0] * 60), WAGON)
+    assert events.height == 1
+    assert events["duration_s"][0] == 91  # from the 0.4 bar sample to the first 0.0
+
+
+def test_short_spike_is_no_event() -> None:
+    assert detect_events(frame_of(pulse(60, 4, 60, 0.8)), WAGON).is_empty()
+    assert detect_events(frame_of(pulse(60, 12, 60, 0.8)), WAGON).height == 1
+
+
+def test_applications_close_together_are_merged() -> None:
+    close = pulse(60, 30, 0) + [0.0] * 10 + pulse(0, 30, 60)
+    far = pulse(60, 30, 0) + [0.0] * 40 + pulse(0, 30, 60)
+    assert detect_events(frame_of(close), WAGON)["duration_s"].to_list() == [70.0]
+    assert detect_events(frame_of(far), WAGON)["duration_s"].to_list() == [30.0, 30.0]
+
+
+def test_residual_pressure_does_not_stretch_an_event() -> None:
+    pressure = [0.0] * 60 + [1.5] * 40 + [0.1] * 300
+    (event,) = detect_events(frame_of(pressure), WAGON).iter_rows(named=True)
+    assert event["duration_s"] == 40 + 30  # first sample below 0.15, then at most 30 s
+    assert event["complete"] is True
+
+
+def test_an_event_does_not_bridge_a_long_data_gap() -> None:
+    frame = frame_of(pulse(60, 200, 60))
+    gapped = frame.filter(
+        (pl.col("time_utc") < T0_UTC + dt.timedelta(seconds=120))
+        | (pl.col("time_utc") >= T0_UTC + dt.timedelta(seconds=180))
+    )
+    events = detect_events(gapped, WAGON)
+    assert events["start_utc"].to_list() == [
+        T0_UTC + dt.timedelta(seconds=60),
+        T0_UTC + dt.timedelta(seconds=180),
+    ]
+    assert events["end_utc"][0] == T0_UTC + dt.timedelta(seconds=119)
+    assert events["complete"].to_list() == [False, False]
+
+
+def test_short_data_gaps_and_empty_pressure_cells() -> None:
+    frame = frame_of(pulse(60, 200, 60))
+    short_gap = frame.filter(
+        (pl.col("time_utc") < T0_UTC + dt.timedelta(seconds=120))
+        | (pl.col("time_utc") >= T0_UTC + dt.timedelta(seconds=130))
+    )
+    assert detect_events(short_gap, WAGON)["complete"].to_list() == [True]
+    blank_20_s = frame.with_columns(
+        pl.when(pl.int_range(pl.len()).is_between(120, 139))
+        .then(None)
+        .otherwise(pl.col("brake_pressure_bar"))
+        .alias("brake_pressure_bar")
+    )
+    assert detect_events(blank_20_s, WAGON).height == 2  # the pressure is unknown for 20 s
+
+
+def test_kinds_stop_slowdown_drag() -> None:
+    n = 600
+    descending = detect_events(frame_of(pulse(60, 300, 240, 0.6), speed_kmh=60.0), WAGON)
+    assert descending["kind"].to_list() == ["drag"]
+    to_a_stop = np.concatenate([np.full(60, 60.0), np.linspace(60, 0, 300), np.zeros(240)])
+    assert detect_events(frame_of(pulse(60, 310, 230, 0.6), speed_kmh=to_a_stop), WAGON)[
+        "kind"
+    ].to_list() == ["stop"]
+    hard = detect_events(frame_of(pulse(60, 300, 240, 2.5), speed_kmh=60.0), WAGON)
+    assert hard["kind"].to_list() == ["slowdown"]
+    short = detect_events(frame_of(pulse(60, 60, n - 120, 0.6), speed_kmh=60.0), WAGON)
+    assert short["kind"].to_list() == ["slowdown"]
+
+
+def test_gps_speed_jump_at_the_activation_is_ignored() -> None:
+    speed = np.full(240, 72.0)
+    speed[99:102] = 140.0
+    (event,) = detect_events(frame_of(pulse(100, 40, 100), speed_kmh=speed), WAGON).iter_rows(
+        named=True
+    )
+    assert event["v_start_kmh"] == pytest.approx(72.0)
+
+
+def test_order_and_repeats_of_samples_do_not_matter() -> None:
+    frame = frame_of(pulse(100, 40, 100))
+    shuffled = pl.concat([frame, frame.slice(50, 100)]).sample(fraction=1.0, shuffle=True, seed=1)
+    assert detect_events(shuffled, WAGON).equals(detect_events(frame, WAGON))
+
+
+def test_config_is_checked() -> None:
+    with pytest.raises(ValueError, match="p_off_bar"):
+        EventConfig(p_on_bar=0.1, p_off_bar=0.2)
+    with pytest.raises(ValueError, match="max_gap_s"):
+        EventConfig(max_gap_s=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# Incremental detection in the warehouse
+
+
+def _events(db: Path) -> pl.DataFrame:
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return con.sql("SELECT * FROM events ORDER BY start_utc").pl()
+    finally:
+        con.close()
+
+
+def test_an_event_across_two_files_is_recomputed_when_the_second_arrives(tmp_path: Path) -> None:
+    fleet, db = tmp_path / "fleet", tmp_path / "fleet.duckdb"
+    write_registry(fleet, [WAGON])
+    other = frame_of(pulse(60, 40, 100), start_utc=T0_UTC - dt.timedelta(hours=5))
+    write_session(fleet, WAGON, other, other["time_utc"][0])
+    whole = frame_of(pulse(100, 40, 300) + pulse(0, 60, 200))
+    first, second = whole.slice(0, 120), whole.slice(120)
+    write_session(fleet, WAGON, first, T0_UTC)
+    run_ingest(fleet, db, progress=False)
+    before = _events(db)
+    assert before["complete"].to_list() == [True, False]
+    assert before["end_utc"][1] == T0_UTC + dt.timedelta(seconds=119)
+
+    write_session(fleet, WAGON, second, second["time_utc"][0])
+    report = run_ingest(fleet, db, progress=False)
+    after = _events(db)
+    assert after.drop("detected_utc").equals(
+        pl.concat([before.slice(0, 1), detect_events(whole, WAGON).with_columns()], how="diagonal")
+        .drop("detected_utc")
+        .cast(dict(after.drop("detected_utc").schema))
+    )
+    assert after["complete"].to_list() == [True, True, True]
+    assert after.row(0) == before.row(0)  # the other session's event is left alone
+    assert report.events is not None
+    assert (report.events.added, report.events.removed, report.events.unchanged) == (2, 1, 0)
+
+
+def test_replaced_file_takes_its_events_along(tmp_path: Path) -> None:
+    fleet, db = tmp_path / "fleet", tmp_path / "fleet.duckdb"
+    write_registry(fleet, [WAGON])
+    write_session(fleet, WAGON, frame_of(pulse(100, 40, 100)), T0_UTC)
+    run_ingest(fleet, db, progress=False)
+    assert _events(db).height == 1
+    write_session(fleet, WAGON, frame_of([0.0] * 240), T0_UTC)
+    report = run_ingest(fleet, db, progress=False, config=IngestConfig())
+    assert _events(db).is_empty()
+    assert report.events is not None and report.events.removed == 1
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        assert con.execute("SELECT count(*) FROM event_dirty").fetchone() == (0,)
+    finally:
+        con.close()
+
+
+def test_loading_a_few_chains_at_a_time_gives_the_same_events(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fleet = tmp_path / "fleet"
+    write_registry(fleet, [WAGON])
+    rng = np.random.default_rng(3)
+    for k in range(6):
+        start = T0_UTC + dt.timedelta(hours=2 * k)
+        write_session(fleet, WAGON, make_session(rng, start, n_events=3).frame, start)
+    whole = run_ingest(fleet, tmp_path / "a.duckdb", progress=False)
+    monkeypatch.setattr(events_module, "_LOAD_ROWS", 1000)  # every chain loaded alone
+    alone = run_ingest(fleet, tmp_path / "b.duckdb", progress=False)
+    monkeypatch.setattr(events_module, "_LOAD_ROWS", 5000)  # two or three chains together
+    pairs = run_ingest(fleet, tmp_path / "c.duckdb", progress=False)
+    assert whole.events is not None and whole.events.chains == 6 and whole.events.added >= 18
+    expected = _events(tmp_path / "a.duckdb").drop("detected_utc")
+    assert _events(tmp_path / "b.duckdb").drop("detected_utc").equals(expected)
+    assert _events(tmp_path / "c.duckdb").drop("detected_utc").equals(expected)
+    assert alone.events is not None and pairs.events is not None
+
+
+def test_chains_and_windows() -> None:
+    t = [T0_UTC + dt.timedelta(seconds=s) for s in range(0, 1000, 10)]
+    files = [(t[0], t[10], 101), (t[11], t[20], 90), (t[30], t[40], 101), (t[35], t[38], 4)]
+    chains = events_module._chains(files, max_gap_s=15)
+    assert [(c.from_utc, c.to_utc, c.rows) for c in chains] == [
+        (t[0], t[20], 191),
+        (t[30], t[40], 105),
+    ]
+    merged = events_module._merged([(t[50], t[60]), (t[5], t[6]), (t[59], t[70])], dt.timedelta(0))
+    assert merged == [(t[5], t[6]), (t[50], t[70])]
+    assert events_module._overlaps(merged, t[6], t[7])
+    assert not events_module._overlaps(merged, t[7], t[49])
+    assert events_module._overlaps(merged, t[0], t[99])
+    assert not events_module._overlaps(merged, t[71], t[99])

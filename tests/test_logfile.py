@@ -1,0 +1,263 @@
+"""The log file format: names, writer, imperfection injectors (fleetbrake.logfile)."""
+
+from __future__ import annotations
+
+import datetime as dt
+import gzip
+import zlib
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import polars as pl
+import pytest
+
+from fleetbrake import logfile as lf
+from fleetbrake.ingest import read_log
+from fleetgen import T0_UTC, simple_session
+
+# --------------------------------------------------------------------------------------------
+# File names
+
+
+@pytest.mark.parametrize(
+    ("wagon_id", "gz"),
+    [("SGG-0001", True), ("SGG_0001", False), ("a", True), ("X" * 64, False), ("a_b-c_9", True)],
+)
+def test_name_round_trip(wagon_id: str, gz: bool) -> None:
+    start = dt.datetime(2024, 2, 29, 23, 59, 58)
+    name = lf.log_name(wagon_id, start, gzip=gz)
+    assert name == f"{wagon_id}_20240229T235958Z.csv" + (".gz" if gz else "")
+    parsed = lf.parse_log_name(name)
+    assert parsed == lf.LogName(wagon_id, start, gzip=gz)
+    assert parsed.relpath == PurePosixPath("logs", wagon_id, name)
+    assert lf.parse_log_path(f"logs/{wagon_id}/{name}") == parsed
+
+
+def test_name_of_aware_time_is_utc() -> None:
+    start = dt.datetime(2024, 3, 1, 8, 0, 0, tzinfo=dt.timezone(dt.timedelta(hours=2)))
+    assert lf.log_name("W", start, gzip=True) == "W_20240301T060000Z.csv.gz"
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "SGG-0001_20240301T060000.csv",  # no Z
+        "SGG-0001_20240301T060000Z.txt",
+        "SGG-0001_20240301T060000Z.csv.bz2",
+        "SGG-0001-20240301T060000Z.csv",  # no underscore before the time
+        "SGG 0001_20240301T060000Z.csv",  # space in the id
+        "X" * 65 + "_20240301T060000Z.csv",  # id too long
+        "SGG-0001_20241301T060000Z.csv",  # month 13
+        "SGG-0001_20240230T060000Z.csv",  # 30 February
+        "SGG-0001_20240301T250000Z.csv",  # hour 25
+        "_20240301T060000Z.csv",  # no id
+        "SGG-0001_20240301T060000Z.csv.gz.tmp",
+    ],
+)
+def test_bad_names_are_refused_naming_the_file(name: str) -> None:
+    with pytest.raises(lf.LogNameError, match=name[:8].replace("(", r"\(")):
+        lf.parse_log_name(name)
+
+
+@pytest.mark.parametrize(
+    ("relpath", "words"),
+    [
+        ("logs/SGG-0002/SGG-0001_20240301T060000Z.csv", "directory of wagon SGG-0002"),
+        ("logs/SGG-0001_20240301T060000Z.csv", "logs/<wagon_id>/<file name>"),
+        ("logs/SGG-0001/sub/SGG-0001_20240301T060000Z.csv", "logs/<wagon_id>/<file name>"),
+        ("data/SGG-0001/SGG-0001_20240301T060000Z.csv", "logs/<wagon_id>/<file name>"),
+        ("logs/SGG-0001/notes.txt", "does not follow"),
+    ],
+)
+def test_bad_paths_are_refused_naming_the_path(relpath: str, words: str) -> None:
+    with pytest.raises(lf.LogNameError) as error:
+        lf.parse_log_path(relpath)
+    assert str(error.value).startswith(relpath)
+    assert words in str(error.value)
+
+
+def test_log_name_refuses_a_bad_wagon_id() -> None:
+    with pytest.raises(lf.LogNameError, match="does not match"):
+        lf.log_name("SGG 1", T0_UTC, gzip=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Writer
+
+
+def test_csv_bytes_exactly_as_specified() -> None:
+    frame = pl.DataFrame(
+        {
+            "time_utc": [dt.datetime(2024, 3, 1, 6, 0, 0), dt.datetime(2024, 3, 1, 6, 0, 1)],
+            "speed_kmh": [12.5, None],
+            "distance_m": [0.0, 3.5],
+            "elevation_m": [None, 401.25],
+            "lat_deg": [46.123456, None],
+            "lon_deg": [7.5, 7.500001],
+            "brake_pressure_bar": [0.007, 3.801],
+            "block_temp_c": [21.0, -250.0],
+        }
+    )
+    assert lf.to_csv_bytes(frame) == (
+        b"time_utc,speed_kmh,distance_m,elevation_m,lat_deg,lon_deg,brake_pressure_bar,"
+        b"block_temp_c\n"
+        b"2024-03-01T06:00:00Z,12.5,0.0,,46.123456,7.5,0.007,21.0\n"
+        b"2024-03-01T06:00:01Z,,3.5,401.25,,7.500001,3.801,-250.0\n"
+    )
+
+
+def test_write_log_gzip_by_name_deterministic_and_readable(tmp_path: Path) -> None:
+    frame = simple_session(rows=300)
+    a = lf.write_log(tmp_path / "a" / "W_20240301T060000Z.csv.gz", frame)
+    b = lf.write_log(tmp_path / "b" / "W_20240301T060000Z.csv.gz", frame)
+    plain = lf.write_log(tmp_path / "W_20240301T060000Z.csv", frame)
+    assert a.read_bytes() == b.read_bytes()  # no time stamp in the gzip header
+    assert gzip.decompress(a.read_bytes()) == plain.read_bytes() == lf.to_csv_bytes(frame)
+    assert not list(tmp_path.rglob(".*"))  # the temporary file is gone
+    forced = lf.write_log(tmp_path / "forced.csv", frame, gzip=True)
+    assert forced.read_bytes()[:2] == b"\x1f\x8b"
+
+
+def test_writer_and_reader_round_trip_exactly() -> None:
+    frame = simple_session(rows=500, seed=3)
+    parsed = read_log(lf.to_csv_bytes(frame), "x.csv", T0_UTC)
+    assert parsed.repairs.text() is None
+    assert parsed.frame.select(frame.columns).equals(frame)
+
+
+def test_writer_keeps_column_order_and_writes_strings_as_they_are() -> None:
+    frame = simple_session(rows=3).select("block_temp_c", "time_utc")
+    frame = frame.with_columns(pl.col("block_temp_c").cast(pl.String).fill_null("x"))
+    text = lf.to_csv_bytes(frame).decode()
+    assert text.splitlines()[0] == "block_temp_c,time_utc"
+    assert text.splitlines()[1].endswith(",2024-03-01T06:00:00Z")
+
+
+# --------------------------------------------------------------------------------------------
+# Injectors
+
+
+@pytest.fixture
+def session() -> pl.DataFrame:
+    return simple_session(rows=1000, seed=1)
+
+
+def _rng(seed: int = 0) -> np.random.Generator:
+    return np.random.default_rng(seed)
+
+
+def test_injectors_are_pure_and_seeded(session: pl.DataFrame) -> None:
+    before = session.clone()
+    runs = [
+        lambda r: lf.drop_rows(session, r, 0.1),
+        lambda r: lf.drop_gap(session, r, 60),
+        lambda r: lf.duplicate_rows(session, r, 0.05),
+        lambda r: lf.swap_neighbours(session, r, 0.05),
+        lambda r: lf.blank_cells(session, r, 0.05),
+        lambda r: lf.garble_cells(session, r, 0.05, ("speed_kmh",)),
+        lambda r: lf.freeze_speed(session, r, 100),
+        lambda r: lf.jump_speed(session, r, 5),
+        lambda r: lf.pt1000_open_circuit(session, r, 50),
+        lambda r: lf.pt1000_frozen(session, r, 50),
+        lambda r: lf.pt1000_drift_to_ambient(session, r),
+    ]
+    for run in runs:
+        assert run(_rng(5)).equals(run(_rng(5)))
+        assert not run(_rng(5)).equals(session)
+    assert session.equals(before)
+
+
+def test_drop_rows_and_gap(session: pl.DataFrame) -> None:
+    dropped = lf.drop_rows(session, _rng(), 0.1)
+    assert dropped.height == session.height - round(0.1 * (session.height - 1))
+    assert dropped["time_utc"][0] == session["time_utc"][0]
+    assert dropped["time_utc"].is_in(session["time_utc"].implode()).all()
+    gap = lf.drop_gap(session, _rng(), 90, start=200)
+    assert gap.height == session.height - 90
+    step_s = gap["time_utc"].diff().dt.total_seconds().drop_nulls()
+    assert step_s.max() == 91
+    assert step_s.arg_max() == 199
+
+
+def test_duplicate_rows(session: pl.DataFrame) -> None:
+    doubled = lf.duplicate_rows(session, _rng(), 0.05)
+    assert doubled.height == session.height + 50
+    assert doubled.unique(maintain_order=True).equals(session)
+    assert doubled["time_utc"].is_duplicated().sum() == 100
+
+
+def test_swap_neighbours(session: pl.DataFrame) -> None:
+    swapped = lf.swap_neighbours(session, _rng(), 0.05)
+    assert swapped.sort("time_utc").equals(session)
+    backwards = int((swapped["time_utc"].diff().dt.total_seconds() < 0).sum())
+    assert 30 <= backwards <= 50  # swaps never overlap
+    assert swapped["time_utc"][0] == session["time_utc"][0]
+
+
+def test_blank_and_garble_cells(session: pl.DataFrame) -> None:
+    blank = lf.blank_cells(session, _rng(), 0.02)
+    assert all(blank[c].null_count() == 20 for c in session.columns)
+    only = lf.blank_cells(session, _rng(), 0.02, columns=("brake_pressure_bar",))
+    assert only.null_count().row(0, named=True) == {
+        c: (20 if c == "brake_pressure_bar" else 0) for c in session.columns
+    }
+    garbled = lf.garble_cells(session, _rng(), 0.01, ("speed_kmh", "time_utc"), text="n/a")
+    assert (garbled["speed_kmh"] == "n/a").sum() == 10
+    assert (garbled["time_utc"] == "n/a").sum() == 10
+    assert garbled["time_utc"][0] in ("2024-03-01T06:00:00Z", "n/a")
+
+
+def test_gps_speed_freeze_and_jump(session: pl.DataFrame) -> None:
+    frozen = lf.freeze_speed(session, _rng(), 120, start=100)
+    assert frozen["speed_kmh"].slice(100, 120).n_unique() == 1
+    assert frozen["speed_kmh"].slice(220).equals(session["speed_kmh"].slice(220))
+    jumped = lf.jump_speed(session, _rng(), 4, jump_kmh=50.0, max_length_s=3)
+    changed = (jumped["speed_kmh"] - session["speed_kmh"]).abs()
+    assert 1 <= int((changed > 0).sum()) <= 12
+    assert changed.max() == pytest.approx(50.0)
+    assert jumped["speed_kmh"].min() >= 0
+
+
+def test_pt1000_faults(session: pl.DataFrame) -> None:
+    low, high = lf.BLOCK_TEMP_VALID_C
+    broken = lf.pt1000_open_circuit(session, _rng(), 30, start=10)
+    reading = broken["block_temp_c"].slice(10, 30)
+    assert reading.n_unique() == 1
+    assert not low <= reading[0] <= high
+    assert broken["block_temp_c"].slice(40).equals(session["block_temp_c"].slice(40))
+    frozen = lf.pt1000_frozen(session, _rng(), 200, start=300)
+    assert frozen["block_temp_c"].slice(300, 200).n_unique() == 1
+    drift = lf.pt1000_drift_to_ambient(session, _rng(), tau_s=60.0, ambient_c=-5.0, start=500)
+    assert drift["block_temp_c"].slice(0, 501).equals(session["block_temp_c"].slice(0, 501))
+    tail = drift["block_temp_c"].slice(900).to_numpy()
+    assert np.all(np.abs(tail + 5.0) < 0.01 * np.abs(session["block_temp_c"][900] + 5.0) + 0.1)
+
+
+def test_truncate_mid_row() -> None:
+    data = lf.to_csv_bytes(simple_session(rows=200))
+    for seed in range(20):
+        cut = lf.truncate_mid_row(data, _rng(seed))
+        assert data.startswith(cut)
+        assert not cut.endswith(b"\n")
+        assert 0 <= lf.complete_rows(cut) < 200
+        partial = cut.rsplit(b"\n", 1)[1]
+        full_line = data[len(cut) - len(partial) :].split(b"\n", 1)[0]
+        assert 0 < len(partial) < len(full_line)
+
+
+def test_truncate_gzip_and_garbage() -> None:
+    gz = lf.gzip_bytes(lf.to_csv_bytes(simple_session(rows=2000)))
+    cut = lf.truncate_gzip(gz, _rng())
+    assert gz.startswith(cut) and len(cut) < len(gz)
+    with pytest.raises(EOFError):
+        gzip.decompress(cut)
+    inflater = zlib.decompressobj(wbits=31)
+    inflater.decompress(cut)
+    assert not inflater.eof
+    binary = lf.garbage_bytes(_rng(), 1000)
+    assert len(binary) == 1000 and binary != lf.garbage_bytes(_rng(1), 1000)
+    text = lf.garbage_bytes(_rng(), 500, kind="text")
+    assert len(text) <= 500 and b"time_utc" not in text
+    assert lf.garbage_bytes(_rng(), 64, kind="zeros") == bytes(64)
+    with pytest.raises(ValueError, match="kind"):
+        lf.garbage_bytes(_rng(), 10, kind="nope")
