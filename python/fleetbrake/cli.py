@@ -114,6 +114,19 @@ def bench_solver_command(
         typer.echo(json.dumps(figures))
 
 
+@bench_app.command("rom")
+def bench_rom_command(
+    json_out: Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")] = False,
+    events: Annotated[int, typer.Option(help="Events in the reduced-model batch.")] = 20_000,
+    full_events: Annotated[int, typer.Option(help="Events also run by the full model.")] = 3,
+    refinement: Annotated[float, typer.Option(help="Mesh refinement (1.0: default).")] = 1.0,
+) -> None:
+    """Reduced model vs full model on 700-second event windows, in the same run."""
+    from fleetbrake.bench_rom import report, run_rom_benchmark
+
+    report(run_rom_benchmark(events, full_events, refinement), json_out)
+
+
 @app.command("paper")
 def paper_command(
     out: Annotated[

@@ -132,9 +132,7 @@ class Effect:
             value = _check_number(owner, f.name, getattr(self, f.name))
             low, high = self.LIMITS.get(f.name, (None, None))
             if (low is not None and value < low) or (high is not None and value > high):
-                raise ValueError(
-                    f"{owner}.{f.name} must be in [{low}, {high}], got {value!r}"
-                )
+                raise ValueError(f"{owner}.{f.name} must be in [{low}, {high}], got {value!r}")
             object.__setattr__(self, f.name, value)
 
     # ---------------------------------------------------------------- parameters
@@ -341,9 +339,7 @@ class AmbientOffset(Effect):
 
     name: ClassVar[str] = "ambient_offset"
     PARAMETER_RANGES: ClassVar[Mapping[str, tuple[float, float]]] = {"offset_k": (-4.0, 6.0)}
-    LIMITS: ClassVar[Mapping[str, tuple[float | None, float | None]]] = {
-        "offset_k": (-50.0, 50.0)
-    }
+    LIMITS: ClassVar[Mapping[str, tuple[float | None, float | None]]] = {"offset_k": (-50.0, 50.0)}
 
     offset_k: float = 3.0
 
@@ -455,7 +451,7 @@ class EffectSet:
 
     def with_effect(self, effect: Effect) -> EffectSet:
         """This set with ``effect`` added, or replacing the one of the same name."""
-        return EffectSet(tuple(e for e in self.effects if e.name != effect.name) + (effect,))
+        return EffectSet((*(e for e in self.effects if e.name != effect.name), effect))
 
     def apply_to_inputs(self, inputs: DriveInputs) -> DriveInputs:
         for effect in self.effects:

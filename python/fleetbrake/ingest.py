@@ -84,7 +84,7 @@ from fleetbrake.logfile import (
     parse_log_path,
 )
 from fleetbrake.registry import Registry, RegistryError, load_registry
-from fleetbrake.warehouse import Warehouse, open_warehouse, sql
+from fleetbrake.warehouse import Warehouse, WarehouseError, open_warehouse, sql
 
 __all__ = [
     "FileResult",
@@ -1034,12 +1034,18 @@ def run_ingest(
     (waiting up to ``wait_s`` for another writer), ingest, detect events, close.
 
     Raises :class:`FleetDirError`, :class:`~fleetbrake.registry.RegistryError` (before the
-    database is touched) and :class:`~fleetbrake.warehouse.WarehouseError` (locked, unusable).
+    database is touched) and :class:`~fleetbrake.warehouse.WarehouseError` (locked, unusable,
+    or failing while written: disk full, ...; what was committed before stays).
     """
     registry = load_fleet_registry(fleet_dir)
     with open_warehouse(db_path, wait_s=wait_s) as wh:
-        report = ingest_fleet(fleet_dir, wh, registry=registry, config=config, progress=progress)
-        report.events = update_events(wh, event_config)
+        try:
+            report = ingest_fleet(
+                fleet_dir, wh, registry=registry, config=config, progress=progress
+            )
+            report.events = update_events(wh, event_config)
+        except duckdb.Error as error:
+            raise WarehouseError(f"{db_path}: {error}") from error
     return report
 
 

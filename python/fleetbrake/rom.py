@@ -64,7 +64,7 @@ __all__ = [
     "training_loading",
 ]
 
-ROM_VERSION = 1
+ROM_VERSION = 3
 """Bumped whenever the construction changes, so that cached models are rebuilt."""
 
 TRAINING_INITIAL_C = 23.0

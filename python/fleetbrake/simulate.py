@@ -217,9 +217,7 @@ def simulate_timeline(
         if previous is not None and float(np.max(np.abs(sensor - previous))) < tol_k:
             break
         if iterations >= max_iterations:
-            change = (
-                float(np.max(np.abs(sensor - previous))) if previous is not None else np.inf
-            )
+            change = float(np.max(np.abs(sensor - previous))) if previous is not None else np.inf
             raise FixedPointError(
                 f"{effects}: the sensor series still changed by {change:.3g} K after "
                 f"{iterations} passes (tolerance {tol_k} K)"
@@ -262,8 +260,7 @@ def _integrate(
         else:
             step_h[face] = np.round(steps / H_QUANTUM_W_M2K) * H_QUANTUM_W_M2K
     nominal = set(step_h) == set(rom.h_nominal) and all(
-        isinstance(value, float) and value == rom.h_nominal[face]
-        for face, value in step_h.items()
+        isinstance(value, float) and value == rom.h_nominal[face] for face, value in step_h.items()
     )
     if not keep_state and initial_state is None and nominal:
         batch = rom.simulate_batch(
