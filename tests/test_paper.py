@@ -71,7 +71,9 @@ def test_paper_json_within_ten_percent_in_under_a_minute() -> None:
         assert run["force_chain"]["friction_force_n"] > 0
         calibrated = figures["calibration"][name]
         assert abs(calibrated["time_to_peak_s"] / paper - 1.0) < 0.10, (name, calibrated)
-        assert calibrated["rel_error"] == pytest.approx(calibrated["time_to_peak_s"] / paper - 1)
+        assert calibrated["rel_error"] == pytest.approx(
+            calibrated["time_to_peak_s"] / paper - 1, abs=1e-4
+        )
     assert 0.030 <= figures["calibration"]["sensor_depth_m"] <= 0.070
     assert elapsed < 60.0, f"fleetbrake paper --json took {elapsed:.1f} s"
 
@@ -163,9 +165,7 @@ def test_superposition_is_exact_and_a_bigger_bore_heats_more_and_later(
     direct = simulate_manoeuvre(
         coarse.model, bigger, "A", run.manoeuvre, settings=COARSE, keep_fields=False
     )
-    scale = (
-        event_heat_input(bigger, run.manoeuvre).block_flux_w_m2 / run.heat.block_flux_w_m2
-    )
+    scale = event_heat_input(bigger, run.manoeuvre).block_flux_w_m2 / run.heat.block_flux_w_m2
     superposed = superposed_curves(run, decay, flux_scale=scale)  # exact up to round-off
     assert np.abs(superposed[:, 0] - direct.sensor_c).max() < 1e-5
     assert np.abs(superposed[:, 1:] - direct.depth_c).max() < 1e-5

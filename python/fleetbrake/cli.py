@@ -179,6 +179,73 @@ def paper_command(
         typer.echo(json.dumps(figures))
 
 
+@app.command("synth")
+def synth_command(
+    out_dir: Annotated[
+        Path, typer.Argument(help="New (or empty) directory for the fleet and its truth.")
+    ],
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 4,
+    days: Annotated[int, typer.Option("--days", help="UTC days of operation.")] = 2,
+    seed: Annotated[int, typer.Option("--seed", help="Same seed, same bytes.")] = 0,
+    effect: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--effect",
+            help="Undeclared effect acting on every wagon, NAME[:k=v,...] (repeatable), e.g. "
+            "convection_speed:gain=2,exponent=0.8 or sensor_lag:tau_s=40.",
+        ),
+    ] = None,
+    anomalies: Annotated[
+        bool,
+        typer.Option(
+            "--anomalies/--no-anomalies",
+            help="Dragging brake, weak brake and sensor faults in some wagons.",
+        ),
+    ] = True,
+    imperfections: Annotated[
+        bool,
+        typer.Option(
+            "--imperfections/--no-imperfections",
+            help="Missing/duplicated/swapped rows, empty cells, GPS faults, bad files, "
+            "registry problems.",
+        ),
+    ] = True,
+    start: Annotated[str, typer.Option("--start", help="First UTC day, YYYY-MM-DD.")] = (
+        "2024-03-04"
+    ),
+    gzip_fraction: Annotated[
+        float, typer.Option("--gzip-fraction", help="Share of the log files gzipped.")
+    ] = 0.5,
+) -> None:
+    """Write a synthetic fleet (fleet.toml and logs/, exactly as fleet-data.md) and its truth
+    (OUT_DIR/truth: 1 Hz series, events, anomalies, effects, bad files)."""
+    import datetime as dt
+    import time
+
+    from fleetbrake.effects import EffectSet, parse_effect
+    from fleetbrake.synth import SynthConfig, generate_fleet, summary
+
+    try:
+        effects = EffectSet(tuple(parse_effect(text) for text in effect or []))
+        settings = {
+            "wagons": wagons,
+            "days": days,
+            "seed": seed,
+            "start": dt.date.fromisoformat(start),
+            "effects": effects,
+            "anomalies": anomalies,
+            "gzip_fraction": gzip_fraction,
+        }
+        config = SynthConfig(**settings) if imperfections else SynthConfig.clean(**settings)
+        began = time.perf_counter()
+        truth = generate_fleet(out_dir, config, progress=lambda text: typer.echo(text, err=True))
+    except (ValueError, FileExistsError, OSError) as error:
+        typer.echo(f"fleetbrake synth: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    typer.echo(summary(truth))
+    typer.echo(f"generated in {time.perf_counter() - began:.1f} s")
+
+
 def main() -> None:
     """Entry point of the ``fleetbrake`` script."""
     app()

@@ -176,7 +176,7 @@ class Effect:
         return sensor_c
 
     def __str__(self) -> str:
-        shown = ",".join(f"{k}={v:.6g}" for k, v in self.parameters.items())
+        shown = ",".join(f"{k}={v!r}" for k, v in self.parameters.items())
         return f"{self.name}:{shown}" if shown else self.name
 
 
