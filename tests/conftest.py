@@ -14,6 +14,13 @@ TEST_REFINEMENT = float(os.environ.get("FLEETBRAKE_TEST_REFINEMENT", "0.6"))
 
 
 @pytest.fixture(scope="session")
+def rom_refinement() -> float:
+    """``TEST_REFINEMENT``, for tests that must pass it on (e.g. as FLEETBRAKE_REFINEMENT to a
+    command run in-process)."""
+    return TEST_REFINEMENT
+
+
+@pytest.fixture(scope="session")
 def rom_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Where the session's reduced models are cached: ``$FLEETBRAKE_CACHE_DIR`` if set, else
     one directory shared by every xdist worker of the session."""

@@ -59,17 +59,24 @@ def make_session(
 ) -> Session:
     """A session of ``n_events`` brakings (kinds drawn from ``kinds``) between cruising stretches.
 
-    Pressure follows its target with a first-order lag (rise ~20 s, release ~45 s), quantised
-    to 7 mbar with a little noise; speed follows from the pressure; the block heats while
-    braking and cools towards ambient.
+    Pressure rises in about 20 s, either as a first-order lag or as a linear ramp (then the
+    first 0.05 bar take up to 2.5 s), releases in about 45 s, is quantised to 7 mbar with a
+    little noise; speed follows from the pressure; the block heats while braking and cools
+    towards ambient.
     """
     target_bar: list[float] = []
+    rise_tau_s: list[float] = []
     phase: list[str] = []
     events: list[tuple[int, str, float, int]] = []
     quiet: list[tuple[int, int]] = []
 
     def add(seconds: int, p_bar: float, name: str) -> None:
-        target_bar.extend([p_bar] * seconds)
+        if p_bar > 0 and rng.random() < 0.5:  # a linear ramp over 20 s
+            target_bar.extend(p_bar * min(1.0, (k + 1) / 20.0) for k in range(seconds))
+            rise_tau_s.extend([1.0] * seconds)
+        else:
+            target_bar.extend([p_bar] * seconds)
+            rise_tau_s.extend([RISE_TAU_S] * seconds)
         phase.extend([name] * seconds)
 
     def cruise(seconds: int) -> None:
@@ -98,7 +105,7 @@ def make_session(
     target = np.asarray(target_bar)
     pressure = np.zeros(n)
     for i in range(1, n):
-        tau = RISE_TAU_S if target[i] > pressure[i - 1] else RELEASE_TAU_S
+        tau = rise_tau_s[i] if target[i] > pressure[i - 1] else RELEASE_TAU_S
         pressure[i] = target[i] + (pressure[i - 1] - target[i]) * np.exp(-1.0 / tau)
 
     speed_ms = np.zeros(n)

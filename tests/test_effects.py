@@ -100,12 +100,23 @@ def test_batch_kernel_and_continuation_agree(default_rom, base):
     p, v = _braking()
     half = N_S // 2
     first = simulate_timeline(
-        default_rom, WAGON, dt_s=1.0, p_bar=p[: half + 1], speed_kmh=v[: half + 1],
-        ambient_c=T0_C, initial_c=T0_C,
+        default_rom,
+        WAGON,
+        dt_s=1.0,
+        p_bar=p[: half + 1],
+        speed_kmh=v[: half + 1],
+        ambient_c=T0_C,
+        initial_c=T0_C,
     )
     second = simulate_timeline(
-        default_rom, WAGON, dt_s=1.0, p_bar=p[half:], speed_kmh=v[half:], ambient_c=T0_C,
-        initial_c=T0_C, initial_state=first.final_state,
+        default_rom,
+        WAGON,
+        dt_s=1.0,
+        p_bar=p[half:],
+        speed_kmh=v[half:],
+        ambient_c=T0_C,
+        initial_c=T0_C,
+        initial_state=first.final_state,
     )
     joined = np.concatenate((first.sensor_c, second.sensor_c[1:]))
     np.testing.assert_allclose(joined, base.sensor_c, rtol=0, atol=1e-9)
@@ -154,8 +165,10 @@ def test_energy_flux_times_area_is_the_blocks_heat_input(default_rom):
     area_cyl = math.pi * WAGON.cylinder_diameter_m**2 / 4
     f_cyl = np.maximum(p * 1e5 * area_cyl - WAGON.cylinder_spring_force_n, 0.0)
     f_bogie = np.maximum(
-        (f_cyl * WAGON.rigging_ratio_total
-         - WAGON.regulator_force_n * WAGON.rigging_ratio_after_central)
+        (
+            f_cyl * WAGON.rigging_ratio_total
+            - WAGON.regulator_force_n * WAGON.rigging_ratio_after_central
+        )
         * WAGON.rigging_efficiency,
         0.0,
     )
@@ -199,9 +212,7 @@ def test_friction_speed_scales_the_heating_by_mu(default_rom, base, effect):
     expected_k = FrictionSpeed(effect.speed_scale_kmh, 0.0)._k(np.array(V_KMH)) / FrictionSpeed(
         effect.speed_scale_kmh, 0.0
     )._k(np.array(60.0))
-    assert factor == pytest.approx(
-        float(expected_k) * (force / 1500.0) ** -effect.force_exponent
-    )
+    assert factor == pytest.approx(float(expected_k) * (force / 1500.0) ** -effect.force_exponent)
     assert factor < 1.0  # mu falls with speed; 80 km/h is above the reference 60
     np.testing.assert_allclose(result.sensor_c - T0_C, factor * (base.sensor_c - T0_C), atol=1e-9)
     assert result.sensor_c.max() < base.sensor_c.max() - 0.02 * (base.sensor_c.max() - T0_C)
@@ -287,7 +298,9 @@ def test_ambient_offset_shifts_the_steady_state(default_rom, effect):
     result = _run(default_rom, [effect], pv=pv, keep_state=False)
     plain = _run(default_rom, pv=pv, keep_state=False)
     np.testing.assert_allclose(plain.sensor_c, T0_C, atol=1e-9)
-    assert result.sensor_c[-1] - T0_C == pytest.approx(effect.offset_k, abs=0.01 * abs(effect.offset_k))
+    assert result.sensor_c[-1] - T0_C == pytest.approx(
+        effect.offset_k, abs=0.01 * abs(effect.offset_k)
+    )
     assert result.contact_mean_c[-1] - T0_C == pytest.approx(
         effect.offset_k, abs=0.01 * abs(effect.offset_k)
     )

@@ -54,3 +54,12 @@ CREATE TABLE IF NOT EXISTS flags (
     evidence     VARCHAR   NOT NULL,   -- a sentence a maintainer can act on
     detected_utc TIMESTAMP NOT NULL
 );
+
+-- The registry entries the last `run` used (so that commands given only --db, like
+-- close-loop, simulate each wagon as `run` did).
+CREATE TABLE IF NOT EXISTS wagon_registry (
+    wagon_id    VARCHAR   NOT NULL PRIMARY KEY,
+    config_json VARCHAR   NOT NULL,  -- the WagonConfig's fields, JSON
+    source      VARCHAR   NOT NULL,  -- the fleet.toml it came from
+    updated_utc TIMESTAMP NOT NULL
+);

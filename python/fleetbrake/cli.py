@@ -58,6 +58,99 @@ def ingest_command(
     print_report(report)
 
 
+@app.command("run")
+def run_command(
+    fleet_dir: Annotated[Path, typer.Argument(help="Fleet directory: fleet.toml and logs/.")],
+    db: Annotated[Path, typer.Option("--db", help="DuckDB warehouse.")] = Path(
+        "warehouse/fleet.duckdb"
+    ),
+    flag_config: Annotated[
+        Path | None, typer.Option("--flag-config", help="TOML file of flag thresholds.")
+    ] = None,
+    wait_s: Annotated[
+        float,
+        typer.Option("--wait", help="Seconds to wait for another process writing the database."),
+    ] = 0.0,
+) -> None:
+    """Ingest new files, detect events, simulate every new event, raise flags.
+
+    Idempotent and incremental: a second run over the same directory adds nothing. Bad files
+    are quarantined and reported (exit 0); exit 1 when the fleet directory, its registry or
+    the database cannot be used, 75 when another process is writing the database.
+    """
+    from fleetbrake.ingest import FleetDirError, print_report
+    from fleetbrake.pipeline import run_fleet
+    from fleetbrake.registry import RegistryError
+    from fleetbrake.warehouse import WarehouseError, WarehouseLockedError
+
+    try:
+        report = run_fleet(fleet_dir, db, wait_s=wait_s, flag_config_path=flag_config)
+    except WarehouseLockedError as error:
+        typer.echo(f"fleetbrake run: {error}", err=True)
+        raise typer.Exit(EXIT_LOCKED) from None
+    except (FleetDirError, RegistryError, WarehouseError, OSError, ValueError) as error:
+        typer.echo(f"fleetbrake run: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    print_report(report.ingest)
+    sim = report.simulation
+    typer.echo(
+        f"simulated {sim.events_simulated} events with revision {report.revision} "
+        f"({sim.prediction_rows:,} prediction rows)"
+    )
+    for reason in sim.skipped:
+        typer.echo(f"  not simulated: {reason}")
+    if report.flags is not None:
+        typer.echo(str(report.flags))
+
+
+@app.command("close-loop")
+def close_loop_command(
+    holdout_from: Annotated[
+        str,
+        typer.Option("--holdout-from", help="YYYY-MM-DD: events on or after it are never fitted."),
+    ],
+    json_out: Annotated[Path, typer.Option("--json", help="Where to write the JSON report.")],
+    db: Annotated[Path, typer.Option("--db", help="DuckDB warehouse.")] = Path(
+        "warehouse/fleet.duckdb"
+    ),
+    wait_s: Annotated[
+        float,
+        typer.Option("--wait", help="Seconds to wait for another process writing the database."),
+    ] = 0.0,
+) -> None:
+    """Compare predictions with measurements, find the effect the model lacks, fit it before
+    the holdout date, record a new model revision, re-simulate, and write the report."""
+    import datetime as dt
+
+    from fleetbrake.closeloop import CloseLoopError, run_close_loop
+    from fleetbrake.warehouse import WarehouseError, WarehouseLockedError
+
+    try:
+        holdout = dt.date.fromisoformat(holdout_from)
+    except ValueError:
+        typer.echo(
+            f"fleetbrake close-loop: --holdout-from {holdout_from!r} is not YYYY-MM-DD", err=True
+        )
+        raise typer.Exit(2) from None
+    try:
+        report = run_close_loop(db, holdout, json_out, wait_s=wait_s)
+    except WarehouseLockedError as error:
+        typer.echo(f"fleetbrake close-loop: {error}", err=True)
+        raise typer.Exit(EXIT_LOCKED) from None
+    except (CloseLoopError, WarehouseError) as error:
+        typer.echo(f"fleetbrake close-loop: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    if report["new_revision"]:
+        typer.echo(
+            f"added {report['effect']} {report['parameters']} as {report['new_revision']}: "
+            f"holdout RMSE {report['holdout'].get('rmse_before_k')} -> "
+            f"{report['holdout'].get('rmse_after_k')} K"
+        )
+    else:
+        typer.echo("no significant effect is missing: nothing added")
+    typer.echo(f"report: {json_out} and {Path(json_out).with_suffix('.md')}")
+
+
 @bench_app.command("ingest")
 def bench_ingest_command(
     json_out: Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")] = False,
@@ -220,7 +313,12 @@ def synth_command(
     """Write a synthetic fleet (fleet.toml and logs/, exactly as fleet-data.md) and its truth
     (OUT_DIR/truth: 1 Hz series, events, anomalies, effects, bad files)."""
     import datetime as dt
+    import os
     import time
+
+    # the reduced model's matrices are tiny (~40 x 40): BLAS threads only cost (set before
+    # numpy is first imported, which this command does below)
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
     from fleetbrake.effects import EffectSet, parse_effect
     from fleetbrake.synth import SynthConfig, generate_fleet, summary
@@ -244,6 +342,64 @@ def synth_command(
         raise typer.Exit(EXIT_FAILED) from None
     typer.echo(summary(truth))
     typer.echo(f"generated in {time.perf_counter() - began:.1f} s")
+
+
+@app.command("record")
+def record_command(
+    wagon: Annotated[str, typer.Option("--wagon", help="Wagon id.")],
+    out: Annotated[Path, typer.Option("--out", help="Rerun recording to write (.rrd).")],
+    db: Annotated[Path, typer.Option("--db", help="DuckDB warehouse (opened read-only).")] = Path(
+        "warehouse/fleet.duckdb"
+    ),
+    event: Annotated[
+        str | None,
+        typer.Option("--event", help="Record this event only, with the block's temperature field."),
+    ] = None,
+    revision: Annotated[
+        str | None,
+        typer.Option("--revision", help="Model revision of the predictions (default: current)."),
+    ] = None,
+    registry: Annotated[
+        Path | None,
+        typer.Option(
+            "--registry",
+            help="fleet.toml (or its fleet directory): the wagon's block and sensor seat for "
+            "--event (default: as the last run stored it, else the spec's defaults).",
+        ),
+    ] = None,
+    wait_s: Annotated[
+        float,
+        typer.Option("--wait", help="Seconds to wait for another process writing the database."),
+    ] = 0.0,
+) -> None:
+    """Write a rerun recording of a wagon's timeline (or one event) for incident review.
+
+    Exit 1 when the database cannot be read or the wagon, event or revision is unknown, 75
+    when another process is writing the database. Open the file with ``rerun FILE.rrd``.
+    """
+    from fleetbrake.record import RecordError, RecordLockedError, record, wagon_config
+
+    try:
+        config = wagon_config(wagon, registry) if registry is not None else None
+        summary = record(
+            db, wagon, out, event_id=event, revision=revision, wagon=config, wait_s=wait_s
+        )
+    except RecordLockedError as error:
+        typer.echo(f"fleetbrake record: {error}", err=True)
+        raise typer.Exit(EXIT_LOCKED) from None
+    except RecordError as error:
+        typer.echo(f"fleetbrake record: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    what = f"event {summary.event_id}" if summary.event_id else f"wagon {summary.wagon_id}"
+    counts = summary.counts
+    fields = f", {counts['block/mesh']} block fields" if "block/mesh" in counts else ""
+    typer.echo(
+        f"wrote {summary.out}: {what}, revision {summary.revision or 'none'}, "
+        f"samples {counts.get('wagon/speed_kmh', 0):,}, events {counts['events']}, "
+        f"flags {counts['flags']}{fields} ({summary.seconds:.1f} s)"
+    )
+    for note in summary.notes:
+        typer.echo(f"  note: {note}")
 
 
 def main() -> None:

@@ -24,8 +24,8 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
-from collections.abc import Iterable
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Mapping
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -47,6 +47,8 @@ __all__ = [
     "current_revision",
     "ensure_declared",
     "simulate_events",
+    "store_registry",
+    "stored_wagons",
     "wagon_samples",
 ]
 
@@ -116,6 +118,37 @@ def current_revision(wh: Warehouse) -> Revision:
         "ORDER BY created_utc DESC LIMIT 1"
     ).fetchall()
     return revision(wh, rows[0][0] if rows else DECLARED)
+
+
+def store_registry(wh: Warehouse, registry: Registry) -> None:
+    """Keep the registry entries ``run`` used, for commands given only the database."""
+    rows = pl.DataFrame(
+        {
+            "wagon_id": list(registry.wagons),
+            "config_json": [json.dumps(asdict(w)) for w in registry.wagons.values()],
+            "source": str(registry.path),
+            "updated_utc": _utc_now(),
+        },
+        schema_overrides={"updated_utc": pl.Datetime("us")},
+    )
+    wh.con.execute("BEGIN TRANSACTION")
+    try:
+        wh.con.register("fb_registry", rows)
+        wh.con.execute(
+            "DELETE FROM wagon_registry WHERE wagon_id IN (SELECT wagon_id FROM fb_registry)"
+        )
+        wh.con.execute("INSERT INTO wagon_registry SELECT * FROM fb_registry")
+        wh.con.unregister("fb_registry")
+        wh.con.execute("COMMIT")
+    except BaseException:
+        wh.con.execute("ROLLBACK")
+        raise
+
+
+def stored_wagons(wh: Warehouse) -> dict[str, WagonConfig]:
+    """The registry entries the last ``run`` stored (checked again on the way in)."""
+    rows = wh.con.execute("SELECT wagon_id, config_json FROM wagon_registry").fetchall()
+    return {wagon_id: WagonConfig(**json.loads(text)) for wagon_id, text in rows}
 
 
 def _pending_events(wh: Warehouse, rev: str, event_ids: Iterable[str] | None) -> pl.DataFrame:
@@ -197,7 +230,7 @@ def _measured_at(measured: np.ndarray, k: int, window_s: int = 3) -> float | Non
 
 def simulate_events(
     wh: Warehouse,
-    registry: Registry,
+    registry: Registry | Mapping[str, WagonConfig],
     rev: Revision,
     config: SimulationConfig | None = None,
     *,
@@ -207,6 +240,7 @@ def simulate_events(
     """Simulate the events not yet simulated with ``rev`` (or ``event_ids``) into
     ``predictions``; each wagon in one transaction."""
     config = config or SimulationConfig()
+    wagons_by_id = registry.wagons if isinstance(registry, Registry) else registry
     report = SimulationReport()
     pending = _pending_events(wh, rev.name, event_ids)
     if pending.height == 0:
@@ -222,7 +256,7 @@ def simulate_events(
         task = bar.add_task("simulating events", total=pending.height)
         for wagon_id in wagons:
             todo = pending.filter(pl.col("wagon_id") == wagon_id)
-            wagon = registry.wagons.get(wagon_id)
+            wagon = wagons_by_id.get(wagon_id)
             if wagon is None:
                 report.skipped += [
                     f"event {e}: wagon {wagon_id} has no valid registry entry"
@@ -247,15 +281,13 @@ def _simulate_wagon(
     todo: pl.DataFrame,
     config: SimulationConfig,
     report: SimulationReport,
+    wagon_chains: list[pl.DataFrame] | None = None,
 ) -> list[pl.DataFrame]:
     wanted = set(todo["event_id"].to_list())
-    span0 = todo["start_utc"].min()
-    span1 = todo["end_utc"].max() + dt.timedelta(seconds=config.after_release_s)
-    # carried states start at the beginning of the chain: read back to the previous long gap
-    lookback = dt.timedelta(hours=12) if config.initial_state == "carried" else dt.timedelta(0)
-    samples = wagon_samples(wh, wagon.wagon_id, span0 - lookback, span1)
+    if wagon_chains is None:
+        wagon_chains = load_chains(wh, wagon.wagon_id, todo, config)
     frames: list[pl.DataFrame] = []
-    for chain in chains(samples, config.max_gap_s):
+    for chain in wagon_chains:
         t_chain = chain["time_utc"]
         inside = events.filter(
             (pl.col("start_utc") >= t_chain[0]) & (pl.col("start_utc") <= t_chain[-1])
@@ -268,6 +300,17 @@ def _simulate_wagon(
         f"event {e}: no contiguous samples at its activation" for e in sorted(missing)
     ]
     return frames
+
+
+def load_chains(
+    wh: Warehouse, wagon_id: str, events: pl.DataFrame, config: SimulationConfig
+) -> list[pl.DataFrame]:
+    """The wagon's chains of data around ``events`` (back to the start of the chain holding
+    the first of them, for the carried state)."""
+    span0 = events["start_utc"].min()
+    span1 = events["end_utc"].max() + dt.timedelta(seconds=config.after_release_s)
+    lookback = dt.timedelta(hours=12) if config.initial_state == "carried" else dt.timedelta(0)
+    return chains(wagon_samples(wh, wagon_id, span0 - lookback, span1), config.max_gap_s)
 
 
 def _simulate_chain(
@@ -417,3 +460,50 @@ def _store(
 
 def default_db_path() -> Path:
     return Path("warehouse/fleet.duckdb")
+
+
+@dataclass
+class RunReport:
+    """Outcome of ``fleetbrake run``."""
+
+    ingest: object
+    simulation: SimulationReport
+    revision: str
+    flags: object | None = None
+
+
+def run_fleet(
+    fleet_dir: str | Path,
+    db_path: str | Path,
+    *,
+    wait_s: float = 0.0,
+    simulation: SimulationConfig | None = None,
+    flag_config_path: str | Path | None = None,
+    progress: bool | None = None,
+) -> RunReport:
+    """``fleetbrake run``: ingest the files not yet ingested, detect events, simulate every
+    new event with the current model revision, raise flags; one writer at a time.
+
+    Raises (before anything is written) what :func:`fleetbrake.ingest.run_ingest` raises for
+    an unusable fleet directory, registry or database.
+    """
+    import duckdb
+
+    from fleetbrake.events import update_events
+    from fleetbrake.flags import FlagConfig, load_flag_config, raise_flags
+    from fleetbrake.ingest import ingest_fleet, load_fleet_registry
+    from fleetbrake.warehouse import WarehouseError, open_warehouse
+
+    registry = load_fleet_registry(fleet_dir)
+    flag_config = load_flag_config(flag_config_path) if flag_config_path else FlagConfig()
+    with open_warehouse(db_path, wait_s=wait_s) as wh:
+        try:
+            ingest = ingest_fleet(fleet_dir, wh, registry=registry, progress=progress)
+            ingest.events = update_events(wh)
+            store_registry(wh, registry)
+            rev = current_revision(wh)
+            sim = simulate_events(wh, registry, rev, simulation, progress=progress)
+            flags = raise_flags(wh, registry, rev.name, flag_config)
+        except duckdb.Error as error:
+            raise WarehouseError(f"{db_path}: {error}") from error
+    return RunReport(ingest=ingest, simulation=sim, revision=rev.name, flags=flags)

@@ -64,8 +64,12 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 
-H_QUANTUM_W_M2K = 0.1
-"""Resolution to which a time-varying convection coefficient is rounded."""
+H_QUANTUM_W_M2K = 0.25
+"""Resolution to which a time-varying convection coefficient is rounded: the reduced model
+diagonalises its operator once per distinct value (a few hundred at most this way). The
+rounding is unbiased; it changes temperatures by far less than the sensor's noise, but makes a
+result a step function of a convection parameter on this scale (mind it when fitting with
+finite differences: use steps that move h by more than this)."""
 
 
 class FixedPointError(RuntimeError):
@@ -151,7 +155,8 @@ def simulate_timeline(
 
     ``p_bar`` (gauge) and ``speed_kmh`` are N-long series; ``ambient_c``, ``drag_force_n``
     and ``brake_efficiency`` a number or N-long; ``h_w_m2k`` the declared convection per face
-    set (None: the reduced model's nominal), numbers or N-long. ``initial_c`` is the uniform
+    set, numbers or N-long (None: the reduced model's nominal; a mapping replaces it whole, as
+    in ``ReducedModel.simulate``: a face set it does not name has none). ``initial_c`` is the uniform
     starting temperature (and the reference of ``initial_state``). ``keep_state=False`` lets a
     run at constant nominal convection from a uniform start use the reduced model's batch
     kernel (faster; no ``final_state``).

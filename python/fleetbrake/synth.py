@@ -272,15 +272,21 @@ def _record_to_dict(record: Any) -> dict[str, Any]:
     return {f.name: _jsonable(getattr(record, f.name)) for f in dataclasses.fields(record)}
 
 
+def _parse_times(key: str, value: Any) -> Any:
+    """``*_utc`` strings back to datetimes, also inside nested mappings."""
+    if isinstance(value, Mapping):
+        return {k: _parse_times(k, v) for k, v in value.items()}
+    if key.endswith("_utc") and isinstance(value, str):
+        return _parse(value)
+    return value
+
+
 def _record_from_dict(cls: type, data: Mapping[str, Any]) -> Any:
-    values = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        value = data[f.name]
-        if f.name.endswith("_utc") and isinstance(value, str):
-            value = _parse(value)
-        values[f.name] = value
+    values = {
+        f.name: _parse_times(f.name, data[f.name])
+        for f in dataclasses.fields(cls)
+        if f.name in data
+    }
     return cls(**values)
 
 
@@ -369,7 +375,10 @@ class WagonTruth:
     """``log`` (truth simulated with the true air temperature) or ``registry``."""
     registry_ambient_c: float
     mass_kg: float
+    """Mass braked by the wagon's own brake: with the declared force chain it sets the
+    train's deceleration (every wagon of the train brakes alike)."""
     sleep_after_s: int
+    """The unit sleeps after the wagon has stood this long."""
     days: int
     series: str
     """Relative path of the truth series (parquet)."""
@@ -544,11 +553,14 @@ class _Driver:
     ) -> None:
         self.rng = rng
         self.n_s = n_s
-        grid = np.linspace(0.0, 6.0, 6001)
-        blocks = 2 * wagon.blocks_per_bogie
-        force = np.asarray(block_force_n(wagon, grid), dtype=np.float64)
-        self._p_grid = grid
-        self._decel_grid = blocks * wagon.friction_coefficient * force / mass_kg
+        # the declared block force is max(0, slope (p - p0)) (the chain of eqs. 2-4 above
+        # both thresholds): read slope and p0 off physics.py
+        f4, f5 = (float(block_force_n(wagon, p)) for p in (4.0, 5.0))
+        slope = f5 - f4
+        self._p0 = 4.0 - f4 / slope
+        self._decel_per_bar = (
+            2 * wagon.blocks_per_bogie * wagon.friction_coefficient * slope / mass_kg
+        )
         self.v = 0.0
         self.p = 0.0
         self.target = 0.0
@@ -573,7 +585,7 @@ class _Driver:
 
     def decel(self, p_bar: float) -> float:
         """Deceleration of the train from this wagon's declared brake, m/s^2."""
-        return float(np.interp(p_bar, self._p_grid, self._decel_grid))
+        return max(p_bar - self._p0, 0.0) * self._decel_per_bar
 
     def _tick(
         self, a_drive: float, *, hold_speed: bool = False, grade: float | None = None
@@ -606,11 +618,20 @@ class _Driver:
 
     # ---------------------------------------------------------------- primitives
     def stand(self, seconds: int) -> None:
+        """Standing: the cylinder releases (if it was not yet), nothing moves."""
+        n = int(seconds)
         self.target = 0.0
         self.v = 0.0
         self.grade = 0.0
-        for _ in range(int(seconds)):
-            self._tick(0.0)
+        if n <= 0:
+            return
+        pressure = self.p * self._release ** np.arange(1, n + 1)
+        self.p = float(pressure[-1])
+        self.speed.extend([0.0] * n)
+        self.pressure.extend(pressure.tolist())
+        self.elevation.extend([self.elev] * n)
+        self.lats.extend([self.lat] * n)
+        self.lons.extend([self.lon] * n)
 
     def run(self, seconds: int, v_line_ms: float, a_acc: float) -> None:
         self.target = 0.0
@@ -672,7 +693,7 @@ class _Driver:
                 self.brake(
                     "signal_stop", float(rng.uniform(1.0, 1.8)), 0.0, int(rng.integers(5, 30))
                 )
-                self.stand(int(rng.integers(30, 300)))
+                self.stand(int(rng.integers(60, 300)))  # released before it departs
             self.run(int(rng.integers(600, 1800)), v_line, a_acc)
         p_stop = float(rng.uniform(1.0, 2.5) if rng.random() < 0.85 else rng.uniform(2.5, 3.8))
         self.brake("stop", p_stop, 0.0, int(rng.integers(10, 60)))
@@ -805,7 +826,10 @@ class _WagonPlan:
     wagon_type: str
     ambient_column: str
     mass_kg: float
+    """Mass braked by the wagon's own brake: with the declared force chain it sets the
+    train's deceleration (every wagon of the train brakes alike)."""
     sleep_after_s: int
+    """The unit sleeps after the wagon has stood this long."""
     days: int
 
 
@@ -842,7 +866,7 @@ def _plan_wagons(config: SynthConfig) -> list[_WagonPlan]:
                 overrides=overrides,
                 wagon_type=wagon_type,
                 ambient_column=ambient_column,
-                mass_kg=round(float(wagon_rng.uniform(35_000.0, 90_000.0)), -2),
+                mass_kg=round(float(wagon_rng.uniform(55_000.0, 90_000.0)), -2),
                 sleep_after_s=int(wagon_rng.integers(240, 600)),
                 days=config.days if registry == "ok" else 1,
             )
@@ -1002,11 +1026,7 @@ def generate_fleet(
 
         # the block, continuously
         model = rom_for(wagon)
-        rom_info = {
-            "order": model.order,
-            "refinement": model.meta.get("refinement", config.refinement),
-            "cache_key": model.meta.get("cache_key"),
-        }
+        rom_info = {"order": model.order, "cache_key": model.meta.get("cache_key")}
         offset = config.effects.get("ambient_offset")
         initial_c = float(ambient_truth[0]) + (
             offset.offset_k if isinstance(offset, AmbientOffset) else 0.0
@@ -1048,9 +1068,7 @@ def generate_fleet(
                 "contact_mean_c": np.round(result.contact_mean_c, 4),
                 "contact_max_c": np.round(result.contact_max_c, 4),
             }
-        ).write_parquet(
-            truth_dir / series_rel, compression="zstd", compression_level=9, statistics=False
-        )
+        ).write_parquet(truth_dir / series_rel, compression="zstd", statistics=False)
 
         wagons.append(
             WagonTruth(
@@ -1169,7 +1187,7 @@ def generate_fleet(
     (truth_dir / TRUTH_JSON).write_text(
         json.dumps(truth.to_dict(), indent=1, sort_keys=True) + "\n", encoding="utf-8"
     )
-    return truth
+    return load_truth(out_dir)  # exactly what is on disk (floats rounded as written)
 
 
 def _mark_recorded(events: list[TrueEvent], files: list[FileTruth]) -> list[TrueEvent]:
