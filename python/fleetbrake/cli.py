@@ -40,8 +40,9 @@ def ingest_command(
 ) -> None:
     """Ingest the log files not yet ingested and detect braking events.
 
-    Bad files are quarantined and reported (exit 0); exit 1 when the fleet directory, its
-    registry or the database cannot be used, 75 when another process is writing the database.
+    Bad files are quarantined and reported: exit 0.
+    Exit 1 when the fleet directory, its registry or the database cannot be used.
+    Exit 75 when another process is writing the database (run again later, or --wait).
     """
     from fleetbrake.ingest import FleetDirError, print_report, run_ingest
     from fleetbrake.registry import RegistryError

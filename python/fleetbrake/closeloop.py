@@ -26,9 +26,12 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import json
 import math
+import os
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,6 +80,11 @@ class CloseLoopConfig:
     the estimated sensor noise."""
     max_nfev: int = 14
     """Model evaluations per parameter fit (each re-simulates the fit events)."""
+    screen_events: int = 60
+    """Candidates are first fitted on at most this many fit events (spread evenly over the
+    fit period); the best ones are then refitted on all of them."""
+    refit: int = 2
+    """How many of the screened candidates are refitted on every fit event."""
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
 
 
@@ -148,6 +156,11 @@ class _Evaluator:
         return r[np.isfinite(r)]
 
 
+def _debug(message: str) -> None:
+    if os.environ.get("FLEETBRAKE_DEBUG"):
+        print(f"[close-loop {time.strftime('%H:%M:%S')}] {message}", flush=True)
+
+
 def _rmse(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
 
@@ -216,7 +229,7 @@ def _fit(
         x_start,
         bounds=(lo, hi),
         x_scale=np.asarray(scale),
-        diff_step=1e-3,
+        diff_step=0.05,  # above simulate.H_QUANTUM_W_M2K's rounding of a varying h
         max_nfev=max_nfev,
         method="trf",
     )
@@ -345,14 +358,38 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     r_base = fit_eval.residual(base.effects)
     current = Candidate(base.effects, _rmse(r_base), _bic(r_base, 0), 0)
 
-    candidates: list[Candidate] = []
+    # screening: every effect on a subset of the fit events, each from a uniform start at
+    # its measured temperature (independent windows: a tenth of the cost of carrying the
+    # state through whole sessions, and enough to rank effects)
+    picks = np.linspace(0, fit.height - 1, min(config.screen_events, fit.height))
+    screen_config = dataclasses.replace(sim, initial_state="uniform")
+    screen_eval = _Evaluator(
+        wh, wagons, all_events, fit[np.unique(picks.round().astype(int))], screen_config
+    )
+    screened: list[Candidate] = []
     present = {type(e) for e in base.effects}
     for cls in EFFECT_ORDER:
         if cls in present:
             continue
-        effects, r = _fit(fit_eval, base.effects, [cls], None, config.max_nfev)
+        effects, r = _fit(screen_eval, base.effects, [cls], None, config.max_nfev)
         k = len(cls.PARAMETER_RANGES)
-        candidates.append(Candidate(effects, _rmse(r), _bic(r, k), k))
+        screened.append(Candidate(effects, _rmse(r), _bic(r, k), k))
+        _debug(f"screened {cls.name}: {effects} rmse {screened[-1].rmse_fit_k:.4f}")
+    screened.sort(key=lambda c: c.bic)
+    # refit the best on every fit event, from the screened parameters
+    candidates: list[Candidate] = []
+    for c in screened:
+        if len(candidates) < config.refit:
+            added = [e for e in c.effects if type(e) not in present]
+            classes = [type(e) for e in added]
+            effects, r = _fit(fit_eval, base.effects, classes, added, max(4, config.max_nfev // 2))
+            candidates.append(Candidate(effects, _rmse(r), _bic(r, c.n_parameters), c.n_parameters))
+            _debug(f"refitted {c.label}: {effects} rmse {candidates[-1].rmse_fit_k:.4f}")
+        else:
+            r = fit_eval.residual(c.effects)
+            candidates.append(
+                Candidate(c.effects, _rmse(r), _bic(r, c.n_parameters), c.n_parameters)
+            )
     candidates.sort(key=lambda c: c.bic)
     best = candidates[0] if candidates else None
     if (
@@ -361,13 +398,25 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         and best.rmse_fit_k > config.pair_above_noise * noise_k
     ):
         first = [e for e in best.effects if type(e) not in present]
+        pairs: list[Candidate] = []
         for cls in EFFECT_ORDER:
             if cls in present or cls in {type(e) for e in first}:
                 continue
             classes = [type(first[0]), cls]
-            effects, r = _fit(fit_eval, base.effects, classes, first, config.max_nfev)
+            effects, r = _fit(screen_eval, base.effects, classes, first, config.max_nfev)
             k = best.n_parameters + len(cls.PARAMETER_RANGES)
-            candidates.append(Candidate(effects, _rmse(r), _bic(r, k), k))
+            pairs.append(Candidate(effects, _rmse(r), _bic(r, k), k))
+            _debug(f"screened pair {pairs[-1].label}: rmse {pairs[-1].rmse_fit_k:.4f}")
+        if pairs:
+            top = min(pairs, key=lambda c: c.bic)
+            added = [e for e in top.effects if type(e) not in present]
+            effects, r = _fit(
+                fit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
+            )
+            candidates.append(
+                Candidate(effects, _rmse(r), _bic(r, top.n_parameters), top.n_parameters)
+            )
+            _debug(f"refitted pair {candidates[-1].label}: rmse {candidates[-1].rmse_fit_k:.4f}")
         candidates.sort(key=lambda c: c.bic)
         best = candidates[0]
     if hold_eval is not None:

@@ -134,7 +134,7 @@ class IngestConfig:
     """... or this many files."""
     verify_hashes: bool = False
     """Re-read and hash recorded files even when their size and mtime are unchanged."""
-    memory_limit: str = "256MB"
+    memory_limit: str = "128MB"
     """DuckDB's buffer pool during the ingestion (restored afterwards): the written blocks it
     caches would otherwise grow with the fleet up to the connection's limit."""
     block_temp_valid_c: tuple[float, float] = BLOCK_TEMP_VALID_C
@@ -1060,7 +1060,7 @@ def run_ingest(
 
 def print_report(report: IngestReport, console: Console | None = None) -> None:
     """Summary of a run for people: counts, every quarantined file with its reason."""
-    out = console or Console()
+    out = console or Console(soft_wrap=True)  # a reason stays on one line, for grep
     ingested, quarantined = report.ingested, report.quarantined
     out.print(
         f"{report.fleet_dir} -> {report.db_path}: {report.files_seen} files seen, "
