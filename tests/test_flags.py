@@ -22,7 +22,6 @@ from fleetbrake.flags import (
     FlagConfig,
     FlagConfigError,
     WagonSeries,
-    segment_bounds,
     event_stats,
     find_dragging,
     find_drift,
@@ -35,6 +34,7 @@ from fleetbrake.flags import (
     load_flag_config,
     merge_sensor_faults,
     raise_flags,
+    segment_bounds,
     segment_stats,
 )
 
@@ -79,7 +79,11 @@ def make_series(
             "start_utc": pl.Series([T0 + dt.timedelta(seconds=e[1]) for e in events]),
             "end_utc": pl.Series([T0 + dt.timedelta(seconds=e[2]) for e in events]),
         },
-        schema={"event_id": pl.String, "start_utc": pl.Datetime("us"), "end_utc": pl.Datetime("us")},
+        schema={
+            "event_id": pl.String,
+            "start_utc": pl.Datetime("us"),
+            "end_utc": pl.Datetime("us"),
+        },
     )
     return WagonSeries.from_frame(wagon_id, frame, ambient_default_c=ambient, events=event_frame)
 
@@ -235,7 +239,9 @@ def test_dragging_window_heats_while_the_model_cools() -> None:
     (f,) = find_dragging(series, segments_of(series, predicted))
     assert f.kind == "dragging_brake" and f.detail == "no_pressure"
     assert (f.start_utc, f.end_utc) == (at(1800), at(3600))  # the windows that heated
-    assert re.search(r"heated \d+\.\d K .* at 72 km/h on average\) with at most 0\.00 bar", f.evidence)
+    assert re.search(
+        r"heated \d+\.\d K .* at 72 km/h on average\) with at most 0\.00 bar", f.evidence
+    )
     assert "the model predicts cooling by" in f.evidence and "dragging brake" in f.evidence
     # standing still nothing can drag; a sensor fault over the windows hides them
     standing = make_series(noisy(predicted + drag), speed=0.0)
@@ -450,7 +456,9 @@ def test_raise_flags_replaces_a_wagons_flags_with_stable_ids(tmp_path: Path) -> 
         # again: the same flags, their detected_utc kept
         again = raise_flags(wh, registry, "declared")  # type: ignore[arg-type]
         assert [f.flag_id for f in again.flags] == [f.flag_id for f in report.flags]
-        assert wh.con.execute("SELECT flag_id, detected_utc FROM flags ORDER BY 1").fetchall() == first  # type: ignore[attr-defined]
+        assert (
+            wh.con.execute("SELECT flag_id, detected_utc FROM flags ORDER BY 1").fetchall() == first
+        )  # type: ignore[attr-defined]
         # one wagon's samples gone: only its flags go
         wh.con.execute("DELETE FROM samples WHERE wagon_id = 'UNREG-2'")  # type: ignore[attr-defined]
         raise_flags(wh, registry, "declared", wagons=["UNREG-2"])  # type: ignore[arg-type]
@@ -494,7 +502,6 @@ def run_fleet(
     """``run_fleet(seed=, wagons=, days=, anomalies=)``: generate, ingest, simulate with the
     declared model, raise flags; memoised per arguments."""
     from conftest import TEST_REFINEMENT
-
     from fleetbrake.ingest import load_fleet_registry, run_ingest
     from fleetbrake.pipeline import SimulationConfig, current_revision, simulate_events
     from fleetbrake.synth import SynthConfig, generate_fleet
@@ -546,12 +553,10 @@ def run_fleet(
 
 
 def _observable(wh: object, truth: object, anomaly: object) -> bool:
-    """An anomaly the data can show: at least 5 min of ingested samples of its wagon within
-    it (for a brake anomaly, outside the wagon's sensor faults: a loose sensor cannot see a
-    dragging brake)."""
-    query = (
-        "SELECT count(*) FROM samples WHERE wagon_id = $w AND time_utc >= $a AND time_utc < $b"
-    )
+    """An anomaly the data can show: for a sensor fault at least a minute of ingested samples
+    of its wagon within it; for a brake anomaly at least 5 minutes, outside the wagon's sensor
+    faults (a loose sensor cannot see a dragging brake)."""
+    query = "SELECT count(*) FROM samples WHERE wagon_id = $w AND time_utc >= $a AND time_utc < $b"
     if anomaly.kind != "sensor_fault":  # type: ignore[attr-defined]
         for other in truth.anomalies:  # type: ignore[attr-defined]
             if other.kind == "sensor_fault" and other.wagon_id == anomaly.wagon_id:  # type: ignore[attr-defined]
@@ -561,7 +566,7 @@ def _observable(wh: object, truth: object, anomaly: object) -> bool:
                 )
     params = {"w": anomaly.wagon_id, "a": anomaly.start_utc, "b": anomaly.end_utc}  # type: ignore[attr-defined]
     ((count,),) = wh.con.execute(query, params).fetchall()  # type: ignore[attr-defined]
-    return count >= 300
+    return count >= (60 if anomaly.kind == "sensor_fault" else 300)  # type: ignore[attr-defined]
 
 
 def _matches(flag: Flag, anomaly: object) -> bool:
@@ -597,12 +602,16 @@ def score(outcomes: list[Outcome]) -> dict[str, dict[str, float]]:
         anomalies = [a for a in o.truth.anomalies if o.observable[id(a)]]  # type: ignore[attr-defined]
         for f in o.flags:
             for kind in (f.kind, "all"):
-                row = table.setdefault(kind, dict.fromkeys(("flags", "true", "anomalies", "found"), 0))
+                row = table.setdefault(
+                    kind, dict.fromkeys(("flags", "true", "anomalies", "found"), 0)
+                )
                 row["flags"] += 1
                 row["true"] += any(_matches(f, a) for a in o.truth.anomalies)  # type: ignore[attr-defined]
         for a in anomalies:
             for kind in (a.kind, "all"):
-                row = table.setdefault(kind, dict.fromkeys(("flags", "true", "anomalies", "found"), 0))
+                row = table.setdefault(
+                    kind, dict.fromkeys(("flags", "true", "anomalies", "found"), 0)
+                )
                 row["anomalies"] += 1
                 row["found"] += any(_matches(f, a) for f in o.flags)
     for row in table.values():
@@ -623,7 +632,9 @@ def check_evidence(flags: list[Flag]) -> None:
         assert f.severity in ("info", "warning", "alarm")
     kinds = {f.kind: f.evidence for f in flags}
     if "dragging_brake" in kinds:
-        assert re.search(r"km/h .* bar in the brake cylinder|more than predicted", kinds["dragging_brake"])
+        assert re.search(
+            r"km/h .* bar in the brake cylinder|more than predicted", kinds["dragging_brake"]
+        )
     if "weak_brake" in kinds:
         assert re.search(r"heated only \d+ % of the predicted rise", kinds["weak_brake"])
 

@@ -43,7 +43,9 @@ def session(seconds: int, seed: int) -> dict[str, np.ndarray]:
     t = np.arange(seconds, dtype=np.float64)
     speed_kmh = np.clip(60 + 35 * np.sin(t / 400.0) + rng.normal(0, 1, seconds), 0, 100)
     flux = np.zeros(seconds)
-    for start in rng.choice(np.arange(60, seconds - 300), size=max(2, seconds // 900), replace=False):
+    for start in rng.choice(
+        np.arange(60, seconds - 300), size=max(2, seconds // 900), replace=False
+    ):
         length = int(rng.integers(30, 120))
         level = rng.uniform(1.5e4, 6e4)
         ramp = np.clip((t - start) / 20.0, 0, 1) * np.clip((start + length + 45 - t) / 45.0, 0, 1)

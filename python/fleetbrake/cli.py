@@ -72,6 +72,13 @@ def run_command(
         float,
         typer.Option("--wait", help="Seconds to wait for another process writing the database."),
     ] = 0.0,
+    solver: Annotated[
+        str,
+        typer.Option(
+            "--solver",
+            help="Model of a new `declared` revision: rom (reduced, default) or full (FE).",
+        ),
+    ] = "rom",
 ) -> None:
     """Ingest new files, detect events, simulate every new event, raise flags.
 
@@ -85,7 +92,17 @@ def run_command(
     from fleetbrake.warehouse import WarehouseError, WarehouseLockedError
 
     try:
-        report = run_fleet(fleet_dir, db, wait_s=wait_s, flag_config_path=flag_config)
+        if solver not in ("rom", "full"):
+            raise ValueError(f"--solver must be rom or full, got {solver!r}")
+        from fleetbrake.pipeline import SimulationConfig
+
+        report = run_fleet(
+            fleet_dir,
+            db,
+            wait_s=wait_s,
+            flag_config_path=flag_config,
+            simulation=SimulationConfig(solver=solver),  # type: ignore[arg-type]
+        )
     except WarehouseLockedError as error:
         typer.echo(f"fleetbrake run: {error}", err=True)
         raise typer.Exit(EXIT_LOCKED) from None
@@ -219,6 +236,39 @@ def bench_rom_command(
     from fleetbrake.bench_rom import report, run_rom_benchmark
 
     report(run_rom_benchmark(events, full_events, refinement), json_out)
+
+
+@bench_app.command("fleet")
+def bench_fleet_command(
+    json_out: Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")] = False,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 100,
+    days: Annotated[int, typer.Option("--days", help="UTC days of operation.")] = 1,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 0,
+    workdir: Annotated[
+        Path | None, typer.Option("--workdir", help="Where to make the temporary directory.")
+    ] = None,
+    fleet_dir: Annotated[
+        Path | None,
+        typer.Option("--fleet", help="Make the fleet here and keep it; reuse it if it exists."),
+    ] = None,
+) -> None:
+    """A fleet-day from log files to flags: `fleetbrake run` timed end to end (and per
+    stage) on a generated fleet (generation not timed)."""
+    import json
+    import os
+
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # tiny matrices: threads only cost
+
+    from fleetbrake.bench_fleet import bench_fleet, print_figures
+
+    try:
+        figures = bench_fleet(wagons, days, seed=seed, workdir=workdir, fleet_dir=fleet_dir)
+    except (ValueError, OSError, RuntimeError) as error:
+        typer.echo(f"fleetbrake bench fleet: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    print_figures(figures, typer.echo)
+    if json_out:
+        typer.echo(json.dumps(figures))
 
 
 @app.command("paper")
@@ -401,6 +451,47 @@ def record_command(
     )
     for note in summary.notes:
         typer.echo(f"  note: {note}")
+
+
+@app.command("demo")
+def demo_command(
+    out: Annotated[
+        Path, typer.Option("--out", help="Directory for everything the demo writes.")
+    ] = Path("demo-out"),
+    force: Annotated[
+        bool, typer.Option("--force", help="Wipe the results of an earlier demo in --out first.")
+    ] = False,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 4,
+    days: Annotated[
+        int, typer.Option("--days", help="UTC days (the last is the closed loop's holdout).")
+    ] = 3,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 7,
+    refinement: Annotated[
+        float | None,
+        typer.Option(
+            "--refinement",
+            help="Mesh refinement of the reduced model (default: $FLEETBRAKE_REFINEMENT or "
+            "1.0; 0.6 builds it in a fifth of the time).",
+        ),
+    ] = None,
+) -> None:
+    """Make a synthetic fleet with an undeclared effect and anomalies in it, run everything
+    on it (run, close-loop, record) and leave the fleet, database, close-loop report,
+    recordings and a report with plots in --out. A few minutes on 2 cores."""
+    import os
+
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # tiny matrices: threads only cost
+
+    from fleetbrake.demo import DemoConfig, DemoError, print_summary, run_demo
+
+    try:
+        config = DemoConfig(wagons=wagons, days=days, seed=seed, refinement=refinement)
+        result = run_demo(out, config, force=force)
+    except (DemoError, ValueError) as error:
+        typer.echo(f"fleetbrake demo: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
+    typer.echo("")
+    print_summary(result)
 
 
 def main() -> None:

@@ -48,11 +48,11 @@ from fleetbrake.pipeline import (
     _simulate_wagon,
     current_revision,
     load_chains,
+    model_for,
     simulate_events,
     stored_wagons,
 )
 from fleetbrake.registry import WagonConfig
-from fleetbrake.rom import ReducedModel
 from fleetbrake.warehouse import Warehouse, open_warehouse
 
 __all__ = ["CloseLoopConfig", "CloseLoopError", "close_loop", "run_close_loop"]
@@ -123,7 +123,7 @@ class _Evaluator:
             self.parts.append(
                 (
                     wagon,
-                    ReducedModel.for_wagon(wagon, refinement=config.refinement),
+                    model_for(wagon, "rom", config.refinement),
                     all_events.filter(pl.col("wagon_id") == wagon_id),
                     todo,
                     load_chains(wh, wagon_id, todo, config),

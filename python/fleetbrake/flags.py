@@ -869,7 +869,7 @@ def _unsure_mask(series: WagonSeries, config: FlagConfig) -> BoolArray:
 
 def segment_bounds(
     series: WagonSeries,
-    config: FlagConfig = FlagConfig(),  # noqa: B008
+    config: FlagConfig = FlagConfig(),
 ) -> tuple[list[int], list[str]]:
     """Segment starts (then the series' end) and kinds: every activation starts a
     ``braking`` segment lasting until ``after_release_s`` after the release; the quiet

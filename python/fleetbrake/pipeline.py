@@ -34,7 +34,7 @@ import polars as pl
 
 from fleetbrake.effects import EffectSet
 from fleetbrake.registry import Registry, WagonConfig
-from fleetbrake.rom import ReducedModel
+from fleetbrake.rom import FullModelRunner, ReducedModel
 from fleetbrake.simulate import simulate_timeline
 from fleetbrake.warehouse import Warehouse
 
@@ -74,7 +74,11 @@ class SimulationConfig:
     """Carried state: the field is shifted by the mean of measured - predicted over this many
     seconds up to activation (one reading would add its noise to every prediction)."""
     refinement: float | None = None
-    """Mesh refinement of the reduced models (None: ``$FLEETBRAKE_REFINEMENT`` or 1.0)."""
+    """Mesh refinement of the models (None: ``$FLEETBRAKE_REFINEMENT`` or 1.0)."""
+    solver: Literal["rom", "full"] = "rom"
+    """What a new ``declared`` revision predicts with: the reduced model (default), or the
+    full finite-element model (the reference; a thousand times slower). A revision keeps the
+    solver it was made with."""
 
 
 @dataclass
@@ -89,14 +93,19 @@ def _utc_now() -> dt.datetime:
     return dt.datetime.now(dt.UTC).replace(tzinfo=None)
 
 
-def ensure_declared(wh: Warehouse) -> None:
+def ensure_declared(wh: Warehouse, solver: str = "rom") -> None:
     """Record the declared model's revision (the current one) if the warehouse has none."""
     ((count,),) = wh.con.execute("SELECT count(*) FROM model_revisions").fetchall()
     if count == 0:
         wh.con.execute(
             "INSERT INTO model_revisions VALUES "
-            "($name, NULL, NULL, $params, NULL, NULL, 'rom', TRUE, $now)",
-            {"name": DECLARED, "params": json.dumps({"effects": []}), "now": _utc_now()},
+            "($name, NULL, NULL, $params, NULL, NULL, $solver, TRUE, $now)",
+            {
+                "name": DECLARED,
+                "params": json.dumps({"effects": []}),
+                "solver": solver,
+                "now": _utc_now(),
+            },
         )
 
 
@@ -111,8 +120,8 @@ def revision(wh: Warehouse, name: str) -> Revision:
     return Revision(name, EffectSet.from_list(params.get("effects", [])), rows[0][1])
 
 
-def current_revision(wh: Warehouse) -> Revision:
-    ensure_declared(wh)
+def current_revision(wh: Warehouse, solver: str = "rom") -> Revision:
+    ensure_declared(wh, solver)
     rows = wh.con.execute(
         "SELECT model_revision FROM model_revisions WHERE is_current "
         "ORDER BY created_utc DESC LIMIT 1"
@@ -264,7 +273,7 @@ def simulate_events(
                 ]
                 bar.advance(task, todo.height)
                 continue
-            rom = ReducedModel.for_wagon(wagon, refinement=config.refinement)
+            rom = model_for(wagon, rev.solver, config.refinement)
             events = all_events.filter(pl.col("wagon_id") == wagon_id)
             frames = _simulate_wagon(wh, wagon, rom, rev, events, todo, config, report)
             _store(wh, rev, todo, frames, report)
@@ -300,6 +309,15 @@ def _simulate_wagon(
         f"event {e}: no contiguous samples at its activation" for e in sorted(missing)
     ]
     return frames
+
+
+def model_for(
+    wagon: WagonConfig, solver: str, refinement: float | None
+) -> ReducedModel | FullModelRunner:
+    """The model a revision predicts with: the wagon's reduced model, or the full one."""
+    if solver == "full":
+        return FullModelRunner.for_wagon(wagon, refinement=refinement)
+    return ReducedModel.for_wagon(wagon, refinement=refinement)
 
 
 def load_chains(
@@ -501,7 +519,7 @@ def run_fleet(
             ingest = ingest_fleet(fleet_dir, wh, registry=registry, progress=progress)
             ingest.events = update_events(wh)
             store_registry(wh, registry)
-            rev = current_revision(wh)
+            rev = current_revision(wh, (simulation or SimulationConfig()).solver)
             sim = simulate_events(wh, registry, rev, simulation, progress=progress)
             flags = raise_flags(wh, registry, rev.name, flag_config)
         except duckdb.Error as error:

@@ -778,18 +778,19 @@ def _hottest_table(data: ReportData, top: int = 10) -> list[str]:
         "",
         *_table(
             [
-            "event",
-            "wagon",
-            "activation (UTC)",
-            "duration (s)",
-            "speed (km/h)",
-            "mean pressure (bar)",
-            "contact max (°C)",
-            "contact mean (°C)",
-            "sensor reading max (°C)",
-        ],
-        rows,
-    )
+                "event",
+                "wagon",
+                "activation (UTC)",
+                "duration (s)",
+                "speed (km/h)",
+                "mean pressure (bar)",
+                "contact max (°C)",
+                "contact mean (°C)",
+                "sensor reading max (°C)",
+            ],
+            rows,
+        ),
+    ]
 
 
 def _truth_table(flags: pl.DataFrame, anomalies: Sequence[Mapping[str, Any]]) -> list[str]:
@@ -809,8 +810,8 @@ def _truth_table(flags: pl.DataFrame, anomalies: Sequence[Mapping[str, Any]]) ->
             )
         )
     found = sum(1 for r in rows if r[-1] != "**missed**")
-    return [
+    intro = (
         f"Injected by the generator (truth): {found} of {len(rows)} found by a flag of the "
-        "same kind overlapping it (15 min slack).",
-        "",
-    ] + _table(["wagon", "anomaly", "from", "to", "flagged"], rows)
+        "same kind overlapping it (15 min slack)."
+    )
+    return [intro, "", *_table(["wagon", "anomaly", "from", "to", "flagged"], rows)]

@@ -34,7 +34,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
@@ -56,6 +56,7 @@ from fleetbrake.thermal import (
 
 __all__ = [
     "ROM_VERSION",
+    "FullModelRunner",
     "ReducedModel",
     "RomBatch",
     "RomSimulation",
@@ -535,6 +536,70 @@ class ReducedModel:
             e = 1.0 / (1.0 + x)
             g = dt_s / (1.0 + x)
         return e, g, q
+
+
+class FullModelRunner:
+    """The full finite-element model behind the reduced model's ``simulate`` interface, so
+    that ``fleetbrake run --solver full`` is one option away. The state it hands on is
+    ``θ = T - T_ref`` (the whole nodal field), as the reduced model's is, so continuation and
+    re-anchoring mean the same."""
+
+    def __init__(
+        self,
+        model: BlockModel,
+        probe_m: Sequence[float],
+        h_nominal: Mapping[str, float] | None = None,
+    ):
+        self.model = model
+        self.probe_m = [tuple(float(v) for v in probe_m)]
+        self.h_nominal: dict[str, float] = dict(
+            h_nominal
+            if h_nominal is not None
+            else dict.fromkeys(AIR_FACES, DEFAULT_CONVECTION_W_M2K)
+        )
+
+    @classmethod
+    def for_wagon(cls, wagon: WagonConfig, *, refinement: float | None = None) -> FullModelRunner:
+        if refinement is None:
+            refinement = float(os.environ.get("FLEETBRAKE_REFINEMENT", "1.0"))
+        model = BlockModel(
+            wagon.geometry,
+            wagon.block_material,
+            refinement=refinement,
+            sensor_m=wagon.sensor_point_m,
+        )
+        return cls(model, wagon.sensor_point_m)
+
+    def simulate(
+        self,
+        *,
+        dt_s: float,
+        flux_w_m2: ArrayLike,
+        initial_c: float,
+        ambient_c: float | ArrayLike = DEFAULT_AMBIENT_C,
+        h_w_m2k: Mapping[str, float | ArrayLike] | None = None,
+        initial_state: ArrayLike | None = None,
+    ) -> RomSimulation:
+        start = (
+            float(initial_c)
+            if initial_state is None
+            else np.asarray(initial_state, dtype=np.float64) + float(initial_c)
+        )
+        res = self.model.simulate(
+            dt_s=dt_s,
+            flux_w_m2=flux_w_m2,
+            initial_c=start,
+            ambient_c=ambient_c,
+            h_w_m2k=self.h_nominal if h_w_m2k is None else h_w_m2k,
+            probes_m=self.probe_m,
+        )
+        return RomSimulation(
+            time_s=res.time_s,
+            probe_c=res.probe_c,
+            face_mean_c=res.face_mean_c,
+            face_max_c=res.face_max_c,
+            final_state=res.final_c - float(initial_c),
+        )
 
 
 def _apply(

@@ -542,7 +542,9 @@ class SkfemBlockModel:
 
         record(0, T)
         damped = _damped_mask(
-            n_steps, damped_steps, jump_fraction if theta < 1.0 else 0.0,
+            n_steps,
+            damped_steps,
+            jump_fraction if theta < 1.0 else 0.0,
             [flux, ambient, *(h for _, h in conv)],
         )
         factorise = SOLVERS[self.solver]
@@ -623,7 +625,9 @@ def _damped_mask(
                 continue
             scale = float(np.abs(values).max()) if values.size else 0.0
             if scale > 0.0:
-                starts += (np.flatnonzero(np.abs(np.diff(values)) > jump_fraction * scale) + 1).tolist()
+                starts += (
+                    np.flatnonzero(np.abs(np.diff(values)) > jump_fraction * scale) + 1
+                ).tolist()
     for k in starts:
         for m in range(k, min(k + damped_steps, n_steps)):
             mask[m] = True
