@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import itertools
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -21,6 +22,7 @@ from fleetbrake.flags import (
     Flag,
     FlagConfig,
     FlagConfigError,
+    Segment,
     WagonSeries,
     event_stats,
     find_dragging,
@@ -93,7 +95,10 @@ def noisy(values: np.ndarray, seed: int = 0, sigma: float = 0.1) -> np.ndarray:
     return np.round(values + rng.normal(0.0, sigma, values.size), 2)
 
 
-def segments_of(series: WagonSeries, predicted: np.ndarray, config: FlagConfig = FlagConfig()):
+def segments_of(
+    series: WagonSeries, predicted: np.ndarray, config: FlagConfig | None = None
+) -> list[Segment]:
+    config = config or FlagConfig()
     bounds, kinds = segment_bounds(series, config)
     return segment_stats(series, predicted, bounds, kinds, config)
 
@@ -284,7 +289,7 @@ def test_drift_is_a_steady_trend_no_heat_flow_explains() -> None:
     cooling = make_series(noisy(truth), ambient=10.0)
     bounds, _ = segment_bounds(cooling)
     model = np.empty(n)  # re-anchored at each window, as the watch simulation does
-    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+    for a, b in itertools.pairwise(bounds):
         model[a:b] = 10.0 + (truth[a] - 10.0) * np.exp(-np.arange(b - a) / 5000.0)
     assert find_drift(cooling, segments_of(cooling, model)) == []
     # no trend, no drift

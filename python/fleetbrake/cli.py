@@ -117,8 +117,14 @@ def run_command(
     )
     for reason in sim.skipped:
         typer.echo(f"  not simulated: {reason}")
-    if report.flags is not None:
-        typer.echo(str(report.flags))
+    flags = getattr(report.flags, "flags", None) or []
+    by_kind: dict[str, int] = {}
+    for flag in flags:
+        by_kind[flag.kind] = by_kind.get(flag.kind, 0) + 1
+    summary = ", ".join(f"{n} {kind}" for kind, n in sorted(by_kind.items())) or "none"
+    typer.echo(f"flags: {summary}")
+    for flag in flags:
+        typer.echo(f"  [{flag.severity}] {flag.kind} {flag.wagon_id}: {flag.evidence}")
 
 
 @app.command("close-loop")

@@ -1210,9 +1210,12 @@ def find_drift(
     series: WagonSeries, segments: Sequence[Segment], config: FlagConfig = FlagConfig()
 ) -> list[Finding]:
     """A drifting reading: measured - predicted changes steadily, at one sign, in consecutive
-    quiet windows, long after brakings as much as right after them. Brakings, windows not
-    judged and windows right after a braking (``settle_after_braking_s``) that do not drift
-    are passed over; any other quiet window that does not drift ends a run."""
+    quiet windows, whatever the block does. Brakings, windows not judged and windows right
+    after a braking (``settle_after_braking_s``) that do not drift are passed over; any other
+    quiet window that does not drift ends a run. A run is a drift when no braking's aftermath
+    explains it: one of its windows starts long after a braking, or the brakings between its
+    windows show the same rate (a weak brake's aftermath does not: its brakings fall far
+    behind the model); and when no heat flow explains it (:func:`_explained_by_heat_flow`)."""
     out = []
     run: list[Segment] = []
 
@@ -1221,12 +1224,19 @@ def find_drift(
             return
         span = run[-1].stop - run[0].start
         total = sum(s.excess_k for s in run)
-        settled = any(s.since_release_s >= config.settle_after_braking_s for s in run)
         if span < config.drift_min_duration_s or abs(total) < config.drift_min_change_k:
             return
-        if not settled or _explained_by_heat_flow(run, config):
+        rate = float(np.median([s.slope_k_per_h for s in run]))
+        settled = any(s.since_release_s >= config.settle_after_braking_s for s in run)
+        brakings = [
+            s
+            for s in segments
+            if s.kind == "braking" and s.judged and run[0].start <= s.start < run[-1].stop
+        ]
+        tolerance = max(config.drift_min_rate_k_per_h, 0.5 * abs(rate))
+        agree = bool(brakings) and all(abs(s.slope_k_per_h - rate) <= tolerance for s in brakings)
+        if not (settled or agree) or _explained_by_heat_flow(run, config):
             return
-        rates = [s.slope_k_per_h for s in run]
         start, end = series.utc(run[0].start), series.utc(run[-1].stop)
         out.append(
             Finding(
@@ -1235,12 +1245,18 @@ def find_drift(
                 start,
                 end,
                 f"Block temperature reading of {series.wagon_id} drifted away from the model at "
-                f"{_signed(float(np.median(rates)), 'K/h')} ({_signed(total)} in {len(run)} "
-                f"windows without braking) {_when(start, end)}, long after brakings as much as "
-                "right after them, which no heat flow of the block explains: the sensor is "
-                "drifting; check its seating and calibration.",
+                f"{_signed(rate, 'K/h')} ({_signed(total)} in {len(run)} windows without "
+                f"braking) {_when(start, end)}, "
+                + (
+                    "long after brakings as much as right after them"
+                    if settled
+                    else f"and at the same rate in the {len(brakings)} braking"
+                    f"{'s' if len(brakings) > 1 else ''} between"
+                )
+                + ", which no heat flow of the block explains: the sensor is drifting; check its "
+                "seating and calibration.",
                 detail="drift",
-                summary=f"drifted at {_signed(float(np.median(rates)), 'K/h')}",
+                summary=f"drifted at {_signed(rate, 'K/h')}",
             )
         )
 
