@@ -20,19 +20,21 @@ How a wagon is judged (each step uses only readings the steps before found good)
    or the model says the block must change), dropping out (readings missing for minutes while
    the logger recorded the rest of the row).
 2. **Watch simulation.** The wagon's whole timeline is simulated with the model revision's
-   effects, continuously through short data gaps (a gap up to ``bridge_max_s`` is bridged
-   with interpolated speed and pressure: the unit sleeps while the wagon stands), and cut into
-   *segments*: each braking (activation to ``after_release_s`` after release) and the quiet
-   stretches between them in windows of about ``window_s``. At the start of every segment the
-   simulated field is re-anchored as ``pipeline.simulate_events`` does (shifted uniformly by
-   the mean of measured - predicted over the ``anchor_s`` seconds before), so within a
-   segment measured - predicted starts at zero and what it does then is what the model
-   cannot explain. Segments right after a data gap during which the wagon may have braked, or
-   after a braking whose GPS speed was frozen, are not judged for ``settle_s``.
+   effects, continuously through data gaps of up to ``bridge_max_s`` (speed and pressure
+   interpolated across them: the unit sleeps while the wagon stands; a long gap in steps of
+   ``GAP_STEP_S``), and cut into *segments*: each braking (activation to ``after_release_s``
+   after release), the quiet stretches between brakings in windows of about ``window_s``,
+   and the gaps. At the start of every segment the simulated field is re-anchored as
+   ``pipeline.simulate_events`` does at an activation (shifted uniformly by the mean of
+   measured - predicted over the ``anchor_s`` seconds before), so within a segment measured -
+   predicted starts at zero and what it does then is what the model cannot explain; a sensor
+   lag of the revision is carried across. Segments right after a data gap during which the
+   wagon may have braked, or after a braking whose GPS speed was frozen, are not judged for
+   ``settle_s``.
 3. **Sensor, against the model.** Loose: in a quiet window the reading falls towards the air
    much faster than the block can cool, or in a braking it does not rise while it reads the
-   air. Drifting: measured - predicted changes at a steady rate, of one sign, window after
-   window, including windows long after the last braking, when the block has settled.
+   air. Drifting: measured - predicted changes at a steady rate, of one sign, segment after
+   segment, in a way no braking's aftermath and no heat flow explains.
 4. **Brakes**, with the readings of steps 1 and 3 left out. Dragging: in a quiet window the
    block heats while the model, with no cylinder pressure, says it cools; or in a braking the
    block heats far more than predicted. Weak: in brakings (the ``predictions`` of the
@@ -68,8 +70,11 @@ from fleetbrake.registry import Registry, WagonConfig
 from fleetbrake.warehouse import Warehouse
 
 __all__ = [
+    "CONFIG_KEYS",
     "FLAG_KINDS",
+    "GAP_STEP_S",
     "SEVERITIES",
+    "EventStat",
     "Finding",
     "Flag",
     "FlagConfig",
@@ -86,6 +91,8 @@ __all__ = [
     "find_out_of_range",
     "find_overheating",
     "find_weak",
+    "heat_flow_corrected",
+    "judge_wagon",
     "load_flag_config",
     "merge_sensor_faults",
     "raise_flags",
@@ -93,6 +100,9 @@ __all__ = [
     "segment_stats",
     "watch_simulation",
 ]
+
+GAP_STEP_S = 60
+"""s: the step a long data gap is simulated with (the inputs are interpolated across it)."""
 
 FLAG_KINDS: tuple[str, ...] = ("dragging_brake", "weak_brake", "sensor_fault", "overheating")
 SEVERITIES: tuple[str, ...] = ("info", "warning", "alarm")
@@ -190,7 +200,8 @@ class FlagConfig:
     drift_max_rms_k: float = 0.3
     """K: ... when measured - predicted stays within this (rms) of a straight line."""
     drift_min_windows: int = 3
-    """Consecutive drifting quiet windows (of one sign) needed for a flag ..."""
+    """Consecutive drifting segments (of one sign, at least one a quiet window) needed for a
+    flag ..."""
     drift_min_duration_s: int = 1500
     """s: ... spanning at least this, ..."""
     drift_min_change_k: float = 1.5
@@ -200,6 +211,13 @@ class FlagConfig:
     """A run whose rates a rate proportional to the block's excess over the air fits with
     less than this share of the squared error of a constant rate is a heat flow the model has
     wrong (convection, conduction), not a drift (0-1)."""
+    drift_heat_flow_min_spread: float = 2.0
+    """... a test made only when the block's excess over the air within the run varies by at
+    least this factor (over a narrower range a constant rate and a proportional one cannot be
+    told apart)."""
+    heat_flow_min_windows: int = 12
+    """Quiet windows long after a braking needed to fit (and take out) the model's heat-flow
+    error of a wagon before drifts are judged (fewer: nothing taken out)."""
     settle_after_braking_s: int = 600
     """s: a quiet window starting this long after a release has a settled block."""
     sensor_warning_s: int = 60
@@ -622,7 +640,14 @@ def _duration(seconds: float) -> str:
 
 
 def _signed(value: float, unit: str = "K", digits: int = 1) -> str:
-    return f"{value:+.{digits}f} {unit}".replace("-", "−")
+    return f"{value:+.{digits}f} {unit}"
+
+
+def _speeds(v0: float, v1: float) -> str:
+    """'from 92 to 40 km/h', or 'at 92 km/h' when the speed hardly changed."""
+    if abs(v0 - v1) < 2.0:
+        return f"at {0.5 * (v0 + v1):.0f} km/h"
+    return f"from {v0:.0f} to {v1:.0f} km/h"
 
 
 def _severity_by_duration(seconds: float, config: FlagConfig) -> str:
@@ -783,7 +808,7 @@ class Segment:
     stop: int
     """[start, stop), seconds since the series' t0."""
     kind: str
-    """``braking`` or ``quiet``."""
+    """``braking``, ``quiet`` or ``gap`` (no rows)."""
     enough: bool
     """Long enough, with enough valid readings."""
     calm: bool
@@ -874,7 +899,7 @@ def segment_bounds(
     """Segment starts (then the series' end) and kinds: every activation starts a
     ``braking`` segment lasting until ``after_release_s`` after the release; the quiet
     stretches between are cut into ``quiet`` windows of about ``window_s``; every data gap
-    longer than ``max_gap_s`` starts a segment."""
+    longer than ``max_gap_s`` is a ``gap`` segment of its own."""
     n = series.n
     braking = np.zeros(n, dtype=bool)
     starts = set()
@@ -886,15 +911,22 @@ def segment_bounds(
             starts.add(a)
     bounds = {0} | starts
     present = np.flatnonzero(series.present)
-    gaps = np.flatnonzero(np.diff(present) > config.max_gap_s)
-    bounds |= {int(present[g + 1]) for g in gaps}
+    gaps = [
+        (int(present[g]) + 1, int(present[g + 1]))
+        for g in np.flatnonzero(np.diff(present) > config.max_gap_s)
+    ]
     for a, b in _runs(~braking):
         windows = max(1, round((b - a) / config.window_s))
         bounds |= {a + ((b - a) * j) // windows for j in range(windows)}
     for a, _ in _runs(braking):  # a braking segment starts at its activation
         bounds.add(a)
+    inside = np.zeros(n + 1, dtype=bool)
+    for a, b in gaps:
+        inside[a + 1 : b] = True
+    bounds = {k for k in bounds if not inside[k]} | {k for gap in gaps for k in gap}
+    gap_starts = {a for a, _ in gaps}
     ordered = sorted(k for k in bounds if 0 <= k < n - 1)
-    kinds = ["braking" if braking[k] else "quiet" for k in ordered]
+    kinds = ["gap" if k in gap_starts else "braking" if braking[k] else "quiet" for k in ordered]
     return [*ordered, n], kinds
 
 
@@ -933,28 +965,44 @@ def watch_simulation(
     state = None
     lagged_last: float | None = None
 
-    def run(a: int, b: int, ref: float, initial: Any) -> tuple[Any, FloatArray, float | None]:
+    def run(
+        a: int, b: int, ref: float, initial: Any, coarse: bool
+    ) -> tuple[Any, FloatArray, FloatArray, float | None]:
+        """The segment [a, b] simulated: (result, sensor, contact max) at every second, and
+        the lag's last value. A long gap (no readings, the wagon standing or unknown) is
+        simulated in steps of up to ``GAP_STEP_S`` and interpolated."""
+        k = np.arange(a, b + 1)
+        if coarse:
+            steps = math.ceil((b - a) / GAP_STEP_S)
+            at = np.linspace(a, b, steps + 1)
+            dt_s = (b - a) / steps
+        else:
+            at, dt_s = k.astype(np.float64), 1.0
         result = simulate_timeline(
             rom,
             wagon,
-            dt_s=1.0,
-            p_bar=series.pressure_bar[a : b + 1],
-            speed_kmh=speed[a : b + 1],
-            ambient_c=series.ambient_c[a : b + 1],
+            dt_s=dt_s,
+            p_bar=np.interp(at, k, series.pressure_bar[a : b + 1]),
+            speed_kmh=np.interp(at, k, speed[a : b + 1]),
+            ambient_c=np.interp(at, k, series.ambient_c[a : b + 1]),
             initial_c=ref,
             initial_state=initial,
             effects=block_effects,
         )
-        if lag is None:
-            return result, result.sensor_c, None
-        shift = ref - t_first
-        base = first_order_lag(result.sensor_c - shift, 1.0, tau_s, initial=lagged_last)
-        return result, base + shift, float(base[-1])
+        sensor, last = result.sensor_c, None
+        if lag is not None:
+            shift = ref - t_first
+            base = first_order_lag(sensor - shift, dt_s, tau_s, initial=lagged_last)
+            sensor, last = base + shift, float(base[-1])
+        if coarse:
+            return result, np.interp(k, at, sensor), np.interp(k, at, result.contact_max_c), last
+        return result, sensor, result.contact_max_c, last
 
-    for a, stop in itertools.pairwise(bounds):
+    for (a, stop), kind in zip(itertools.pairwise(bounds), kinds, strict=True):
         b = min(stop, n - 1)
         if b <= a:
             continue
+        coarse = kind == "gap" and b - a > 2 * GAP_STEP_S
         if t_ref is None:  # uniform at the first valid reading
             ahead = measured[a : min(a + config.window_s, n)]
             ok = np.flatnonzero(np.isfinite(ahead))
@@ -966,18 +1014,18 @@ def watch_simulation(
         back = back[np.isfinite(back)]
         if back.size >= 5:
             t_ref += float(back.mean())
-            result, sensor, last = run(a, b, t_ref, state)
+            result, sensor, face_max, last = run(a, b, t_ref, state, coarse)
         else:
-            result, sensor, last = run(a, b, t_ref, state)
+            result, sensor, face_max, last = run(a, b, t_ref, state, coarse)
             length = min(config.anchor_s, sensor.size)
             ahead = measured[a : a + length] - sensor[:length]
             ahead = ahead[np.isfinite(ahead)]
             if ahead.size >= 5 and abs(float(ahead.mean())) > 1e-3:
                 t_ref += float(ahead.mean())
-                result, sensor, last = run(a, b, t_ref, state)
+                result, sensor, face_max, last = run(a, b, t_ref, state, coarse)
         state, lagged_last = result.final_state, last
         predicted[a : b + 1] = sensor
-        contact[a : b + 1] = result.contact_max_c
+        contact[a : b + 1] = face_max
     return Watch(predicted, contact, bounds, kinds, _unsure_mask(series, config))
 
 
@@ -1181,25 +1229,93 @@ def _departure(
     return before.start + (int(above[-1]) + 1 if above.size else 0)
 
 
-def _is_drift_window(s: Segment, config: FlagConfig) -> bool:
+def _is_drifting(s: Segment, config: FlagConfig) -> bool:
+    """A judged segment whose measured - predicted changes steadily at a drift's rate."""
     rate = abs(s.slope_k_per_h)
     return (
-        s.kind == "quiet"
-        and s.judged
+        s.judged
         and config.drift_min_rate_k_per_h <= rate <= config.drift_max_rate_k_per_h
         and s.line_rms_k <= config.drift_max_rms_k
         and s.excess_k < config.drag_min_excess_k
     )
 
 
+def heat_flow_corrected(
+    segments: Sequence[Segment], config: FlagConfig = FlagConfig()
+) -> list[Segment]:
+    """The quiet windows with what the model's heat flow has wrong for this wagon taken out.
+
+    The rate at which measured - predicted changes in the quiet windows long after a braking
+    (``settle_after_braking_s``) is fitted, robustly, as e (k0 + k1 v / 100 km/h), e the
+    block's excess over the air, v the speed: a cooling the model has too slow or too fast
+    (a convection coefficient, one growing with speed) is in every window of the wagon and is
+    fitted; a drifting sensor is in a minority of them and is trimmed away. The fit is taken
+    out of the quiet windows' rates (and end values), within the range of e and v it was made
+    on, when it matters: when it explains most of the windows' rates and its rates reach half
+    ``drift_min_rate_k_per_h`` (rms). With fewer than ``heat_flow_min_windows`` such windows
+    nothing is changed."""
+    rows = [
+        s
+        for s in segments
+        if s.kind == "quiet"
+        and s.judged
+        and s.since_release_s >= config.settle_after_braking_s
+        and math.isfinite(s.slope_k_per_h)
+        and math.isfinite(s.p_start)
+    ]
+    if len(rows) < config.heat_flow_min_windows:
+        return list(segments)
+
+    def columns(items: Sequence[Segment]) -> tuple[FloatArray, FloatArray]:
+        excess = np.array([0.5 * (s.p_start + s.p_end) - s.ambient_c for s in items])
+        return excess, np.array([s.speed_kmh for s in items]) / 100.0
+
+    excess, speed = columns(rows)
+    x = np.column_stack([excess, excess * speed])
+    y = np.array([s.slope_k_per_h for s in rows])
+    keep = np.ones(y.size, dtype=bool)
+    for _ in range(3):  # least squares, trimming the windows far from the fit
+        coef = np.linalg.lstsq(x[keep], y[keep], rcond=None)[0]
+        residual = y - x @ coef
+        spread = 1.4826 * float(np.median(np.abs(residual[keep])))
+        keep = np.abs(residual) <= max(3.0 * spread, config.drift_min_rate_k_per_h / 2)
+        if keep.sum() < config.heat_flow_min_windows:
+            return list(segments)
+    fitted = x[keep] @ coef
+    explained = 1.0 - float(np.sum((y[keep] - fitted) ** 2)) / max(
+        float(np.sum(y[keep] ** 2)), 1e-12
+    )
+    if explained < 0.5 or float(np.sqrt(np.mean(fitted**2))) < config.drift_min_rate_k_per_h / 2:
+        return list(segments)
+    (e_lo, e_hi), (v_lo, v_hi) = (excess.min(), excess.max()), (speed.min(), speed.max())
+    out = []
+    for s in segments:
+        if s.kind != "quiet" or not math.isfinite(s.p_start):
+            out.append(s)
+            continue
+        (e,), (v,) = columns([s])
+        e, v = float(np.clip(e, e_lo, e_hi)), float(np.clip(v, v_lo, v_hi))
+        rate = float(coef[0] * e + coef[1] * e * v)
+        hours = (s.stop - s.start) / 3600.0
+        out.append(
+            dataclasses.replace(
+                s, slope_k_per_h=s.slope_k_per_h - rate, p_end=s.p_end + rate * hours
+            )
+        )
+    return out
+
+
 def _explained_by_heat_flow(run: Sequence[Segment], config: FlagConfig) -> bool:
-    """Whether the windows' rates follow the block's excess over the air (rate = k x excess)
-    much better than they are constant: a heat flow the model has wrong (convection, holder),
-    not a sensor drifting."""
+    """Whether the quiet windows' rates follow the block's excess over the air (rate = k x
+    excess) much better than they are constant (``drift_heat_flow_ratio``), over a wide
+    enough range of excess (``drift_heat_flow_min_spread``): a heat flow the model has wrong
+    (convection, holder), not a sensor drifting."""
     rates = np.array([s.slope_k_per_h for s in run])
     excess = np.array([0.5 * (s.p_start + s.p_end) - s.ambient_c for s in run])
-    if not np.all(np.isfinite(excess)) or float(excess @ excess) <= 0:
+    if not np.all(np.isfinite(excess)) or excess.min() <= 0:
         return False
+    if excess.max() < config.drift_heat_flow_min_spread * excess.min():
+        return False  # too narrow a range of block temperatures to tell
     k = float(rates @ excess) / float(excess @ excess)
     proportional = float(np.sum((rates - k * excess) ** 2))
     constant = float(np.sum((rates - rates.mean()) ** 2))
@@ -1209,35 +1325,45 @@ def _explained_by_heat_flow(run: Sequence[Segment], config: FlagConfig) -> bool:
 def find_drift(
     series: WagonSeries, segments: Sequence[Segment], config: FlagConfig = FlagConfig()
 ) -> list[Finding]:
-    """A drifting reading: measured - predicted changes steadily, at one sign, in consecutive
-    quiet windows, whatever the block does. Brakings, windows not judged and windows right
-    after a braking (``settle_after_braking_s``) that do not drift are passed over; any other
-    quiet window that does not drift ends a run. A run is a drift when no braking's aftermath
-    explains it: one of its windows starts long after a braking, or the brakings between its
-    windows show the same rate (a weak brake's aftermath does not: its brakings fall far
-    behind the model); and when no heat flow explains it (:func:`_explained_by_heat_flow`)."""
+    """A drifting reading: measured - predicted changes steadily, at one sign, segment after
+    segment, whatever the block does: in quiet windows and brakings alike.
+
+    A run collects the drifting segments of one sign; brakings, segments not judged and
+    windows right after a braking (``settle_after_braking_s``) that do not drift are passed
+    over; any other quiet window that does not drift ends it. A run of at least
+    ``drift_min_windows`` segments, one of them a quiet window, is a drift when no braking's
+    aftermath explains it (one of its windows starts long after a braking, or every braking in
+    it drifts along: a weak brake's do not, they fall far behind the model) and no heat flow
+    does (:func:`_explained_by_heat_flow`)."""
     out = []
     run: list[Segment] = []
 
     def close() -> None:
-        if len(run) < config.drift_min_windows:
+        quiet = [s for s in run if s.kind == "quiet"]
+        if len(run) < config.drift_min_windows or not quiet:
             return
         span = run[-1].stop - run[0].start
         total = sum(s.excess_k for s in run)
         if span < config.drift_min_duration_s or abs(total) < config.drift_min_change_k:
             return
         rate = float(np.median([s.slope_k_per_h for s in run]))
-        settled = any(s.since_release_s >= config.settle_after_braking_s for s in run)
+        settled = any(s.since_release_s >= config.settle_after_braking_s for s in quiet)
+        members = {id(s) for s in run}
         brakings = [
             s
             for s in segments
             if s.kind == "braking" and s.judged and run[0].start <= s.start < run[-1].stop
         ]
-        tolerance = max(config.drift_min_rate_k_per_h, 0.5 * abs(rate))
-        agree = bool(brakings) and all(abs(s.slope_k_per_h - rate) <= tolerance for s in brakings)
-        if not (settled or agree) or _explained_by_heat_flow(run, config):
+        along = bool(brakings) and all(id(s) in members for s in brakings)
+        if not (settled or along) or _explained_by_heat_flow(quiet, config):
             return
         start, end = series.utc(run[0].start), series.utc(run[-1].stop)
+        where = (
+            "long after brakings as much as right after them"
+            if settled
+            else f"in the {len(brakings)} braking{'s' if len(brakings) > 1 else ''} as much "
+            "as between them"
+        )
         out.append(
             Finding(
                 "sensor_fault",
@@ -1245,33 +1371,26 @@ def find_drift(
                 start,
                 end,
                 f"Block temperature reading of {series.wagon_id} drifted away from the model at "
-                f"{_signed(rate, 'K/h')} ({_signed(total)} in {len(run)} windows without "
-                f"braking) {_when(start, end)}, "
-                + (
-                    "long after brakings as much as right after them"
-                    if settled
-                    else f"and at the same rate in the {len(brakings)} braking"
-                    f"{'s' if len(brakings) > 1 else ''} between"
-                )
-                + ", which no heat flow of the block explains: the sensor is drifting; check its "
-                "seating and calibration.",
+                f"{_signed(rate, 'K/h')} ({_signed(total)} over {_duration(span)}) "
+                f"{_when(start, end)}, {where}, which no heat flow of the block explains: the "
+                "sensor is drifting; check its seating and calibration.",
                 detail="drift",
                 summary=f"drifted at {_signed(rate, 'K/h')}",
             )
         )
 
     for s in segments:
-        if s.kind != "quiet" or not s.judged:
-            continue  # brakings and windows not judged neither count nor end a run
-        if _is_drift_window(s, config) and (
+        if not s.judged:
+            continue  # neither counts nor ends a run
+        if _is_drifting(s, config) and (
             not run or np.sign(s.slope_k_per_h) == np.sign(run[-1].slope_k_per_h)
         ):
             run.append(s)
             continue
-        if s.since_release_s < config.settle_after_braking_s:
-            continue  # right after a braking its aftermath may hide a drift: passed over
+        if s.kind == "braking" or s.since_release_s < config.settle_after_braking_s:
+            continue  # a braking, or right after one: its own heat may hide a drift
         close()
-        run = [s] if _is_drift_window(s, config) else []
+        run = [s] if _is_drifting(s, config) else []
     close()
     return out
 
@@ -1392,8 +1511,8 @@ def find_weak(
                 end,
                 f"Block of {wagon_id} heated only {100 * median:.0f} % of the predicted rise in "
                 f"{what} (e.g. {worst.m_rise:.1f} K instead of {worst.p_rise:.1f} K "
-                f"{_at(worst.start_utc)}, {worst.v_start_kmh:.0f} to {worst.v_end_kmh:.0f} km/h "
-                f"at up to {worst.p_max_bar:.2f} bar): the block presses with too little force; "
+                f"{_at(worst.start_utc)}, {_speeds(worst.v_start_kmh, worst.v_end_kmh)} "
+                f"with up to {worst.p_max_bar:.2f} bar): the block presses with too little force; "
                 "check the brake cylinder, rigging, slack adjuster and the blocks.",
                 event_id=run[0].event_id if len(run) == 1 else None,
             )
@@ -1479,12 +1598,17 @@ def find_dragging(
             extra = [e.m_rise - e.p_rise for e in brakings]
             excess += sum(extra)
             worst = max(brakings, key=lambda e: e.m_rise - e.p_rise)
-            parts.append(
-                f"{'in' if windows else 'heated'} {len(brakings)} braking"
-                f"{'s' if len(brakings) > 1 else ''} {'it heated ' if windows else ''}"
-                f"{sum(extra):.1f} K more than predicted (e.g. {worst.m_rise:.1f} K instead of "
-                f"{worst.p_rise:.1f} K {_at(worst.start_utc)})"
+            what = (
+                f"{worst.m_rise:.1f} K in the braking {_at(worst.start_utc)} "
+                f"({_speeds(worst.v_start_kmh, worst.v_end_kmh)} with up to "
+                f"{worst.p_max_bar:.2f} bar) where {worst.p_rise:.1f} K were predicted"
             )
+            if len(brakings) > 1:
+                what = (
+                    f"{sum(extra):.1f} K more than predicted in {len(brakings)} brakings, "
+                    f"the most {what}"
+                )
+            parts.append(f"{'and it heated' if windows else 'heated'} {what}")
         severity = "alarm" if excess >= config.drag_alarm_excess_k else "warning"
         event_id = brakings[0].event_id if (len(brakings) == 1 and not windows) else None
         out.append(
@@ -1526,8 +1650,8 @@ def find_overheating(
                 e.window_end_utc,
                 f"Predicted wheel–block contact temperature of {wagon_id} reached "
                 f"{e.contact_max_c:.0f} °C {_at(e.contact_max_utc)}, {over:.0f} K over the "
-                f"{config.contact_limit_c:.0f} °C limit, in the braking from "
-                f"{e.v_start_kmh:.0f} to {e.v_end_kmh:.0f} km/h at up to {e.p_max_bar:.2f} bar: "
+                f"{config.contact_limit_c:.0f} °C limit, in the braking "
+                f"{_speeds(e.v_start_kmh, e.v_end_kmh)} with up to {e.p_max_bar:.2f} bar: "
                 "inspect the wheel treads and blocks for hot spots, cracks and metal pick-up.",
                 event_id=e.event_id,
             )
@@ -1648,7 +1772,7 @@ def _judge_span(
     loose = find_loose(series, segments, config, watch.predicted_c)
     loose_mask = _mask_of(series, loose)
     rest = [s for s in segments if not loose_mask[s.start : s.stop].any()]
-    drift = find_drift(series, rest, config)
+    drift = find_drift(series, heat_flow_corrected(rest, config), config)
     findings = merge_sensor_faults([*findings, *loose, *drift], config)
     fault_mask = _mask_of(series, findings)
     segments = segment_stats(
