@@ -470,7 +470,7 @@ def demo_command(
     wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 4,
     days: Annotated[
         int, typer.Option("--days", help="UTC days (the last is the closed loop's holdout).")
-    ] = 3,
+    ] = 2,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 7,
     refinement: Annotated[
         float | None,

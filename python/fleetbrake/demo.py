@@ -4,7 +4,7 @@
 
     from fleetbrake.demo import DemoConfig, run_demo
 
-    result = run_demo("demo-out", DemoConfig(wagons=4, days=3))
+    result = run_demo("demo-out", DemoConfig(wagons=4, days=2))
     print(result.summary)
 
 Steps (each timed):
@@ -101,7 +101,7 @@ class DemoConfig:
     wagons: int = 4
     """Registered, valid wagons (the generator adds one without a registry entry and one
     with a bad entry, whose files are quarantined)."""
-    days: int = 3
+    days: int = 2
     """UTC days of operation; the last is the closed loop's holdout (so at least 2)."""
     seed: int = 7
     effect: str = DEMO_EFFECT
@@ -149,6 +149,7 @@ class DemoResult:
     close_loop: dict[str, Any]
     rerun: Any | None
     """The run after the closed loop (flags judged with the new revision), if one was made."""
+    close_loop_error: str | None
     event_id: str | None
     event_reason: str | None
     refinement: float
@@ -171,7 +172,7 @@ class DemoResult:
         ]
         out += [("rerun recording", p) for p in self.recordings]
         out += [("this report", self.report)]
-        return out
+        return [(what, path) for what, path in out if path.exists() or path == self.report]
 
 
 # --------------------------------------------------------------------------------------------
@@ -298,7 +299,7 @@ def _generate(fleet_dir: Path, config: DemoConfig, console: Console, show: bool)
         TextColumn("generating the fleet"),
         BarColumn(),
         MofNCompleteColumn(),
-        TextColumn("wagons {task.fields[now]}"),
+        TextColumn("{task.fields[now]}"),
         TimeElapsedColumn(),
         console=console,
         transient=True,
@@ -361,10 +362,11 @@ def pick_event(db_path: str | Path) -> tuple[str, str, str] | None:
                 -(rmse.get(r["event_id"]) or 0.0),
             ),
         )
+        article = "an" if best["severity"][0] in "aeiou" else "a"
         return (
             best["event_id"],
             best["wagon_id"],
-            f"in a {best['severity']} {best['kind']} flag",
+            f"in {article} {best['severity']} {best['kind']} flag",
         )
     if errors.height:
         top = errors.drop_nulls("rmse_k").sort("rmse_k", descending=True)
@@ -448,7 +450,9 @@ def run_demo(
     close_json = out / "close-loop.json"
 
     def step(number: int, text: str) -> None:
-        console.print(f"[bold]\\[{number}/7][/bold] {text}", highlight=False)
+        console.print(
+            f"[bold]\\[{number}/7][/bold] {escape(text)}", highlight=False, soft_wrap=True
+        )
 
     def clock(name: str, t0: float) -> None:
         timings[name] = round(time.perf_counter() - t0, 2)
@@ -462,11 +466,13 @@ def run_demo(
                 f"    {'built and cached' if rom_built else 'loaded from the cache'} "
                 f"in {_seconds(rom_seconds)}",
                 highlight=False,
+                soft_wrap=True,
             )
 
             step(
                 2,
-                f"generating {config.wagons} wagons x {config.days} days (seed {config.seed}) "
+                f"generating {_n(config.wagons, 'wagon')} x {config.days} days "
+                f"(seed {config.seed}) "
                 f"with an undeclared effect and anomalies into {fleet_dir}",
             )
             t0 = time.perf_counter()
@@ -483,6 +489,7 @@ def run_demo(
                 f"{run.simulation.events_simulated} events simulated, "
                 f"flags: {_flag_counts(run.flags)}",
                 highlight=False,
+                soft_wrap=True,
             )
 
             step(
@@ -491,10 +498,15 @@ def run_demo(
                 "(the longest step)",
             )
             t0 = time.perf_counter()
-            with _spinner(console, "finding the effect the model lacks", show):
-                loop = run_close_loop(db_path, config.holdout_from, close_json)
+            loop_error = None
+            try:
+                with _spinner(console, "finding the effect the model lacks", show):
+                    loop = run_close_loop(db_path, config.holdout_from, close_json)
+            except CloseLoopError as error:  # e.g. every fit event flagged: say so, go on
+                loop, loop_error = {}, str(error)
             clock("close_loop", t0)
-            console.print(f"    {_loop_line(loop)}", highlight=False)
+            said = _loop_line(loop) if loop_error is None else f"could not run: {loop_error}"
+            console.print(f"    {said}", highlight=False, soft_wrap=True)
 
             rerun = None
             if loop.get("new_revision"):
@@ -502,7 +514,9 @@ def run_demo(
                 t0 = time.perf_counter()
                 rerun = run_fleet(fleet_dir, db_path, progress=show)
                 clock("flags_again", t0)
-                console.print(f"    flags: {_flag_counts(rerun.flags)}", highlight=False)
+                console.print(
+                    f"    flags: {_flag_counts(rerun.flags)}", highlight=False, soft_wrap=True
+                )
             else:
                 step(5, "no effect added: the flags stand")
 
@@ -543,6 +557,7 @@ def run_demo(
                 run=run,
                 close_loop=loop,
                 rerun=rerun,
+                close_loop_error=loop_error,
                 event_id=event_id,
                 event_reason=reason,
                 refinement=refinement,
@@ -551,8 +566,8 @@ def run_demo(
                 timings=timings,
             )
             notes = [
-                f"Synthetic fleet of the demo: {config.wagons} wagons x {config.days} days, seed "
-                f"{config.seed}, undeclared effect `{truth.effects}`"
+                f"Synthetic fleet of the demo: {_n(config.wagons, 'wagon')} x {config.days} "
+                f"days, seed {config.seed}, undeclared effect `{truth.effects}`"
                 + (", with anomalies" if config.anomalies else "")
                 + f"; reduced model at refinement {refinement:g}. "
                 f"Closed loop fitted before {config.holdout_from}, that day held out."
@@ -562,10 +577,12 @@ def run_demo(
                     f"Recordings: wagon {picked[1] if picked else '-'} and event "
                     f"`{event_id}` ({reason}); open them with `rerun FILE.rrd`."
                 )
+            if loop_error is not None:
+                notes.append(f"The closed loop could not run: {loop_error}.")
             written = write_report(
                 db_path,
                 out,
-                close_loop=loop,
+                close_loop=loop or None,
                 truth=truth,
                 artefacts=[(w, p.relative_to(out)) for w, p in result.artefacts()],
                 title="fleetbrake demo report",
@@ -577,7 +594,6 @@ def run_demo(
             FleetDirError,
             RegistryError,
             WarehouseError,
-            CloseLoopError,
             RecordError,
             ValueError,
             OSError,
@@ -601,6 +617,10 @@ def _loop_line(loop: dict[str, Any]) -> str:
     )
 
 
+def _n(count: int, noun: str) -> str:
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
 def _k(value: Any) -> str:
     return "-" if value is None else f"{value:.2f} K"
 
@@ -610,11 +630,13 @@ def summary(result: DemoResult) -> str:
     truth, run, loop, config = result.truth, result.run, result.close_loop, result.config
     ingest = run.ingest
     by_wagon = Counter(r.wagon_id or "?" for r in ingest.quarantined)
-    registered = sum(1 for w in truth.wagons if w.registry == "ok")
+    ok = {w.wagon_id for w in truth.wagons if w.registry == "ok"}
+    registered = len(ok)
+    made = sum(1 for e in truth.events if e.recorded and e.wagon_id in ok)
     lines = [
         "fleetbrake demo",
         "",
-        f"fleet       {config.wagons} wagons x {config.days} days from {config.start} "
+        f"fleet       {_n(config.wagons, 'wagon')} x {config.days} days from {config.start} "
         f"(seed {config.seed}); {len(truth.wagons)} wagons wrote logs ({registered} registered "
         f"and valid, the others have no or a bad registry entry); {len(truth.files)} log files",
         f"hidden      undeclared effect {truth.effects}; {len(truth.anomalies)} anomalies injected"
@@ -633,7 +655,7 @@ def summary(result: DemoResult) -> str:
         ),
         f"events      {run.simulation.events_simulated} simulated of "
         f"{ingest.events.total if ingest.events else '?'} detected "
-        f"(the generator made {sum(e.recorded for e in truth.events)} recorded brakings)",
+        f"(the generator made {made} brakings in the logs of the registered wagons)",
         f"flags       declared model: {_flag_counts(run.flags)}",
     ]
     if result.rerun is not None:
@@ -647,6 +669,8 @@ def summary(result: DemoResult) -> str:
             f"            injected anomalies flagged: {found} of {len(truth.anomalies)}"
             + (f"; missed: {'; '.join(missed)}" if missed else "")
         )
+    if result.close_loop_error is not None:
+        lines.append(f"closed loop could not run: {result.close_loop_error}")
     fit, hold = loop.get("fit", {}), loop.get("holdout", {})
     lines += [
         f"closed loop fit {fit.get('events', 0)} events before {config.holdout_from}, "
@@ -686,4 +710,4 @@ def summary(result: DemoResult) -> str:
 
 
 def print_summary(result: DemoResult, console: Console | None = None) -> None:
-    (console or rich.get_console()).print(escape(result.summary), highlight=False)
+    (console or rich.get_console()).print(escape(result.summary), highlight=False, soft_wrap=True)

@@ -183,7 +183,7 @@ def _representative_events(data: ReportData, per_wagon: int) -> dict[str, list[t
         return {}
     first = data.revision_names[0] if data.revisions.height else None
     current = data.current_revision
-    now = data.event_stats.filter(pl.col("model_revision") == current)
+    now = data.event_stats.filter(pl.col("model_revision") == (current or ""))
     base = data.event_stats.filter(pl.col("model_revision") == first)
     out: dict[str, list[tuple[str, str]]] = {}
     for wagon_id in sorted(set(now["wagon_id"].to_list())):
@@ -250,6 +250,7 @@ def plot_event_predictions(
                 ms=1.5,
                 color="black",
                 label="measured",
+                zorder=3,
             )
             for i, rev in enumerate(revisions):
                 mine = part.filter(pl.col("model_revision") == rev)
@@ -393,7 +394,9 @@ def plot_contact_temperatures(
     import matplotlib.dates as mdates
 
     plt = _pyplot()
-    frame = event_stats.filter(pl.col("model_revision") == revision).drop_nulls("contact_max_c")
+    frame = event_stats.filter(pl.col("model_revision") == (revision or "")).drop_nulls(
+        "contact_max_c"
+    )
     fig, ax = plt.subplots(figsize=(11, 3.6))
     for wagon_id in sorted(set(frame["wagon_id"].to_list())):
         mine = frame.filter(pl.col("wagon_id") == wagon_id)
@@ -475,10 +478,10 @@ def effect_verdict(close_loop: Mapping[str, Any] | None, truth_effects: Sequence
         return f"found {found or 'nothing'}; the data had no undeclared effect"
     said = " + ".join(sorted(truth_names))
     if found_names == truth_names:
-        return f"found {found}: it matches the effect the generator used ({said})"
+        return f"**matched**: found {found}, the effect the generator used"
     if found_names & truth_names:
-        return f"found {found}: it includes the generator's {said}, with more"
-    return f"found {found or 'nothing'}, but the generator used {said}: no match"
+        return f"**partly matched**: found {found}, the generator used {said}"
+    return f"**not matched**: found {found or 'nothing'}, the generator used {said}"
 
 
 def _flag_matches(
@@ -514,7 +517,8 @@ def write_report(
     anomalies = _truth_anomalies(truth)
     lines = [f"# {title}", ""]
     lines += [f"Database `{data.db_path}`" + _span_text(data) + ".", ""]
-    lines += [f"{n}" for n in notes] + ([""] if notes else [])
+    for note in notes:
+        lines += [note, ""]
 
     # ---- overview
     ingested = data.files.filter(pl.col("status") == "ingested")
@@ -543,11 +547,14 @@ def write_report(
         else:
             lines.append("No significant effect is missing: nothing was added.")
         if truth is not None:
-            lines.append(
-                f"Against the truth: {effect_verdict(close_loop, truth.effects.names)} "
-                f"(generated with `{truth.effects}`)."
-            )
+            lines += [
+                "",
+                f"Against the truth (the generator's `{truth.effects}`): "
+                f"{effect_verdict(close_loop, truth.effects.names)}.",
+            ]
         lines += ["", f"Evidence: {close_loop.get('evidence', '-')}.", ""]
+        if truth is not None and truth.effects:
+            lines += _parameters_table(close_loop, truth)
         rows = []
         for key in ("fit", "holdout"):
             part = close_loop.get(key, {})
@@ -650,6 +657,26 @@ def write_report(
     return ReportResult(path=path, pictures=pictures)
 
 
+def _parameters_table(close_loop: Mapping[str, Any], truth: FleetTruth) -> list[str]:
+    """Each true effect's parameters against the fitted ones (when the effect was found)."""
+    found = {e["name"]: e.get("parameters", {}) for e in close_loop.get("effects", [])}
+    rows = []
+    for effect in truth.effects:
+        fitted = found.get(effect.name, {})
+        for key, value in effect.parameters.items():
+            got = fitted.get(key)
+            rows.append(
+                (
+                    effect.name,
+                    key,
+                    f"{value:.4g}",
+                    "-" if got is None else f"{got:.4g}",
+                    "-" if got is None or not value else f"{100 * (got - value) / value:+.1f} %",
+                )
+            )
+    return _table(["effect", "parameter", "truth", "fitted", "difference"], rows)
+
+
 def _span_text(data: ReportData) -> str:
     if data.samples_span is None:
         return ""
@@ -693,7 +720,7 @@ def _error_by_wagon_table(data: ReportData) -> list[str]:
 def _events_table(data: ReportData) -> list[str]:
     if data.events.height == 0:
         return ["No events.", ""]
-    peaks = data.event_stats.filter(pl.col("model_revision") == data.current_revision)
+    peaks = data.event_stats.filter(pl.col("model_revision") == (data.current_revision or ""))
     joined = data.events.join(
         peaks.select("event_id", "contact_max_c", "measured_max_c"), on="event_id", how="left"
     )
@@ -740,7 +767,7 @@ def _events_table(data: ReportData) -> list[str]:
 
 
 def _hottest_table(data: ReportData, top: int = 10) -> list[str]:
-    peaks = data.event_stats.filter(pl.col("model_revision") == data.current_revision)
+    peaks = data.event_stats.filter(pl.col("model_revision") == (data.current_revision or ""))
     if peaks.height == 0:
         return []
     joined = (
