@@ -228,15 +228,21 @@ def test_events_per_day(fleet_db: Path, answers: dict[str, pl.DataFrame]) -> Non
 
 
 def test_effect_history(answers: dict[str, pl.DataFrame]) -> None:
-    got = answers["Effect history"]
+    check_effect_history(answers["Effect history"])
+
+
+def check_effect_history(got: pl.DataFrame) -> None:
+    """The declared model first, then each revision the closed loop added on its parent."""
     first = got.row(0, named=True)
     assert first["model_revision"] == "declared"
     assert first["parent_revision"] is None
     assert first["effect"] == "(declared model)"
     assert first["effects_json"] == "[]"
-    parents = set(got["model_revision"].to_list())
-    for row in got.iter_rows(named=True)[1:] if got.height > 1 else []:
-        assert row["parent_revision"] in parents
+    names = got["model_revision"].to_list()
+    for row in list(got.iter_rows(named=True))[1:]:  # revisions the closed loop added
+        assert row["parent_revision"] in names[: names.index(row["model_revision"])]
+        assert row["effect"] != "(declared model)"
+        assert row["effects_json"].startswith("[{")
 
 
 def test_quarantined_files(fleet_db: Path, answers: dict[str, pl.DataFrame]) -> None:

@@ -78,7 +78,9 @@ def holdout_rmse_against_truth(truth, db: Path, revision: str, event_ids: list[s
 
 def report_agrees_with_v_predictions(db: Path, report: dict, holdout: dt.date) -> list[str]:
     """Recompute the report's RMSEs from the views (events as the report's exclusion rule
-    says: no overlap with an anomaly flag of the wagon); return the holdout event ids."""
+    says: no overlap with an anomaly flag of the wagon, none starting within the settling
+    time after one; and every event for the ``*_all_k`` figures); return the holdout event
+    ids."""
     con = duckdb.connect(str(db), read_only=True)
     try:
         base = report["baseline_revision"]
@@ -88,33 +90,48 @@ def report_agrees_with_v_predictions(db: Path, report: dict, holdout: dt.date) -
                 SELECT event_id, wagon_id, min(time_utc) t0, max(time_utc) t1
                 FROM v_predictions WHERE model_revision = $base GROUP BY ALL
             )
-            SELECT w.event_id, e.start_utc FROM windows w JOIN v_events e USING (event_id)
-            WHERE NOT EXISTS (
+            SELECT w.event_id, e.start_utc, EXISTS (
                 SELECT 1 FROM v_flags f WHERE f.wagon_id = w.wagon_id
                 AND f.kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
-                AND f.start_utc <= w.t1 AND f.end_utc >= w.t0
-            )
+                AND f.start_utc <= w.t1 AND f.end_utc + INTERVAL 1 HOUR >= w.t0
+            ) AS flagged
+            FROM windows w JOIN v_events e USING (event_id)
             """,
             params={"base": base},
         ).pl()
         cutoff = dt.datetime.combine(holdout, dt.time())
+        clean = used.filter(~pl.col("flagged"))
         sets = {
+            "fit": clean.filter(pl.col("start_utc") < cutoff)["event_id"].to_list(),
+            "holdout": clean.filter(pl.col("start_utc") >= cutoff)["event_id"].to_list(),
+        }
+        every = {
             "fit": used.filter(pl.col("start_utc") < cutoff)["event_id"].to_list(),
             "holdout": used.filter(pl.col("start_utc") >= cutoff)["event_id"].to_list(),
         }
-        revisions = {"rmse_before_k": base, "rmse_after_k": report["new_revision"] or base}
+        after = report["new_revision"] or base
+        checks = [
+            (key, ids, field, rev)
+            for key, ids in sets.items()
+            for field, rev in (("rmse_before_k", base), ("rmse_after_k", after))
+        ] + [
+            (key, ids, field, rev)
+            for key, ids in every.items()
+            for field, rev in (("rmse_before_all_k", base), ("rmse_after_all_k", after))
+        ]
         for key, ids in sets.items():
             assert report[key]["events"] == len(ids), key
-            for field, rev in revisions.items():
-                con.register("ids", pl.DataFrame({"event_id": ids}))
-                ((value,),) = con.execute(
-                    "SELECT sqrt(avg(power(measured_sensor_c - predicted_sensor_c, 2))) "
-                    "FROM v_predictions WHERE model_revision = $rev "
-                    "AND measured_sensor_c IS NOT NULL AND event_id IN (SELECT event_id FROM ids)",
-                    {"rev": rev},
-                ).fetchall()
-                con.unregister("ids")
-                assert report[key][field] == pytest.approx(value, rel=1e-9), (key, field)
+            assert report[key]["events_all"] == len(every[key]), key
+        for key, ids, field, rev in checks:
+            con.register("ids", pl.DataFrame({"event_id": ids}))
+            ((value,),) = con.execute(
+                "SELECT sqrt(avg(power(measured_sensor_c - predicted_sensor_c, 2))) "
+                "FROM v_predictions WHERE model_revision = $rev "
+                "AND measured_sensor_c IS NOT NULL AND event_id IN (SELECT event_id FROM ids)",
+                {"rev": rev},
+            ).fetchall()
+            con.unregister("ids")
+            assert report[key][field] == pytest.approx(value, rel=1e-9), (key, field)
         return sets["holdout"]
     finally:
         con.close()

@@ -116,7 +116,7 @@ def test_demo_small(small_demo: SmallDemo) -> None:
     assert result.report == out / "report.md"
     assert all(p.is_file() for p in result.pictures)
     assert "convection_speed" in result.summary  # the effect put in (and, found, named)
-    assert ("MATCHED" in result.summary) or ("NOT matched" in result.summary)
+    assert re.search(r"MATCHED|PARTLY matched|NOT matched", result.summary)
     assert str(out / "report.md") in result.summary
     assert "took " in result.summary
     assert (out / "summary.txt").read_text().strip() == result.summary.strip()
@@ -136,7 +136,12 @@ def test_demo_refuses_to_mix(small_demo: SmallDemo) -> None:
 
 def test_demo_queries_on_its_database(small_demo: SmallDemo) -> None:
     """The analyst page's queries on a database with a closed loop in it (two revisions)."""
-    from test_analyst_queries import check_generic, doc_queries, run_query
+    from test_analyst_queries import (
+        check_effect_history,
+        check_generic,
+        doc_queries,
+        run_query,
+    )
 
     loop = small_demo.result.close_loop
     revisions = {"declared"} | ({loop.get("new_revision")} - {None})
@@ -145,15 +150,18 @@ def test_demo_queries_on_its_database(small_demo: SmallDemo) -> None:
         check_generic(title, frame)
         if title in ("Effect history", "Error by wagon and model revision"):
             assert set(frame["model_revision"].to_list()) == revisions, title
+        if title == "Effect history":
+            check_effect_history(frame)
 
 
 @pytest.mark.slow
 def test_demo_command(tmp_path: Path, demo_env: float) -> None:
-    """The command as a user runs it (3 wagons x 3 days): the effect is found and matched;
-    a re-run is refused, then --force replaces the results (with a smaller fleet)."""
+    """The command as a user runs it (the default fleet, 4 wagons x 2 days; a few minutes):
+    the effect is found and matched; a re-run is refused, then --force replaces the results
+    (with a smaller fleet)."""
     out = tmp_path / "demo-out"
     runner = CliRunner()
-    args = ["demo", "--out", str(out), "--wagons", "3", "--days", "3"]
+    args = ["demo", "--out", str(out)]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     check_artefacts(out)

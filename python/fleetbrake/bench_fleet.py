@@ -139,7 +139,9 @@ def bench_fleet(
             began = time.perf_counter()
             report = run_fleet(fleet, db, progress=show)
             seconds = time.perf_counter() - began
-        ingest, sim = report.ingest, report.simulation
+        ingest: Any = report.ingest
+        sim = report.simulation
+        flag_report: Any = report.flags
         events = ingest.events.total if ingest.events is not None else sim.events_simulated
         figures: dict[str, Any] = {
             "benchmark": "fleet",
@@ -152,7 +154,7 @@ def bench_fleet(
             "events": events,
             "events_simulated": sim.events_simulated,
             "prediction_rows": sim.prediction_rows,
-            "flags": len(report.flags.flags) if report.flags is not None else None,
+            "flags": len(flag_report.flags) if flag_report is not None else None,
             "seconds": round(seconds, 2),
             "events_per_s": round(sim.events_simulated / seconds, 1) if seconds else None,
             "rows_per_s": round(ingest.rows / seconds) if seconds else None,

@@ -102,14 +102,25 @@ def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> 
         "| events | count | RMSE before (K) | RMSE after (K) |",
         "|---|---|---|---|",
     ]
+
+    def cell(value: float | None) -> str:
+        return "-" if value is None else f"{value:.3f}"
+
     for key in ("fit", "holdout"):
         part = report[key]
-        before, after = part.get("rmse_before_k"), part.get("rmse_after_k")
         lines.append(
-            f"| {key} | {part['events']} | "
-            f"{'-' if before is None else f'{before:.3f}'} | "
-            f"{'-' if after is None else f'{after:.3f}'} |"
+            f"| {key} | {part['events']} | {cell(part.get('rmse_before_k'))} | "
+            f"{cell(part.get('rmse_after_k'))} |"
         )
+    for key in ("fit", "holdout"):
+        part = report[key]
+        if "events_all" in part:
+            lines.append(
+                f"| {key}, flagged included | {part['events_all']} | "
+                f"{cell(part.get('rmse_before_all_k'))} | {cell(part.get('rmse_after_all_k'))} |"
+            )
+    if "exclusion" in report:
+        lines += ["", f"Events: {report['exclusion']}."]
     lines += ["", "## Candidates", "", "| effect | score | RMSE fit (K) | RMSE holdout (K) |"]
     lines.append("|---|---|---|---|")
     for c in report["candidates"]:

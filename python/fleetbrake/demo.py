@@ -160,8 +160,8 @@ class DemoResult:
 
     @property
     def effect_matched(self) -> bool:
-        found = self.close_loop.get("effect")
-        return bool(found) and set(found.split("+")) == set(self.truth.effects.names)
+        found: str | None = self.close_loop.get("effect")
+        return found is not None and set(found.split("+")) == set(self.truth.effects.names)
 
     def artefacts(self) -> list[tuple[str, Path]]:
         out = [
@@ -481,7 +481,7 @@ def run_demo(
 
             step(3, "fleetbrake run: ingest, detect events, simulate them, raise flags")
             t0 = time.perf_counter()
-            run = run_fleet(fleet_dir, db_path, progress=show)
+            run: Any = run_fleet(fleet_dir, db_path, progress=show)
             clock("run", t0)
             console.print(
                 f"    {len(run.ingest.ingested)} files ingested, "
@@ -664,9 +664,9 @@ def summary(result: DemoResult) -> str:
             f"{_flag_counts(result.rerun.flags)}"
         )
     if truth.anomalies:
-        found, missed = _found_anomalies(result.db_path, truth)
+        flagged, missed = _found_anomalies(result.db_path, truth)
         lines.append(
-            f"            injected anomalies flagged: {found} of {len(truth.anomalies)}"
+            f"            injected anomalies flagged: {flagged} of {len(truth.anomalies)}"
             + (f"; missed: {'; '.join(missed)}" if missed else "")
         )
     if result.close_loop_error is not None:
@@ -687,10 +687,15 @@ def summary(result: DemoResult) -> str:
         f"{e.name} (" + ", ".join(f"{k} = {v:.3g}" for k, v in e.parameters.items()) + ")"
         for e in truth.effects
     )
-    lines.append(
-        f"            truth {true_params}: "
-        + ("MATCHED" if result.effect_matched else "NOT matched")
-    )
+    found = set((loop.get("effect") or "").split("+")) - {""}
+    extra = sorted(found - set(truth.effects.names))
+    if result.effect_matched:
+        verdict = "MATCHED"
+    elif found & set(truth.effects.names):
+        verdict = f"PARTLY matched (the true effect, with {' + '.join(extra)} on top)"
+    else:
+        verdict = "NOT matched"
+    lines.append(f"            truth {true_params}: {verdict}")
     lines += ["", "written"]
     for what, path in result.artefacts():
         lines.append(f"  {path}  ({what})")

@@ -270,7 +270,8 @@ def plot_event_predictions(
                 ax.set_ylabel(f"{wagon_id}\nsensor (°C)", fontsize=8)
             if r == len(wagons) - 1:
                 ax.set_xlabel("minutes since activation", fontsize=8)
-    handles, labels = [], []
+    handles: list[Any] = []
+    labels: list[str] = []
     for ax in axes.flat:
         if ax.get_visible():
             h, lab = ax.get_legend_handles_labels()
