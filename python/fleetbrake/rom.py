@@ -467,16 +467,19 @@ class ReducedModel:
             np.broadcast_to(np.asarray(initial_c, dtype=np.float64), (n_events,))
         )
         amb = np.asarray(ambient_c, dtype=np.float64)
-        if amb.ndim == 1:
-            amb = amb[:, None]
         try:
-            drive = np.ascontiguousarray(np.broadcast_to(amb, (n_events, n_steps)) - t_ref[:, None])
+            if amb.ndim <= 1:  # constant over each event: one drive per event
+                drive = np.broadcast_to(amb, (n_events,))[:, None] - t_ref[:, None]
+            else:
+                drive = np.broadcast_to(amb, (n_events, n_steps)) - t_ref[:, None]
         except ValueError:
             raise LengthMismatchError(
                 f"ambient_c of shape {amb.shape} does not fit {n_events} events of {n_steps} steps"
             ) from None
+        drive = np.ascontiguousarray(drive)
         for name, arr in (("flux_w_m2", flux), ("ambient_c", drive), ("initial_c", t_ref)):
-            if not np.all(np.isfinite(arr)):
+            # a finite sum is the cheap proof; an overflowing one gets the full check
+            if not (np.isfinite(arr.sum()) or np.all(np.isfinite(arr))):
                 raise InvalidParameterError(f"{name} must be finite")
         h_nom = np.array([self.h_nominal.get(f, 0.0) for f in self.face_names])
         b_a = np.ascontiguousarray(h_nom @ self.b_faces)

@@ -508,7 +508,7 @@ impl PyThermalModel {
 }
 
 /// Step a reduced model (modal form, nominal convection, exact in time) over many events:
-/// flux and drive (T_amb - T_ref) are (E, S), t_ref (E). Returns (probe (E, S+1, P),
+/// flux (E, S), drive (T_amb - T_ref) (E, S) or (E, 1), t_ref (E). Returns (probe (E, S+1, P),
 /// face mean (E, S+1), face max (E, S+1)).
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
@@ -541,11 +541,10 @@ fn rom_simulate_batch<'py>(
     .map_err(to_pyerr)?;
     let shape = flux.as_array().shape().to_vec();
     let (n_events, n_steps) = (shape[0], shape[1]);
-    let flux_v: Vec<f64> = flux.as_array().iter().copied().collect();
-    let drive_v: Vec<f64> = drive.as_array().iter().copied().collect();
-    let t_ref_v = t_ref.as_slice()?.to_vec();
+    // C-contiguous (the Python side makes them so): read in place, no copies
+    let (flux_s, drive_s, t_ref_s) = (flux.as_slice()?, drive.as_slice()?, t_ref.as_slice()?);
     let out = py
-        .detach(|| catch_panic(|| stepper.simulate_batch(&flux_v, &drive_v, &t_ref_v, n_steps)))
+        .detach(|| catch_panic(|| stepper.simulate_batch(flux_s, drive_s, t_ref_s, n_steps)))
         .map_err(to_pyerr)?;
     let rows = n_steps + 1;
     Ok((
