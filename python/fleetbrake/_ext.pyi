@@ -84,6 +84,17 @@ class ThermalModel:
         self, probes_m: NDArray[np.float64]
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]: ...
 
+def rom_simulate_switched(
+    e: NDArray[np.float64],
+    g: NDArray[np.float64],
+    q: NDArray[np.float64],
+    rotated: list[bool],
+    index: NDArray[np.int64],
+    repeats: NDArray[np.int64],
+    u: NDArray[np.float64],
+    xi0: NDArray[np.float64],
+    c: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
 def rom_simulate_batch(
     lam: NDArray[np.float64],
     b_q: NDArray[np.float64],

@@ -424,20 +424,31 @@ class ReducedModel:
             raise LengthMismatchError(f"initial_state must have {self.order} values")
         drive = h_steps * (ambient - t_ref)[:, None]  # (S, F): h_s (T_amb - T_ref)
         u = flux[:, None] * self.b_flux[None, :] + drive @ self.b_faces  # (S, r)
-        y = np.empty((n_steps + 1, self.c_out.shape[0]))
-        y[0] = self.c_out @ xi
         h_nom = np.array([self.h_nominal.get(f, 0.0) for f in self.face_names])
         keys, inverse = np.unique(np.round(h_steps - h_nom, 12), axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1).astype(np.int64)
         props = [self._cached_propagator(key, dt_s, scheme) for key in keys]
-        damped = _damped_mask(flux, ambient, h_steps) if scheme == "crank-nicolson" else None
-        for k in range(n_steps):
-            if damped is not None and damped[k]:
-                e, g, q = self._cached_propagator(keys[inverse[k]], 0.5 * dt_s, "backward-euler")
-                xi = _apply(e, g, q, _apply(e, g, q, xi, u[k]), u[k])
-            else:
-                e, g, q = props[inverse[k]]
-                xi = _apply(e, g, q, xi, u[k])
-            y[k + 1] = self.c_out @ xi
+        repeats = np.ones(n_steps, dtype=np.int64)
+        if scheme == "crank-nicolson":  # damped steps: two backward-Euler half steps
+            damped = np.flatnonzero(_damped_mask(flux, ambient, h_steps))
+            half = {int(k): len(props) + j for j, k in enumerate(np.unique(inverse[damped]))}
+            props += [self._cached_propagator(keys[k], 0.5 * dt_s, "backward-euler") for k in half]
+            inverse[damped] = [half[int(k)] for k in inverse[damped]]
+            repeats[damped] = 2
+        r = self.order
+        rotated = [q is not None for _, _, q in props]
+        q_all = np.stack([np.eye(r) if q is None else q for _, _, q in props])
+        y, xi = _ext.rom_simulate_switched(
+            np.stack([e for e, _, _ in props]),
+            np.stack([g for _, g, _ in props]),
+            np.ascontiguousarray(q_all),
+            rotated,
+            inverse,
+            repeats,
+            np.ascontiguousarray(u),
+            np.ascontiguousarray(xi),
+            np.ascontiguousarray(self.c_out),
+        )
         y += t_ref
         p = self.n_probes
         return RomSimulation(
@@ -603,18 +614,6 @@ class FullModelRunner:
             face_max_c=res.face_max_c,
             final_state=res.final_c - float(initial_c),
         )
-
-
-def _apply(
-    e: NDArray[np.float64],
-    g: NDArray[np.float64],
-    q: NDArray[np.float64] | None,
-    xi: NDArray[np.float64],
-    u: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    if q is None:
-        return e * xi + g * u
-    return q @ (e * (q.T @ xi) + g * (q.T @ u))
 
 
 def _series(name: str, value: float | ArrayLike, n_steps: int) -> NDArray[np.float64]:

@@ -4,7 +4,10 @@
 
 use std::collections::HashMap;
 
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3,
+};
 use pyo3::create_exception;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -12,7 +15,7 @@ use pyo3::types::PyDict;
 
 use thermal_core::error::catch_panic;
 use thermal_core::mesh::{box_mesh, BlockGeometry, BlockMeshSpec};
-use thermal_core::rom::ModalStepper;
+use thermal_core::rom::{ModalStepper, Propagators};
 use thermal_core::{
     CholeskyKind, Convection, ElementKind, Initial, Loading, Material, Scheme, Series,
     ThermalError, ThermalModel,
@@ -556,11 +559,65 @@ fn rom_simulate_batch<'py>(
     ))
 }
 
+/// One run of a reduced model through switching step systems: propagators e, g (K, r),
+/// q (K, r, r), rotated (K); per step the propagator index and repeat count (S), the modal
+/// input u (S, r); xi0 (r); output rows c (n_out, r). Returns (C xi (S+1, n_out), final xi).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+#[allow(clippy::type_complexity)]
+fn rom_simulate_switched<'py>(
+    py: Python<'py>,
+    e: PyReadonlyArray2<'py, f64>,
+    g: PyReadonlyArray2<'py, f64>,
+    q: PyReadonlyArray3<'py, f64>,
+    rotated: Vec<bool>,
+    index: PyReadonlyArray1<'py, i64>,
+    repeats: PyReadonlyArray1<'py, i64>,
+    u: PyReadonlyArray2<'py, f64>,
+    xi0: PyReadonlyArray1<'py, f64>,
+    c: PyReadonlyArray2<'py, f64>,
+) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f64>>)> {
+    let order = xi0.len()?;
+    let props = Propagators::new(
+        order,
+        e.as_slice()?.to_vec(),
+        g.as_slice()?.to_vec(),
+        q.as_slice()?.to_vec(),
+        rotated,
+    )
+    .map_err(to_pyerr)?;
+    let to_usize = |values: &[i64], name: &str| -> PyResult<Vec<usize>> {
+        values
+            .iter()
+            .map(|&v| {
+                usize::try_from(v)
+                    .map_err(|_| PyValueError::new_err(format!("{name} must be >= 0, got {v}")))
+            })
+            .collect()
+    };
+    let index = to_usize(index.as_slice()?, "propagator index")?;
+    let repeats = to_usize(repeats.as_slice()?, "repeats")?
+        .into_iter()
+        .map(|v| u32::try_from(v).map_err(|_| PyValueError::new_err(format!("repeats too large: {v}"))))
+        .collect::<PyResult<Vec<u32>>>()?;
+    let n_out = c.as_array().shape()[0];
+    let (u_s, xi_s, c_s) = (u.as_slice()?, xi0.as_slice()?, c.as_slice()?);
+    let (y, xi) = py
+        .detach(|| catch_panic(|| props.simulate(&index, &repeats, u_s, xi_s, c_s)))
+        .map_err(to_pyerr)?;
+    let steps = y.len() / n_out.max(1);
+    Ok((
+        y.into_pyarray(py).reshape([steps, n_out])?,
+        xi.into_pyarray(py),
+    ))
+}
+
 #[pymodule]
 fn _ext(m: &Bound<'_, PyModule>) -> PyResult<()> {
     let py = m.py();
     m.add_class::<PyThermalModel>()?;
     m.add_function(wrap_pyfunction!(rom_simulate_batch, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_simulate_switched, m)?)?;
     m.add("ThermalCoreError", py.get_type::<ThermalCoreError>())?;
     m.add(
         "InvalidParameterError",
