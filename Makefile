@@ -29,14 +29,19 @@ demo: build  ## synthetic fleet through the whole pipeline into $(DEMO_OUT)/
 
 test: build test-rust test-python  ## every test that matters (slow ones skipped)
 
+# The test runners keep both cores busy (two test threads, two pytest workers): the kernels'
+# own threads (rayon: two-thread triangular solves, reduced-model batches) would only wait
+# for each other, so the tests run them on one.
+TEST_ENV := RAYON_NUM_THREADS=1
+
 test-rust:  ## Rust unit and integration tests
-	cargo test --release --workspace --exclude fleetbrake_py
+	$(TEST_ENV) cargo test --release --workspace --exclude fleetbrake_py
 
 test-python: build  ## Python tests, slow ones skipped
-	$(PY) -m pytest -m "not slow" -n 2 -q
+	$(TEST_ENV) $(PY) -m pytest -m "not slow" -n 2 -q
 
 test-all: build test-rust  ## every test, slow ones included
-	$(PY) -m pytest -n 2 -q
+	$(TEST_ENV) $(PY) -m pytest -n 2 -q
 
 lint: setup  ## rustfmt, clippy and ruff, as CI would want them
 	cargo fmt --all -- --check

@@ -78,9 +78,9 @@ def holdout_rmse_against_truth(truth, db: Path, revision: str, event_ids: list[s
 
 def report_agrees_with_v_predictions(db: Path, report: dict, holdout: dt.date) -> list[str]:
     """Recompute the report's RMSEs from the views (events as the report's exclusion rule
-    says: no overlap with an anomaly flag of the wagon, none starting within the settling
-    time after one; and every event for the ``*_all_k`` figures); return the holdout event
-    ids."""
+    says: no overlap with an anomaly flag of the wagon or an event cut by a data gap, none
+    starting within the settling time after one; and every event for the ``*_all_k``
+    figures); return the holdout event ids."""
     con = duckdb.connect(str(db), read_only=True)
     try:
         base = report["baseline_revision"]
@@ -90,10 +90,16 @@ def report_agrees_with_v_predictions(db: Path, report: dict, holdout: dt.date) -
                 SELECT event_id, wagon_id, min(time_utc) t0, max(time_utc) t1
                 FROM v_predictions WHERE model_revision = $base GROUP BY ALL
             )
+            , disturbances AS (  -- anomaly flags, and events cut by a data gap
+                SELECT wagon_id, start_utc AS d0, end_utc AS d1 FROM v_flags
+                WHERE kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
+                UNION ALL
+                SELECT w.wagon_id, w.t0, w.t1 FROM windows w JOIN events e USING (event_id)
+                WHERE NOT e.complete
+            )
             SELECT w.event_id, e.start_utc, EXISTS (
-                SELECT 1 FROM v_flags f WHERE f.wagon_id = w.wagon_id
-                AND f.kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
-                AND f.start_utc <= w.t1 AND f.end_utc + INTERVAL 1 HOUR >= w.t0
+                SELECT 1 FROM disturbances d WHERE d.wagon_id = w.wagon_id
+                AND d.d0 <= w.t1 AND d.d1 + INTERVAL 1 HOUR >= w.t0
             ) AS flagged
             FROM windows w JOIN v_events e USING (event_id)
             """,

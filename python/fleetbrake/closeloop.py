@@ -2,10 +2,11 @@
 it, and report the error before and after (contract: ``shared/spec/interface.md``).
 
 1. **Events.** Fit events start before the holdout date, holdout events on or after it; an
-   event whose window overlaps a flag of its wagon (dragging or weak brake, sensor fault), or
-   starts less than ``settle_after_flag_s`` after one ends, is left out of both: an anomaly
-   is something to flag, not physics to fit, and the block state carried out of a weak or
-   dragging brake (or re-anchored on a faulty reading) stays wrong for a while after it. The
+   event whose window overlaps a flag of its wagon (dragging or weak brake, sensor fault) or
+   an event cut by a data gap (its heat input partly unlogged), or starts less than
+   ``settle_after_flag_s`` after one ends, is left out of both: an anomaly is something to
+   flag, not physics to fit, and the block state carried out of a weak or dragging brake (or
+   re-anchored on a faulty reading, or missing a braking's heat) stays wrong for a while. The
    report gives the RMSE over every event of each set too (``*_all_k``), as the contract's
    plain definition reads.
 2. **Residual.** measured - predicted sensor temperature, per second, of the current
@@ -20,8 +21,9 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
 4. **Choice** (never looks at the holdout): the Bayesian information criterion on an
    effective sample size (one independent residual per ``CORRELATION_S`` seconds: the
    residual of a missing effect is smooth, so the seconds are far from independent). A
-   candidate must beat the current revision by ``bic_margin`` and cut the fit RMSE by
-   ``min_improvement``; otherwise nothing is added and the report says so.
+   candidate must beat the current revision by ``bic_margin`` (a pair must also beat the
+   best single effect by it) and cut the fit RMSE by ``min_improvement``; otherwise nothing
+   is added and the report says so.
 5. **Revision.** The chosen effects become a new model revision (the current one), every
    event is re-simulated with it, and the JSON report (and a Markdown report with plots
    beside it) gives the RMSE before and after on the fit and holdout events, computed from
@@ -300,21 +302,28 @@ def _evidence_sentence(ev: Mapping[str, Any], noise_k: float) -> str:
 
 # ---------------------------------------------------------------------------- main
 def _used_events(wh: Warehouse, revision: str, settle_after_flag_s: float) -> pl.DataFrame:
-    """Events with predictions of ``revision`` (column ``flagged``: whether the window
-    overlaps an anomaly flag of the wagon or starts within ``settle_after_flag_s`` after
-    one)."""
+    """Events with predictions of ``revision``; column ``flagged``: whether the window
+    overlaps a disturbance of its wagon or starts within ``settle_after_flag_s`` after one.
+    Disturbances: the anomaly flags, and the windows of events cut by a data gap
+    (``complete`` false: part of their heat input was never logged)."""
     return wh.con.sql(
         """
         WITH windows AS (
             SELECT event_id, wagon_id, min(time_utc) AS t0, max(time_utc) AS t1
             FROM predictions WHERE model_revision = $rev GROUP BY event_id, wagon_id
         ),
+        disturbances AS (
+            SELECT wagon_id, start_utc AS d0, end_utc AS d1 FROM flags
+            WHERE kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
+            UNION ALL
+            SELECT w.wagon_id, w.t0, w.t1 FROM windows w JOIN events e USING (event_id)
+            WHERE NOT e.complete
+        ),
         flagged AS (
             SELECT DISTINCT w.event_id
-            FROM windows w JOIN flags f
-              ON f.wagon_id = w.wagon_id AND f.start_utc <= w.t1
-             AND f.end_utc + to_microseconds(CAST($settle_us AS BIGINT)) >= w.t0
-             AND f.kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
+            FROM windows w JOIN disturbances d
+              ON d.wagon_id = w.wagon_id AND d.d0 <= w.t1
+             AND d.d1 + to_microseconds(CAST($settle_us AS BIGINT)) >= w.t0
         )
         SELECT e.event_id, e.wagon_id, e.start_utc, e.end_utc, e.detected_utc,
                e.event_id IN (SELECT event_id FROM flagged) AS flagged
@@ -435,6 +444,10 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             _debug(f"refitted pair {candidates[-1].label}: rmse {candidates[-1].rmse_fit_k:.4f}")
         candidates.sort(key=lambda c: c.bic)
         best = candidates[0]
+        # a pair must beat the best single effect by the margin too
+        singles = [c for c in candidates if len(c.effects) - len(present) == 1]
+        if best not in singles and singles and best.bic > singles[0].bic - config.bic_margin:
+            best = singles[0]
     if hold_eval is not None:
         for c in candidates:
             c.rmse_holdout_k = _rmse(hold_eval.residual(c.effects))
@@ -471,9 +484,10 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             f"{100 * config.min_improvement:.0f} %. The holdout is never used to choose."
         ),
         "exclusion": "events whose window overlaps a dragging_brake, weak_brake or "
-        "sensor_fault flag of their wagon, or starts less than "
-        f"{config.settle_after_flag_s:.0f} s after one ends, are left out of fit and holdout; "
-        "events_all and rmse_*_all_k count every event of the set",
+        "sensor_fault flag of their wagon or the window of one of its events cut by a data gap "
+        f"(incomplete), or starts less than {config.settle_after_flag_s:.0f} s after one ends, "
+        "are left out of fit and holdout; events_all and rmse_*_all_k count every event of the "
+        "set",
     }
     fit_ids = fit["event_id"].to_list()
     hold_ids = holdout["event_id"].to_list()

@@ -598,7 +598,9 @@ fn rom_simulate_switched<'py>(
     let index = to_usize(index.as_slice()?, "propagator index")?;
     let repeats = to_usize(repeats.as_slice()?, "repeats")?
         .into_iter()
-        .map(|v| u32::try_from(v).map_err(|_| PyValueError::new_err(format!("repeats too large: {v}"))))
+        .map(|v| {
+            u32::try_from(v).map_err(|_| PyValueError::new_err(format!("repeats too large: {v}")))
+        })
         .collect::<PyResult<Vec<u32>>>()?;
     let n_out = c.as_array().shape()[0];
     let (u_s, xi_s, c_s) = (u.as_slice()?, xi0.as_slice()?, c.as_slice()?);

@@ -85,15 +85,25 @@ impl Pattern {
         self.matvec_add(values, x, y);
     }
 
-    /// `y += A x`; the matrix is symmetric, so row j of A is column j: one dot product per row.
+    /// `y += A x`; the matrix is symmetric, so row j of A is column j: one dot product per
+    /// row, rows in parallel (rayon) for matrices large enough to be worth it.
     pub fn matvec_add(&self, values: &[f64], x: &[f64], y: &mut [f64]) {
-        for (j, yj) in y.iter_mut().enumerate() {
-            let range = self.col_ptr[j]..self.col_ptr[j + 1];
-            let mut acc = 0.0;
-            for (v, &i) in values[range.clone()].iter().zip(&self.row_idx[range]) {
-                acc += v * x[i];
+        let rows = |first: usize, y: &mut [f64]| {
+            for (k, yj) in y.iter_mut().enumerate() {
+                let range = self.col_ptr[first + k]..self.col_ptr[first + k + 1];
+                let mut acc = 0.0;
+                for (v, &i) in values[range.clone()].iter().zip(&self.row_idx[range]) {
+                    acc += v * x[i];
+                }
+                *yj += acc;
             }
-            *yj += acc;
+        };
+        if self.nnz() < PARALLEL_MATVEC_MIN_NNZ {
+            rows(0, y);
+        } else {
+            y.par_chunks_mut(MATVEC_ROWS_PER_TASK)
+                .enumerate()
+                .for_each(|(c, chunk)| rows(c * MATVEC_ROWS_PER_TASK, chunk));
         }
     }
 
@@ -111,6 +121,11 @@ impl Pattern {
         out
     }
 }
+
+/// Matrices with fewer stored entries are multiplied on one thread.
+const PARALLEL_MATVEC_MIN_NNZ: usize = 500_000;
+/// Rows per parallel task of a mat-vec.
+const MATVEC_ROWS_PER_TASK: usize = 2048;
 
 /// Boundary operators of one face set.
 #[derive(Debug, Clone, PartialEq)]

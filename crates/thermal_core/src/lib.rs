@@ -17,8 +17,10 @@ pub mod model;
 pub mod probe;
 pub mod quadrature;
 pub mod rom;
+pub mod simd;
 pub mod solver;
 pub mod transient;
+pub mod trisolve;
 
 pub use assembly::Material;
 pub use element::ElementKind;

@@ -288,11 +288,19 @@ impl ThermalModel {
         };
         let flux_op = &self.ops.faces[self.flux_face];
         let flux_area = flux_op.area_m2;
+        // face loads touch only their face's nodes: sparse, for the per-step products
+        let loads: Vec<SparseLoad> = self
+            .ops
+            .faces
+            .iter()
+            .map(|f| SparseLoad::new(&f.load))
+            .collect();
+        let flux_load = &loads[self.flux_face];
         let record = |out: &mut Outputs, t: &[f64], step: usize| {
             let start = out.probe_c.len();
             out.probe_c.resize(start + probes.len(), 0.0);
             probes.interpolate(t, &mut out.probe_c[start..]);
-            let mean = flux_op.load.iter().zip(t).map(|(g, v)| g * v).sum::<f64>() / flux_area;
+            let mean = flux_load.dot(t) / flux_area;
             out.face_mean_c.push(mean);
             let max = self
                 .flux_face_nodes
@@ -333,32 +341,24 @@ impl ThermalModel {
             let scratch = scratch.get_or_insert_with(|| sys.factor.scratch(1));
             for _ in 0..substeps {
                 // convected heat uses G_s · T_theta with G_s = H_s 1
-                let g_old: Vec<f64> = self
-                    .ops
-                    .faces
-                    .iter()
-                    .map(|f| f.load.iter().zip(&t).map(|(g, v)| g * v).sum())
-                    .collect();
+                let g_old: Vec<f64> = loads.iter().map(|l| l.dot(&t)).collect();
                 self.ops.pattern.matvec(&sys.explicit, &t, &mut rhs);
                 if q != 0.0 {
-                    for (r, g) in rhs.iter_mut().zip(&flux_op.load) {
-                        *r += q * g;
-                    }
+                    flux_load.add_to(q, &mut rhs);
                 }
-                for (face, hs) in self.ops.faces.iter().zip(&h) {
+                for (load, hs) in loads.iter().zip(&h) {
                     if *hs != 0.0 {
-                        let c = hs * t_amb;
-                        for (r, g) in rhs.iter_mut().zip(&face.load) {
-                            *r += c * g;
-                        }
+                        load.add_to(hs * t_amb, &mut rhs);
                     }
                 }
                 sys.factor.solve_in_place(&mut rhs, scratch);
                 std::mem::swap(&mut t, &mut rhs);
                 out.energy.flux_in_j += dt * q * flux_area;
-                for ((face, hs), go) in self.ops.faces.iter().zip(&h).zip(&g_old) {
+                for (((face, load), hs), go) in
+                    self.ops.faces.iter().zip(&loads).zip(&h).zip(&g_old)
+                {
                     if *hs != 0.0 {
-                        let g_new: f64 = face.load.iter().zip(&t).map(|(g, v)| g * v).sum();
+                        let g_new = load.dot(&t);
                         let g_theta = theta * g_new + (1.0 - theta) * go;
                         out.energy.convected_out_j += dt * hs * (g_theta - t_amb * face.area_m2);
                     }
@@ -379,13 +379,65 @@ impl ThermalModel {
     }
 }
 
-/// Build the default block model.
-pub fn default_block_model(kind: crate::element::ElementKind) -> Result<ThermalModel> {
+/// A nodal load vector by its nonzero entries.
+struct SparseLoad {
+    index: Vec<usize>,
+    value: Vec<f64>,
+}
+
+impl SparseLoad {
+    fn new(dense: &[f64]) -> Self {
+        let (index, value) = dense
+            .iter()
+            .enumerate()
+            .filter(|(_, v)| **v != 0.0)
+            .map(|(i, v)| (i, *v))
+            .unzip();
+        SparseLoad { index, value }
+    }
+
+    /// `loadᵀ x`.
+    fn dot(&self, x: &[f64]) -> f64 {
+        self.index
+            .iter()
+            .zip(&self.value)
+            .map(|(&i, g)| g * x[i])
+            .sum()
+    }
+
+    /// `y += c load`.
+    fn add_to(&self, c: f64, y: &mut [f64]) {
+        for (&i, g) in self.index.iter().zip(&self.value) {
+            y[i] += c * g;
+        }
+    }
+}
+
+/// The reference block and its default mesh (graded towards the friction face and the
+/// sensor seat).
+pub fn default_block_spec(kind: crate::element::ElementKind) -> (BlockGeometry, BlockMeshSpec) {
     let geometry = BlockGeometry::default();
     let spec = BlockMeshSpec {
         kind,
         focus_m: Some([0.0, geometry.wheel_radius_m + 0.055, 0.0]),
         ..Default::default()
     };
+    (geometry, spec)
+}
+
+/// Build the default block model.
+pub fn default_block_model(kind: crate::element::ElementKind) -> Result<ThermalModel> {
+    let (geometry, spec) = default_block_spec(kind);
     ThermalModel::block(&geometry, &spec, Material::CAST_IRON, CholeskyKind::Auto)
+}
+
+/// The convection of the benchmarks and tests: `h_w_m2k` on every face set but the friction
+/// face.
+pub fn convection_off_friction(model: &ThermalModel, h_w_m2k: f64) -> Vec<f64> {
+    model
+        .ops
+        .faces
+        .iter()
+        .map(|f| if f.name == "friction" { 0.0 } else { h_w_m2k })
+        .collect()
 }

@@ -9,6 +9,7 @@
 use rayon::prelude::*;
 
 use crate::error::{Result, ThermalError};
+use crate::simd::{has_avx2_fma, madd};
 
 /// A reduced model in modal form at one time step.
 #[derive(Debug, Clone, PartialEq)]
@@ -156,12 +157,10 @@ impl ModalStepper {
         fmax: &mut [f64],
     ) {
         #[cfg(target_arch = "x86_64")]
-        {
-            if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-                // SAFETY: the CPU has the features the function is compiled for.
-                unsafe { self.run_block_avx2(inputs, probe, mean, fmax) };
-                return;
-            }
+        if has_avx2_fma() {
+            // SAFETY: the CPU has the features the function is compiled for.
+            unsafe { self.run_block_avx2(inputs, probe, mean, fmax) };
+            return;
         }
         self.run_block_generic::<false>(inputs, probe, mean, fmax);
     }
@@ -416,16 +415,6 @@ impl Propagators {
             outputs(&xi, &mut y[(step + 1) * n_out..(step + 2) * n_out]);
         }
         Ok((y, xi))
-    }
-}
-
-/// `a b + c`, fused when `FMA`.
-#[inline(always)]
-fn madd<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
-    if FMA {
-        a.mul_add(b, c)
-    } else {
-        a * b + c
     }
 }
 

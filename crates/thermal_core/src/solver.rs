@@ -17,6 +17,7 @@ use faer::{Conj, Par, Side, Spec};
 
 use crate::assembly::Pattern;
 use crate::error::{Result, ThermalError};
+use crate::trisolve::SupernodePlan;
 
 /// Which Cholesky variant faer uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -44,6 +45,8 @@ impl CholeskyKind {
 #[derive(Debug, Clone)]
 pub struct SymbolicAnalysis {
     symbolic: Arc<SymbolicCholesky<usize>>,
+    /// The layout the one-right-hand-side solves stream (supernodal factors only).
+    plan: Option<Arc<SupernodePlan>>,
 }
 
 impl SymbolicAnalysis {
@@ -98,8 +101,13 @@ impl SymbolicAnalysis {
             },
         )
         .map_err(|e| ThermalError::LinearAlgebra(format!("symbolic Cholesky: {e:?}")))?;
+        let plan = match symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(sn) => Some(Arc::new(SupernodePlan::new(sn))),
+            SymbolicCholeskyRaw::Simplicial(_) => None,
+        };
         Ok(SymbolicAnalysis {
             symbolic: Arc::new(symbolic),
+            plan,
         })
     }
 
@@ -147,6 +155,7 @@ impl SymbolicAnalysis {
             .map_err(|e| ThermalError::NotPositiveDefinite(format!("{e:?}")))?;
         Ok(CholeskyFactor {
             symbolic: self.symbolic.clone(),
+            plan: self.plan.clone(),
             values: l_values,
         })
     }
@@ -171,10 +180,14 @@ fn symbolic_view(pattern: &Pattern) -> Result<SymbolicSparseColMatRef<'_, usize>
     ))
 }
 
+/// Factors with fewer values are solved on one thread.
+const PARALLEL_SOLVE_MIN_VALUES: usize = 4_000_000;
+
 /// A numeric Cholesky factor `A = L Lᵀ` (with its fill-reducing permutation).
 #[derive(Debug, Clone)]
 pub struct CholeskyFactor {
     symbolic: Arc<SymbolicCholesky<usize>>,
+    plan: Option<Arc<SupernodePlan>>,
     values: Vec<f64>,
 }
 
@@ -204,11 +217,61 @@ impl CholeskyFactor {
         MemBuffer::new(self.symbolic.solve_in_place_scratch::<f64>(ncols, par))
     }
 
-    /// Solve `A x = b` in place for one right-hand side.
+    /// Solve `A x = b` in place for one right-hand side: with a supernodal factor by the
+    /// streaming kernels of [`crate::trisolve`], else by faer.
     pub fn solve_in_place(&self, rhs: &mut [f64], scratch: &mut MemBuffer) {
+        match &self.plan {
+            Some(plan) => self.solve_streaming(plan, rhs),
+            None => {
+                let n = rhs.len();
+                let view = MatMut::from_column_major_slice_mut(rhs, n, 1);
+                self.solve_mat_in_place(view, scratch);
+            }
+        }
+    }
+
+    /// faer's own solve for one right-hand side (the reference the streaming one is
+    /// tested and benchmarked against).
+    pub fn solve_in_place_faer(&self, rhs: &mut [f64], scratch: &mut MemBuffer) {
         let n = rhs.len();
         let view = MatMut::from_column_major_slice_mut(rhs, n, 1);
         self.solve_mat_in_place(view, scratch);
+    }
+
+    /// The streaming solve's layout, when the factor is supernodal.
+    pub fn plan(&self) -> Option<&SupernodePlan> {
+        self.plan.as_deref()
+    }
+
+    /// The supernodal structure and values, when the factor is supernodal.
+    pub fn supernodal_parts(
+        &self,
+    ) -> Option<(
+        &faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky<usize>,
+        &[f64],
+    )> {
+        match self.symbolic.raw() {
+            SymbolicCholeskyRaw::Supernodal(sn) => Some((sn, &self.values)),
+            SymbolicCholeskyRaw::Simplicial(_) => None,
+        }
+    }
+
+    fn solve_streaming(&self, plan: &SupernodePlan, rhs: &mut [f64]) {
+        // two threads where the tree splits in two, rayon has them and the factor is too
+        // large for the caches (below that the join costs more than it saves)
+        let parallel =
+            rayon::current_num_threads() > 1 && self.values.len() >= PARALLEL_SOLVE_MIN_VALUES;
+        match self.symbolic.perm() {
+            Some(perm) => {
+                let (fwd, inv) = perm.arrays();
+                let mut x: Vec<f64> = fwd.iter().map(|&i| rhs[i]).collect();
+                plan.solve_permuted(&self.values, &mut x, parallel);
+                for (r, &i) in rhs.iter_mut().zip(inv) {
+                    *r = x[i];
+                }
+            }
+            None => plan.solve_permuted(&self.values, rhs, parallel),
+        }
     }
 }
 

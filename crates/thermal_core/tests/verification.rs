@@ -2,8 +2,8 @@
 //! analytical series solution, spatial convergence rates, and factor residuals.
 
 use thermal_core::assembly::{face_load_fn, l2_error, Material};
-use thermal_core::mesh::box_mesh;
-use thermal_core::model::default_block_model;
+use thermal_core::mesh::{block_mesh, box_mesh};
+use thermal_core::model::{convection_off_friction, default_block_model, default_block_spec};
 use thermal_core::solver::{relative_residual, CholeskyKind, SymbolicAnalysis};
 use thermal_core::{Convection, ElementKind, Initial, Loading, Scheme, Series, ThermalModel};
 
@@ -221,18 +221,19 @@ fn spatial_convergence_rates_are_measured_not_assumed() {
 fn factor_residuals_are_tiny_for_simplicial_and_supernodal() {
     let model = default_block_model(ElementKind::Hex20).unwrap();
     let dt = 1.0;
-    let h: Vec<f64> = model
-        .ops
-        .faces
-        .iter()
-        .map(|f| if f.name == "friction" { 0.0 } else { 10.0 })
-        .collect();
-    let values = model.system_values(dt, 0.5, &h);
+    let values = model.system_values(dt, 0.5, &convection_off_friction(&model, 10.0));
     let pattern = &model.ops.pattern;
     let n = pattern.n;
     let b: Vec<f64> = (0..n).map(|i| ((i * 37) % 17) as f64 - 8.0).collect();
-    for kind in [CholeskyKind::Simplicial, CholeskyKind::Supernodal] {
-        let analysis = SymbolicAnalysis::new(pattern, kind).unwrap();
+    // the mesher's nested-dissection order (the model's choice on this mesh) and faer's AMD
+    let (geometry, spec) = default_block_spec(ElementKind::Hex20);
+    let nd = block_mesh(&geometry, &spec).unwrap().ordering.unwrap();
+    for (kind, order) in [
+        (CholeskyKind::Simplicial, None),
+        (CholeskyKind::Supernodal, None),
+        (CholeskyKind::Supernodal, Some(nd.as_slice())),
+    ] {
+        let analysis = SymbolicAnalysis::with_ordering(pattern, kind, order).unwrap();
         assert_eq!(analysis.is_supernodal(), kind == CholeskyKind::Supernodal);
         for par in [faer::Par::Seq, faer::Par::rayon(2)] {
             let factor = analysis.factorize(pattern, &values, par).unwrap();
@@ -241,6 +242,18 @@ fn factor_residuals_are_tiny_for_simplicial_and_supernodal() {
             factor.solve_in_place(&mut x, &mut scratch);
             let r = relative_residual(pattern, &values, &x, &b);
             assert!(r < 1e-10, "{kind:?} {par:?}: residual {r:e}");
+            // the streaming solve (supernodal) agrees with faer's own
+            let mut y = b.clone();
+            factor.solve_in_place_faer(&mut y, &mut scratch);
+            let scale = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let diff = x
+                .iter()
+                .zip(&y)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                diff <= 1e-12 * scale,
+                "{kind:?} {par:?}: {diff:e} off faer's solve"
+            );
         }
     }
 }
@@ -263,12 +276,10 @@ fn indefinite_matrices_are_reported_not_panicked() {
 /// order of magnitude worse (the accuracy scale the closed loop needs is 0.1 K).
 #[test]
 fn crank_nicolson_is_second_order_accurate_at_one_second_steps() {
-    let g = thermal_core::BlockGeometry::default();
+    let (g, spec) = default_block_spec(ElementKind::Hex20);
     let spec = thermal_core::BlockMeshSpec {
-        kind: ElementKind::Hex20,
         refinement: 0.6,
-        focus_m: Some([0.0, g.wheel_radius_m + 0.055, 0.0]),
-        ..Default::default()
+        ..spec
     };
     let model = ThermalModel::block(&g, &spec, CAST_IRON, CholeskyKind::Auto).unwrap();
     // two brakings of different strength and a drag application, 1 s resolution
