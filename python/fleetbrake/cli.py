@@ -6,6 +6,8 @@ turns expected failures into a clear message and a non-zero exit code.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -25,6 +27,25 @@ EXIT_FAILED = 1
 """The command could not do its job (no registry, unusable database, ...)."""
 EXIT_LOCKED = 75
 """The database is being written by another process (EX_TEMPFAIL: try again later)."""
+
+
+@contextlib.contextmanager
+def _exit_on(
+    command: str,
+    failed: tuple[type[BaseException], ...],
+    *,
+    locked: tuple[type[BaseException], ...] = (),
+) -> Iterator[None]:
+    """Turn the errors a command expects into its message on stderr and its exit code:
+    ``locked`` (another process holds the database) 75, ``failed`` 1."""
+    try:
+        yield
+    except locked as error:
+        typer.echo(f"fleetbrake {command}: {error}", err=True)
+        raise typer.Exit(EXIT_LOCKED) from None
+    except failed as error:
+        typer.echo(f"fleetbrake {command}: {error}", err=True)
+        raise typer.Exit(EXIT_FAILED) from None
 
 
 @app.command("ingest")
@@ -48,14 +69,10 @@ def ingest_command(
     from fleetbrake.registry import RegistryError
     from fleetbrake.warehouse import WarehouseError, WarehouseLockedError
 
-    try:
+    with _exit_on(
+        "ingest", (FleetDirError, RegistryError, WarehouseError), locked=(WarehouseLockedError,)
+    ):
         report = run_ingest(fleet_dir, db, wait_s=wait_s)
-    except WarehouseLockedError as error:
-        typer.echo(f"fleetbrake ingest: {error}", err=True)
-        raise typer.Exit(EXIT_LOCKED) from None
-    except (FleetDirError, RegistryError, WarehouseError) as error:
-        typer.echo(f"fleetbrake ingest: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     print_report(report)
 
 
@@ -91,7 +108,11 @@ def run_command(
     from fleetbrake.registry import RegistryError
     from fleetbrake.warehouse import WarehouseError, WarehouseLockedError
 
-    try:
+    with _exit_on(
+        "run",
+        (FleetDirError, RegistryError, WarehouseError, OSError, ValueError),
+        locked=(WarehouseLockedError,),
+    ):
         if solver not in ("rom", "full"):
             raise ValueError(f"--solver must be rom or full, got {solver!r}")
         from fleetbrake.pipeline import SimulationConfig
@@ -103,12 +124,6 @@ def run_command(
             flag_config_path=flag_config,
             simulation=SimulationConfig(solver=solver),  # type: ignore[arg-type]
         )
-    except WarehouseLockedError as error:
-        typer.echo(f"fleetbrake run: {error}", err=True)
-        raise typer.Exit(EXIT_LOCKED) from None
-    except (FleetDirError, RegistryError, WarehouseError, OSError, ValueError) as error:
-        typer.echo(f"fleetbrake run: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     print_report(report.ingest)
     sim = report.simulation
     typer.echo(
@@ -156,14 +171,8 @@ def close_loop_command(
             f"fleetbrake close-loop: --holdout-from {holdout_from!r} is not YYYY-MM-DD", err=True
         )
         raise typer.Exit(2) from None
-    try:
+    with _exit_on("close-loop", (CloseLoopError, WarehouseError), locked=(WarehouseLockedError,)):
         report = run_close_loop(db, holdout, json_out, wait_s=wait_s)
-    except WarehouseLockedError as error:
-        typer.echo(f"fleetbrake close-loop: {error}", err=True)
-        raise typer.Exit(EXIT_LOCKED) from None
-    except (CloseLoopError, WarehouseError) as error:
-        typer.echo(f"fleetbrake close-loop: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     if report["new_revision"]:
         typer.echo(
             f"added {report['effect']} {report['parameters']} as {report['new_revision']}: "
@@ -221,11 +230,8 @@ def bench_solver_command(
 
     from fleetbrake.bench_solver import bench_solver, print_table
 
-    try:
+    with _exit_on("bench solver", (ValueError, RuntimeError)):
         figures = bench_solver(element, steps, refinement, cholesky)
-    except (ValueError, RuntimeError) as error:
-        typer.echo(f"fleetbrake bench solver: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     print_table(figures)
     if json_out:
         typer.echo(json.dumps(figures))
@@ -267,11 +273,8 @@ def bench_fleet_command(
 
     from fleetbrake.bench_fleet import bench_fleet, print_figures
 
-    try:
+    with _exit_on("bench fleet", (ValueError, OSError, RuntimeError)):
         figures = bench_fleet(wagons, days, seed=seed, workdir=workdir, fleet_dir=fleet_dir)
-    except (ValueError, OSError, RuntimeError) as error:
-        typer.echo(f"fleetbrake bench fleet: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     print_figures(figures, typer.echo)
     if json_out:
         typer.echo(json.dumps(figures))
@@ -309,7 +312,7 @@ def paper_command(
         write_outputs,
     )
 
-    try:
+    with _exit_on("paper", (ValueError, RuntimeError, OSError)):
         rep = reproduce_paper()
         print_report(rep)
         studied = None
@@ -319,9 +322,6 @@ def paper_command(
         if out is not None:
             for path in write_outputs(rep, out, studied):
                 typer.echo(f"wrote {path}")
-    except (ValueError, RuntimeError, OSError) as error:
-        typer.echo(f"fleetbrake paper: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     if json_out:
         figures = rep.to_dict()
         if studied is not None:
@@ -380,7 +380,7 @@ def synth_command(
     from fleetbrake.effects import EffectSet, parse_effect
     from fleetbrake.synth import SynthConfig, generate_fleet, summary
 
-    try:
+    with _exit_on("synth", (ValueError, FileExistsError, OSError)):
         effects = EffectSet(tuple(parse_effect(text) for text in effect or []))
         settings = {
             "wagons": wagons,
@@ -394,9 +394,6 @@ def synth_command(
         config = SynthConfig(**settings) if imperfections else SynthConfig.clean(**settings)
         began = time.perf_counter()
         truth = generate_fleet(out_dir, config, progress=lambda text: typer.echo(text, err=True))
-    except (ValueError, FileExistsError, OSError) as error:
-        typer.echo(f"fleetbrake synth: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     typer.echo(summary(truth))
     typer.echo(f"generated in {time.perf_counter() - began:.1f} s")
 
@@ -436,17 +433,11 @@ def record_command(
     """
     from fleetbrake.record import RecordError, RecordLockedError, record, wagon_config
 
-    try:
+    with _exit_on("record", (RecordError,), locked=(RecordLockedError,)):
         config = wagon_config(wagon, registry) if registry is not None else None
         summary = record(
             db, wagon, out, event_id=event, revision=revision, wagon=config, wait_s=wait_s
         )
-    except RecordLockedError as error:
-        typer.echo(f"fleetbrake record: {error}", err=True)
-        raise typer.Exit(EXIT_LOCKED) from None
-    except RecordError as error:
-        typer.echo(f"fleetbrake record: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     what = f"event {summary.event_id}" if summary.event_id else f"wagon {summary.wagon_id}"
     counts = summary.counts
     fields = f", {counts['block/mesh']} block fields" if "block/mesh" in counts else ""
@@ -490,12 +481,9 @@ def demo_command(
 
     from fleetbrake.demo import DemoConfig, DemoError, print_summary, run_demo
 
-    try:
+    with _exit_on("demo", (DemoError, ValueError)):
         config = DemoConfig(wagons=wagons, days=days, seed=seed, refinement=refinement)
         result = run_demo(out, config, force=force)
-    except (DemoError, ValueError) as error:
-        typer.echo(f"fleetbrake demo: {error}", err=True)
-        raise typer.Exit(EXIT_FAILED) from None
     typer.echo("")
     print_summary(result)
 
