@@ -168,11 +168,18 @@ def test_convection_speed_is_found_and_fixed(tmp_path):
     assert report["holdout"]["rmse_after_k"] < report["holdout"]["rmse_before_k"]
 
 
-@pytest.mark.slow
 @pytest.mark.usefixtures("rom_env")
 @pytest.mark.parametrize(
     "effect_name",
-    ["heat_partition", "holder_conduction", "ambient_offset", "friction_speed", None],
+    [
+        # about 1 min each on 2 cores: run by `make test`
+        "holder_conduction",
+        "heat_partition",
+        # 4-7 min each: `make test-all`
+        pytest.param("ambient_offset", marks=pytest.mark.slow),
+        pytest.param("friction_speed", marks=pytest.mark.slow),
+        pytest.param(None, marks=pytest.mark.slow),
+    ],
 )
 def test_each_effect_is_found_and_a_clean_fleet_gets_nothing(tmp_path, effect_name):
     check(tmp_path, effect_name, wagons=3, days=3, seed=23)

@@ -25,7 +25,9 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    best single effect by it) and cut the fit RMSE by ``min_improvement``; otherwise nothing
    is added and the report says so.
 5. **Revision.** The chosen effects become a new model revision (the current one), every
-   event is re-simulated with it, and the JSON report (and a Markdown report with plots
+   event is re-simulated with it, the flags are judged again with it (the baseline's flags
+   take a fleet-wide misfit for weak brakes or failing sensors) and the effect is refitted on
+   the events usable then, and the JSON report (and a Markdown report with plots
    beside it) gives the RMSE before and after on the fit and holdout events, computed from
    ``v_predictions`` exactly as an analyst would.
 """
@@ -91,6 +93,10 @@ class CloseLoopConfig:
     fit period); the best ones are then refitted on all of them."""
     refit: int = 2
     """How many of the screened candidates are refitted on every fit event."""
+    reflag: bool = True
+    """After adding an effect, judge the flags again with the new revision and refit on the
+    events that are usable then (flags judged with a model that lacks the effect mistake a
+    fleet-wide misfit for anomalies)."""
     settle_after_flag_s: float = 3600.0
     """Events starting less than this after the end of a brake or sensor-fault flag of their
     wagon are left out: the state carried out of the anomaly is still off (a weak braking
@@ -476,6 +482,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             for c in candidates
         ],
         "noise_k": round(noise_k, 5),
+        "flags_judged_with": base.name,
         "residual": evidence,
         "selection": (
             f"Bayesian information criterion on the fit events (one independent residual per "
@@ -506,6 +513,36 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     _record_revision(wh, name, base.name, best)
     new_rev = Revision(name, best.effects)
     simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
+    if config.reflag:
+        # the flags were judged with the baseline, which lacks the effect: a fleet-wide misfit
+        # looks like weak brakes or failing sensors. Judge them again with the new revision,
+        # and refit on the events that are usable now.
+        _reflag(wh, wagons, name, sim)
+        every = _used_events(wh, base.name, config.settle_after_flag_s)
+        used = every.filter(~pl.col("flagged"))
+        fit = used.filter(pl.col("start_utc") < cutoff)
+        holdout = used.filter(pl.col("start_utc") >= cutoff)
+        if fit.height and set(fit["event_id"].to_list()) != set(fit_ids):
+            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim)
+            effects, r = _fit(
+                refit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
+            )
+            _debug(f"refitted on {fit.height} events after re-flagging: {effects}")
+            best = Candidate(effects, _rmse(r), _bic(r, best.n_parameters), best.n_parameters)
+            added = [e for e in best.effects if type(e) not in present]
+            _set_revision_effects(wh, name, best.effects)
+            new_rev = Revision(name, best.effects)
+            simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
+            _reflag(wh, wagons, name, sim)
+            every = _used_events(wh, base.name, config.settle_after_flag_s)
+            used = every.filter(~pl.col("flagged"))
+            fit = used.filter(pl.col("start_utc") < cutoff)
+            holdout = used.filter(pl.col("start_utc") >= cutoff)
+        fit_ids = fit["event_id"].to_list()
+        hold_ids = holdout["event_id"].to_list()
+        report["fit"]["events"] = len(fit_ids)
+        report["holdout"]["events"] = len(hold_ids)
+        report["flags_judged_with"] = name
     rmse = {
         (key, rev): rmse_from_predictions(wh, rev, idset) if idset else None
         for key, idset in (("fit", fit_ids), ("holdout", hold_ids))
@@ -544,6 +581,23 @@ def _add_all_events(
                 "rmse_after_all_k": rmse_from_predictions(wh, after, ids) if ids else None,
             }
         )
+
+
+def _reflag(
+    wh: Warehouse, wagons: Mapping[str, WagonConfig], revision: str, sim: SimulationConfig
+) -> None:
+    """Judge every wagon's flags again with ``revision`` (the model its predictions came
+    from)."""
+    from fleetbrake.flags import raise_flags
+
+    raise_flags(wh, wagons, revision, refinement=sim.refinement)
+
+
+def _set_revision_effects(wh: Warehouse, name: str, effects: EffectSet) -> None:
+    wh.con.execute(
+        "UPDATE model_revisions SET parameters_json = $params WHERE model_revision = $name",
+        {"params": json.dumps({"effects": effects.to_list()}), "name": name},
+    )
 
 
 def _new_revision_name(wh: Warehouse, label: str) -> str:

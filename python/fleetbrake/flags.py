@@ -55,7 +55,7 @@ import difflib
 import itertools
 import math
 import tomllib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1882,7 +1882,7 @@ def _load_series(
 
 def raise_flags(
     wh: Warehouse,
-    registry: Registry,
+    registry: Registry | Mapping[str, WagonConfig],
     revision_name: str,
     config: FlagConfig = FlagConfig(),
     *,
@@ -1902,6 +1902,12 @@ def raise_flags(
     from fleetbrake.rom import ReducedModel
 
     effects = revision(wh, revision_name).effects
+    if isinstance(registry, Registry):
+        wagons_by_id: Mapping[str, WagonConfig] = registry.wagons
+        default_ambient_c = float(registry.defaults["ambient_temp_c"])
+    else:  # the entries a run stored (pipeline.stored_wagons)
+        wagons_by_id = registry
+        default_ambient_c = WagonConfig(wagon_id="-").ambient_temp_c
     if wagons is None:
         wanted = [
             r[0]
@@ -1915,8 +1921,8 @@ def raise_flags(
     roms: dict[tuple[Any, ...], Any] = {}
     new: list[Flag] = []
     for wagon_id in wanted:
-        wagon = registry.wagons.get(wagon_id)
-        ambient = float(wagon.ambient_temp_c if wagon else registry.defaults["ambient_temp_c"])
+        wagon = wagons_by_id.get(wagon_id)
+        ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
         series = _load_series(wh, wagon_id, ambient, config)
         if not series:
             continue
