@@ -640,14 +640,12 @@ def _observable(wh: object, truth: object, anomaly: object) -> bool:
     of its wagon within it; for a brake anomaly at least 5 minutes, outside the wagon's sensor
     faults (a loose sensor cannot see a dragging brake)."""
     query = "SELECT count(*) FROM samples WHERE wagon_id = $w AND time_utc >= $a AND time_utc < $b"
-    if anomaly.kind != "sensor_fault":  # type: ignore[attr-defined]
-        for other in truth.anomalies:  # type: ignore[attr-defined]
-            if other.kind == "sensor_fault" and other.wagon_id == anomaly.wagon_id:  # type: ignore[attr-defined]
-                query += (
-                    f" AND NOT (time_utc >= TIMESTAMP '{other.start_utc}' "
-                    f"AND time_utc < TIMESTAMP '{other.end_utc}')"
-                )
     params = {"w": anomaly.wagon_id, "a": anomaly.start_utc, "b": anomaly.end_utc}  # type: ignore[attr-defined]
+    if anomaly.kind != "sensor_fault":  # type: ignore[attr-defined]
+        for k, other in enumerate(truth.anomalies):  # type: ignore[attr-defined]
+            if other.kind == "sensor_fault" and other.wagon_id == anomaly.wagon_id:  # type: ignore[attr-defined]
+                query += f" AND NOT (time_utc >= $s{k} AND time_utc < $e{k})"
+                params.update({f"s{k}": other.start_utc, f"e{k}": other.end_utc})
     ((count,),) = wh.con.execute(query, params).fetchall()  # type: ignore[attr-defined]
     return count >= (60 if anomaly.kind == "sensor_fault" else 300)  # type: ignore[attr-defined]
 
