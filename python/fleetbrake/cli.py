@@ -184,19 +184,24 @@ def close_loop_command(
     typer.echo(f"report: {json_out} and {Path(json_out).with_suffix('.md')}")
 
 
+# options the data-side benchmarks share
+WorkdirOption = Annotated[
+    Path | None, typer.Option("--workdir", help="Where to make the temporary directory.")
+]
+BenchFleetOption = Annotated[
+    Path | None,
+    typer.Option("--fleet", help="Make the fleet here and keep it; reuse it if it exists."),
+]
+
+
 @bench_app.command("ingest")
 def bench_ingest_command(
     json_out: Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")] = False,
     rows: Annotated[
         int, typer.Option("--rows", help="Samples in the synthetic gzip fleet.")
     ] = 2_000_000,
-    workdir: Annotated[
-        Path | None, typer.Option("--workdir", help="Where to make the temporary directory.")
-    ] = None,
-    fleet_dir: Annotated[
-        Path | None,
-        typer.Option("--fleet", help="Make the fleet here and keep it; reuse it if it exists."),
-    ] = None,
+    workdir: WorkdirOption = None,
+    fleet_dir: BenchFleetOption = None,
 ) -> None:
     """Ingestion speed and peak memory on a synthetic gzip fleet (events excluded)."""
     import json
@@ -256,13 +261,8 @@ def bench_fleet_command(
     wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 100,
     days: Annotated[int, typer.Option("--days", help="UTC days of operation.")] = 1,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 0,
-    workdir: Annotated[
-        Path | None, typer.Option("--workdir", help="Where to make the temporary directory.")
-    ] = None,
-    fleet_dir: Annotated[
-        Path | None,
-        typer.Option("--fleet", help="Make the fleet here and keep it; reuse it if it exists."),
-    ] = None,
+    workdir: WorkdirOption = None,
+    fleet_dir: BenchFleetOption = None,
 ) -> None:
     """A fleet-day from log files to flags: `fleetbrake run` timed end to end (and per
     stage) on a generated fleet (generation not timed)."""

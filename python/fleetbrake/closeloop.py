@@ -340,6 +340,22 @@ def _used_events(wh: Warehouse, revision: str, settle_after_flag_s: float) -> pl
     ).pl()
 
 
+def _event_sets(
+    wh: Warehouse, revision: str, config: CloseLoopConfig
+) -> tuple[pl.DataFrame, pl.DataFrame, dict[str, list[str]]]:
+    """The fit and holdout events the exclusion rule leaves (flags as they stand now), and
+    the ids of every event of each set."""
+    every = _used_events(wh, revision, config.settle_after_flag_s)
+    cutoff = dt.datetime.combine(config.holdout_from, dt.time())
+    before = pl.col("start_utc") < cutoff
+    sets_all = {
+        "fit": every.filter(before)["event_id"].to_list(),
+        "holdout": every.filter(~before)["event_id"].to_list(),
+    }
+    used = every.filter(~pl.col("flagged"))
+    return used.filter(before), used.filter(~before), sets_all
+
+
 def rmse_from_predictions(wh: Warehouse, revision: str, event_ids: Sequence[str]) -> float:
     """RMSE over every second of these events' windows with a valid measurement."""
     ids = pl.DataFrame({"event_id": list(event_ids)}, schema={"event_id": pl.String})
@@ -363,15 +379,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     if not wagons:
         raise CloseLoopError(f"{wh.path}: no registry stored: run `fleetbrake run` first")
     base = current_revision(wh)
-    every = _used_events(wh, base.name, config.settle_after_flag_s)
-    cutoff = dt.datetime.combine(config.holdout_from, dt.time())
-    sets_all = {
-        "fit": every.filter(pl.col("start_utc") < cutoff)["event_id"].to_list(),
-        "holdout": every.filter(pl.col("start_utc") >= cutoff)["event_id"].to_list(),
-    }
-    used = every.filter(~pl.col("flagged"))
-    fit = used.filter(pl.col("start_utc") < cutoff)
-    holdout = used.filter(pl.col("start_utc") >= cutoff)
+    fit, holdout, sets_all = _event_sets(wh, base.name, config)
     if fit.height == 0:
         raise CloseLoopError(
             f"{wh.path}: no unflagged event with predictions before {config.holdout_from}"
@@ -518,10 +526,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         # looks like weak brakes or failing sensors. Judge them again with the new revision,
         # and refit on the events that are usable now.
         _reflag(wh, wagons, name, sim)
-        every = _used_events(wh, base.name, config.settle_after_flag_s)
-        used = every.filter(~pl.col("flagged"))
-        fit = used.filter(pl.col("start_utc") < cutoff)
-        holdout = used.filter(pl.col("start_utc") >= cutoff)
+        fit, holdout, _ = _event_sets(wh, base.name, config)
         if fit.height and set(fit["event_id"].to_list()) != set(fit_ids):
             refit_eval = _Evaluator(wh, wagons, all_events, fit, sim)
             effects, r = _fit(
@@ -534,10 +539,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             new_rev = Revision(name, best.effects)
             simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
             _reflag(wh, wagons, name, sim)
-            every = _used_events(wh, base.name, config.settle_after_flag_s)
-            used = every.filter(~pl.col("flagged"))
-            fit = used.filter(pl.col("start_utc") < cutoff)
-            holdout = used.filter(pl.col("start_utc") >= cutoff)
+            fit, holdout, _ = _event_sets(wh, base.name, config)
         fit_ids = fit["event_id"].to_list()
         hold_ids = holdout["event_id"].to_list()
         report["fit"]["events"] = len(fit_ids)

@@ -424,7 +424,7 @@ class ReducedModel:
             raise LengthMismatchError(f"initial_state must have {self.order} values")
         drive = h_steps * (ambient - t_ref)[:, None]  # (S, F): h_s (T_amb - T_ref)
         u = flux[:, None] * self.b_flux[None, :] + drive @ self.b_faces  # (S, r)
-        h_nom = np.array([self.h_nominal.get(f, 0.0) for f in self.face_names])
+        h_nom = self._h_nominal_by_face()
         keys, inverse = np.unique(np.round(h_steps - h_nom, 12), axis=0, return_inverse=True)
         inverse = inverse.reshape(-1).astype(np.int64)
         props = [self._cached_propagator(key, dt_s, scheme) for key in keys]
@@ -492,7 +492,7 @@ class ReducedModel:
             # a finite sum is the cheap proof; an overflowing one gets the full check
             if not (np.isfinite(arr.sum()) or np.all(np.isfinite(arr))):
                 raise InvalidParameterError(f"{name} must be finite")
-        h_nom = np.array([self.h_nominal.get(f, 0.0) for f in self.face_names])
+        h_nom = self._h_nominal_by_face()
         b_a = np.ascontiguousarray(h_nom @ self.b_faces)
         probe, mean, fmax = _ext.rom_simulate_batch(
             np.ascontiguousarray(self.lam),
@@ -511,6 +511,10 @@ class ReducedModel:
             face_mean_c=mean,
             face_max_c=fmax,
         )
+
+    def _h_nominal_by_face(self) -> NDArray[np.float64]:
+        """The nominal convection coefficient of each face set, in ``face_names`` order."""
+        return np.array([self.h_nominal.get(f, 0.0) for f in self.face_names])
 
     _PROPAGATOR_CACHE_SIZE = 2048
 

@@ -222,11 +222,7 @@ impl CholeskyFactor {
     pub fn solve_in_place(&self, rhs: &mut [f64], scratch: &mut MemBuffer) {
         match &self.plan {
             Some(plan) => self.solve_streaming(plan, rhs),
-            None => {
-                let n = rhs.len();
-                let view = MatMut::from_column_major_slice_mut(rhs, n, 1);
-                self.solve_mat_in_place(view, scratch);
-            }
+            None => self.solve_in_place_faer(rhs, scratch),
         }
     }
 

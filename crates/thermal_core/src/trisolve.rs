@@ -31,10 +31,9 @@ pub struct SupernodePlan {
 #[derive(Debug, Clone)]
 struct Split {
     groups: [Vec<Range<usize>>; 2],
-    /// First supernode above the groups, and its first column: every pattern row of the
-    /// groups at or past it is shared.
+    /// First supernode above the groups: every pattern row of the groups at or past its
+    /// first column is shared.
     top: usize,
-    top_col: usize,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -102,27 +101,19 @@ impl SupernodePlan {
             _ => {
                 let mut work = vec![0.0; self.max_rows];
                 let all = 0..self.nodes.len();
-                self.forward_range(values, x, &mut work, all.clone());
-                self.backward_range(values, x, &mut work, all);
+                self.sweep(Sweep::Forward, values, x, &mut work, all.clone());
+                self.sweep(Sweep::Backward, values, x, &mut work, all);
             }
         }
     }
 
     fn solve_split(&self, split: &Split, values: &[f64], x: &mut [f64]) {
-        let top_col = split.top_col;
+        let top_col = self.nodes[split.top].start;
         // forward: each group on its own copy of x (its columns are its own; the rows at
         // and past top_col gather both groups' updates), then the top
-        let run_group = |group: &[Range<usize>], x: &[f64]| {
-            let mut local = x.to_vec();
-            let mut work = vec![0.0; self.max_rows];
-            for range in group {
-                self.forward_range(values, &mut local, &mut work, range.clone());
-            }
-            local
-        };
         let (a, b) = rayon::join(
-            || run_group(&split.groups[0], x),
-            || run_group(&split.groups[1], x),
+            || self.sweep_copy(Sweep::Forward, values, &split.groups[0], x),
+            || self.sweep_copy(Sweep::Forward, values, &split.groups[1], x),
         );
         self.copy_groups(split, [&a, &b], x);
         for ((xi, ai), bi) in x[top_col..]
@@ -134,24 +125,35 @@ impl SupernodePlan {
         }
         let mut work = vec![0.0; self.max_rows];
         let top = split.top..self.nodes.len();
-        debug_assert_eq!(self.nodes[split.top].start, top_col);
-        self.forward_range(values, x, &mut work, top.clone());
+        self.sweep(Sweep::Forward, values, x, &mut work, top.clone());
         // backward: the top, then the groups (each reads the top rows, writes its own)
-        self.backward_range(values, x, &mut work, top);
-        let shared: &[f64] = x;
-        let back_group = |group: &[Range<usize>]| {
-            let mut local = shared.to_vec();
-            let mut work = vec![0.0; self.max_rows];
-            for range in group.iter().rev() {
-                self.backward_range(values, &mut local, &mut work, range.clone());
-            }
-            local
-        };
+        self.sweep(Sweep::Backward, values, x, &mut work, top);
         let (a, b) = rayon::join(
-            || back_group(&split.groups[0]),
-            || back_group(&split.groups[1]),
+            || self.sweep_copy(Sweep::Backward, values, &split.groups[0], x),
+            || self.sweep_copy(Sweep::Backward, values, &split.groups[1], x),
         );
         self.copy_groups(split, [&a, &b], x);
+    }
+
+    /// One group's sweep on a copy of `x` (its ranges in order forward, in reverse
+    /// backward); returns the copy.
+    fn sweep_copy(
+        &self,
+        dir: Sweep,
+        values: &[f64],
+        group: &[Range<usize>],
+        x: &[f64],
+    ) -> Vec<f64> {
+        let mut local = x.to_vec();
+        let mut work = vec![0.0; self.max_rows];
+        let mut sweep = |range: &Range<usize>| {
+            self.sweep(dir, values, &mut local, &mut work, range.clone());
+        };
+        match dir {
+            Sweep::Forward => group.iter().for_each(&mut sweep),
+            Sweep::Backward => group.iter().rev().for_each(&mut sweep),
+        }
+        local
     }
 
     /// Copy each group's own columns from its thread's copy of the solution.
@@ -164,14 +166,6 @@ impl SupernodePlan {
                 x[c0..c1].copy_from_slice(&local[c0..c1]);
             }
         }
-    }
-
-    fn forward_range(&self, values: &[f64], x: &mut [f64], work: &mut [f64], range: Range<usize>) {
-        self.sweep(Sweep::Forward, values, x, work, range);
-    }
-
-    fn backward_range(&self, values: &[f64], x: &mut [f64], work: &mut [f64], range: Range<usize>) {
-        self.sweep(Sweep::Backward, values, x, work, range);
     }
 
     fn sweep(
@@ -339,11 +333,7 @@ fn find_split(nodes: &[Node], pattern: &[usize]) -> Option<Split> {
     for g in &mut groups {
         g.sort_by_key(|r| r.start);
     }
-    Some(Split {
-        groups,
-        top: node,
-        top_col: nodes[node].start,
-    })
+    Some(Split { groups, top: node })
 }
 
 /// Columns handled together.
