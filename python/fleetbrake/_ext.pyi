@@ -72,6 +72,7 @@ class ThermalModel:
         theta: float,
         damped_steps: int,
         jump_fraction: float,
+        precision: str,
         field_every: int,
     ) -> dict[str, Any]: ...
     def solve_shifted(

@@ -9,17 +9,20 @@ so that the peak resident memory (``resource.getrusage(RUSAGE_SELF).ru_maxrss``)
 engine's alone:
 
 - ours: ``BlockModel`` (mesh + assembly + symbolic analysis), then ``simulate`` (numeric
-  Cholesky of the two system matrices -- damped half step and Crank-Nicolson -- and the
-  time loop: two triangular solves per step);
+  Cholesky of the step matrix -- Crank-Nicolson's, which the damped start's backward-Euler
+  half steps share -- and the time loop: a mat-vec and two triangular solves per step) with
+  the factor's values read in ``precision`` ("mixed": single, the default; or "double");
+  then the same run again with the other precision (factor cached: its stepping alone),
+  so that both are timed side by side in one run;
 - scikit-fem: ``SkfemBlockModel`` on OUR mesh arrays (written by the first child to a
   temporary ``.npz``) with its default, fastest solver (SuperLU, minimum-degree ordering of
   A^T + A, symmetric mode), each system matrix factorised once.
 
 Imports are outside every timing. The parent measures the machine's single-core read
 bandwidth (numpy sum over a 512 MB float64 array, best of 3) and from it the memory-traffic
-bound of the two triangular solves of a step: 2 x nnz(L) x 8 bytes (values only) and
-2 x nnz(L) x 16 bytes (values + one 8-byte row index per entry, as a simplicial CSC factor
-would read). See ``docs/benchmarks.md``.
+bound of the two triangular solves of a step: 2 x nnz(L) x 4 or 8 bytes (the values in
+the precision read) and 2 x nnz(L) x (that + 8) bytes (values + one 8-byte row index per
+entry, as a simplicial CSC factor would read). See ``docs/benchmarks.md``.
 
 The figures come back as one flat dict (ours without prefix, scikit-fem's with ``skfem_``).
 """
@@ -39,16 +42,24 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CHOLESKY", "ELEMENTS", "bench_solver", "print_table", "read_bandwidth_gb_s"]
+__all__ = [
+    "CHOLESKY",
+    "ELEMENTS",
+    "PRECISIONS",
+    "bench_solver",
+    "print_table",
+    "read_bandwidth_gb_s",
+]
 
 ELEMENTS = ("hex8", "hex20")
 CHOLESKY = ("auto", "simplicial", "supernodal")
+PRECISIONS = ("mixed", "double")
 WAGON_ID = "BENCH-0001"
 DT_S = 1.0
 H_W_M2K = {"air": 10.0, "holder": 10.0}
 AMBIENT_C = 10.0
 BANDWIDTH_ARRAY_MB = 512
-BYTES_VALUE = 8
+BYTES_VALUE = {"mixed": 4, "double": 8}
 BYTES_INDEX = 8
 
 
@@ -77,7 +88,12 @@ def _problem(steps: int) -> tuple[Any, np.ndarray, float]:
 
 
 def _child_ours(
-    element: str, steps: int, refinement: float, cholesky: str, mesh_out: str | None
+    element: str,
+    steps: int,
+    refinement: float,
+    cholesky: str,
+    precision: str,
+    mesh_out: str | None,
 ) -> dict[str, Any]:
     from fleetbrake.thermal import BlockModel
 
@@ -95,16 +111,23 @@ def _child_ours(
     )
     t1 = time.perf_counter()
     cpu1 = _cpu_seconds()
-    res = model.simulate(
-        dt_s=DT_S,
-        flux_w_m2=flux,
-        ambient_c=AMBIENT_C,
-        initial_c=initial_c,
-        h_w_m2k=H_W_M2K,
-        probes_m=[wagon.sensor_point_m],
-    )
+
+    def run(precision: str) -> Any:
+        return model.simulate(
+            dt_s=DT_S,
+            flux_w_m2=flux,
+            ambient_c=AMBIENT_C,
+            initial_c=initial_c,
+            h_w_m2k=H_W_M2K,
+            probes_m=[wagon.sensor_point_m],
+            precision=precision,  # type: ignore[arg-type]
+        )
+
+    res = run(precision)
     t2 = time.perf_counter()
     cpu2 = _cpu_seconds()
+    other_precision = "double" if precision == "mixed" else "mixed"
+    other = run(other_precision)  # the factor is cached: stepping alone
     figures = {
         "nodes": model.n_nodes,
         "element": element,
@@ -123,6 +146,11 @@ def _child_ours(
         "peak_rss_mb": _peak_rss_mb(),
         "rss_before_mb": rss_before,
         "sensor_c": res.probe_c[:, 0].tolist(),
+        "precision": precision,
+        f"seconds_stepping_{other_precision}": float(other.seconds_stepping),
+        f"sensor_max_abs_diff_vs_{other_precision}_k": float(
+            np.abs(res.probe_c - other.probe_c).max()
+        ),
     }
     if mesh_out:
         mesh = model.mesh
@@ -215,12 +243,15 @@ def bench_solver(
     steps: int = 600,
     refinement: float = 1.0,
     cholesky: str = "auto",
+    precision: str = "mixed",
 ) -> dict[str, Any]:
     """Run both engines (each in a child process) and the bandwidth probe; the figures."""
     if element not in ELEMENTS:
         raise ValueError(f"element must be one of {ELEMENTS}, got {element!r}")
     if cholesky not in CHOLESKY:
         raise ValueError(f"cholesky must be one of {CHOLESKY}, got {cholesky!r}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     if not (refinement > 0 and np.isfinite(refinement)):
@@ -240,6 +271,8 @@ def bench_solver(
                 repr(refinement),
                 "--cholesky",
                 cholesky,
+                "--precision",
+                precision,
                 "--mesh-out",
                 mesh_path,
                 *common,
@@ -257,8 +290,10 @@ def bench_solver(
         figures["seconds_per_step"] = figures["seconds_stepping"] / steps
 
     nnz_l = int(ours["factor_nnz"])
-    bytes_values = 2 * nnz_l * BYTES_VALUE
-    bytes_values_indices = 2 * nnz_l * (BYTES_VALUE + BYTES_INDEX)
+    # a simplicial factor is solved by faer in double precision whatever was asked
+    read = precision if ours["supernodal"] else "double"
+    bytes_values = 2 * nnz_l * BYTES_VALUE[read]
+    bytes_values_indices = 2 * nnz_l * (BYTES_VALUE[read] + BYTES_INDEX)
     bound_values = bytes_values / (bandwidth * 1e9)
     bound_values_indices = bytes_values_indices / (bandwidth * 1e9)
 
@@ -283,7 +318,8 @@ def bench_solver(
             "cpus": os.cpu_count(),
         }
     )
-    return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in out.items()}
+    # six significant digits (not decimals: the differences in kelvins are small numbers)
+    return {k: (float(f"{v:.6g}") if isinstance(v, float) else v) for k, v in out.items()}
 
 
 def print_table(figures: dict[str, Any]) -> None:
@@ -321,7 +357,14 @@ def print_table(figures: dict[str, Any]) -> None:
     row("factorisations", "factorizations", "d")
     row("mesh + assembly s", "seconds_mesh_assembly", ".3f")
     row("factorisation s", "seconds_factorization", ".3f")
-    row("stepping s", "seconds_stepping", ".3f")
+    row(f"stepping s ({f['precision']} precision)", "seconds_stepping", ".3f")
+    for other in PRECISIONS:
+        if f"seconds_stepping_{other}" in f:
+            table.add_row(
+                f"stepping s ({other} precision, same run)",
+                f"{f[f'seconds_stepping_{other}']:.3f}",
+                "",
+            )
     table.add_row(
         "per step ms",
         f"{1e3 * f['seconds_per_step']:.2f}",
@@ -333,6 +376,11 @@ def print_table(figures: dict[str, Any]) -> None:
     row("peak RSS MB", "peak_rss_mb", ".1f")
     console = Console(width=100)
     console.print(table)
+    vs_other = "".join(
+        f"; vs our {o}-precision run {f[f'sensor_max_abs_diff_vs_{o}_k']:.1e} K"
+        for o in PRECISIONS
+        if f"sensor_max_abs_diff_vs_{o}_k" in f
+    )
     console.print(
         f"speedup vs scikit-fem: {f['speedup_vs_scikit_fem']:.2f}x total, "
         f"{f['speedup_stepping_vs_scikit_fem']:.2f}x stepping\n"
@@ -342,7 +390,7 @@ def print_table(figures: dict[str, Any]) -> None:
         f"bound {1e3 * f['bound_s_values']:.2f} ms/step (values) / "
         f"{1e3 * f['bound_s_values_indices']:.2f} ms (values + indices); "
         f"measured/bound {f['step_over_bound']:.2f} / {f['step_over_bound_values_indices']:.2f}\n"
-        f"sensor: max |ours - scikit-fem| = {f['sensor_max_abs_diff_k']:.2e} K "
+        f"sensor: max |ours - scikit-fem| = {f['sensor_max_abs_diff_k']:.2e} K{vs_other} "
         f"(peak {f['sensor_peak_c']:.2f} C); load average {f['load_average_1min']:.2f} on "
         f"{f['cpus']} CPUs",
         highlight=False,
@@ -358,17 +406,25 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=600)
     parser.add_argument("--refinement", type=float, default=1.0)
     parser.add_argument("--cholesky", choices=CHOLESKY, default="auto")
+    parser.add_argument("--precision", choices=PRECISIONS, default="mixed")
     parser.add_argument("--mesh-out")
     parser.add_argument("--mesh-in")
     args = parser.parse_args(argv)
     if args.engine is None:  # the whole benchmark, as `fleetbrake bench solver --json`
-        figures = bench_solver(args.element, args.steps, args.refinement, args.cholesky)
+        figures = bench_solver(
+            args.element, args.steps, args.refinement, args.cholesky, args.precision
+        )
         print_table(figures)
         print(json.dumps(figures))
         return
     if args.engine == "ours":
         figures = _child_ours(
-            args.element, args.steps, args.refinement, args.cholesky, args.mesh_out
+            args.element,
+            args.steps,
+            args.refinement,
+            args.cholesky,
+            args.precision,
+            args.mesh_out,
         )
     else:
         if not args.mesh_in:

@@ -229,6 +229,14 @@ def bench_solver_command(
     cholesky: Annotated[
         str, typer.Option("--cholesky", help="auto, simplicial or supernodal (ours).")
     ] = "auto",
+    precision: Annotated[
+        str,
+        typer.Option(
+            "--precision",
+            help="Factor values in the solves: mixed (single, default) or double; "
+            "the other is timed too.",
+        ),
+    ] = "mixed",
 ) -> None:
     """Our block model against scikit-fem on manoeuvre A: time, memory, traffic bound."""
     import json
@@ -236,7 +244,7 @@ def bench_solver_command(
     from fleetbrake.bench_solver import bench_solver, print_table
 
     with _exit_on("bench solver", (ValueError, RuntimeError)):
-        figures = bench_solver(element, steps, refinement, cholesky)
+        figures = bench_solver(element, steps, refinement, cholesky, precision)
     print_table(figures)
     if json_out:
         typer.echo(json.dumps(figures))

@@ -17,7 +17,7 @@ use thermal_core::error::catch_panic;
 use thermal_core::mesh::{box_mesh, BlockGeometry, BlockMeshSpec};
 use thermal_core::rom::{ModalStepper, Propagators};
 use thermal_core::{
-    CholeskyKind, Convection, ElementKind, Initial, Loading, Material, Scheme, Series,
+    CholeskyKind, Convection, ElementKind, Initial, Loading, Material, Precision, Scheme, Series,
     ThermalError, ThermalModel,
 };
 
@@ -413,9 +413,15 @@ impl PyThermalModel {
         theta: f64,
         damped_steps: usize,
         jump_fraction: f64,
+        precision: &str,
         field_every: usize,
     ) -> PyResult<Bound<'py, PyDict>> {
         let model = &self.inner;
+        let precision = Precision::from_name(precision).ok_or_else(|| {
+            InvalidParameterError::new_err(format!(
+                "unknown precision {precision:?}; use mixed or double"
+            ))
+        })?;
         if h_faces.len() != h_values.len() {
             return Err(LengthMismatchError::new_err(
                 "h_faces and h_values differ in length",
@@ -474,6 +480,7 @@ impl PyThermalModel {
                             theta,
                             damped_steps,
                             jump_fraction,
+                            precision,
                         },
                         &probes,
                         field_every,

@@ -11,6 +11,13 @@ use thermal_core::mesh::block_mesh;
 use thermal_core::model::{convection_off_friction, default_block_model, default_block_spec};
 use thermal_core::solver::{relative_residual, CholeskyKind, SymbolicAnalysis};
 
+#[derive(Clone, Copy)]
+enum Solve {
+    Faer,
+    Streaming,
+    Mixed,
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let repeats: usize = std::env::args().nth(1).map_or(Ok(100), |s| s.parse())?;
     let model = default_block_model(ElementKind::Hex20)?;
@@ -31,15 +38,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let analysis = SymbolicAnalysis::with_ordering(pattern, kind, Some(&nd))?;
         let factor = analysis.factorize(pattern, &values, faer::Par::Seq)?;
         let mut scratch = factor.scratch(1);
-        let mut run = |name: &str, streaming: bool| {
+        let mut run = |name: &str, how: Solve| {
             let mut x = b.clone();
             let t0 = Instant::now();
             for _ in 0..repeats {
                 x.copy_from_slice(&b);
-                if streaming {
-                    factor.solve_in_place(&mut x, &mut scratch);
-                } else {
-                    factor.solve_in_place_faer(&mut x, &mut scratch);
+                match how {
+                    Solve::Faer => factor.solve_in_place_faer(&mut x, &mut scratch),
+                    Solve::Streaming => factor.solve_in_place(&mut x, &mut scratch),
+                    Solve::Mixed => factor.solve_in_place_mixed(&mut x, &mut scratch),
                 }
             }
             let per = t0.elapsed().as_secs_f64() / repeats as f64;
@@ -50,7 +57,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 per * 1e3
             );
         };
-        run("faer", false);
+        run("faer", Solve::Faer);
         if let Some(plan) = factor.plan() {
             let (supernodes, mean_cols, pattern_rows) = plan.stats();
             println!(
@@ -58,7 +65,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                  {pattern_rows} pattern rows; split in two halves: {}",
                 plan.is_split()
             );
-            run("streaming", true);
+            run("streaming", Solve::Streaming);
+            run("mixed", Solve::Mixed);
         }
     }
     Ok(())

@@ -91,11 +91,7 @@ impl Pattern {
         let rows = |first: usize, y: &mut [f64]| {
             for (k, yj) in y.iter_mut().enumerate() {
                 let range = self.col_ptr[first + k]..self.col_ptr[first + k + 1];
-                let mut acc = 0.0;
-                for (v, &i) in values[range.clone()].iter().zip(&self.row_idx[range]) {
-                    acc += v * x[i];
-                }
-                *yj += acc;
+                *yj += sparse_dot(&values[range.clone()], &self.row_idx[range], x);
             }
         };
         if self.nnz() < PARALLEL_MATVEC_MIN_NNZ {
@@ -120,6 +116,27 @@ impl Pattern {
         }
         out
     }
+}
+
+/// `Σ_k values[k] x[index[k]]` in four partial sums: one running sum would make every
+/// add wait for the one before (the compiler keeps the order of floating-point adds).
+#[inline]
+fn sparse_dot(values: &[f64], index: &[usize], x: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 4];
+    let vs = values.chunks_exact(4);
+    let is = index.chunks_exact(4);
+    let (v_rest, i_rest) = (vs.remainder(), is.remainder());
+    for (v, i) in vs.zip(is) {
+        acc[0] += v[0] * x[i[0]];
+        acc[1] += v[1] * x[i[1]];
+        acc[2] += v[2] * x[i[2]];
+        acc[3] += v[3] * x[i[3]];
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (v, &i) in v_rest.iter().zip(i_rest) {
+        s += v * x[i];
+    }
+    s
 }
 
 /// Matrices with fewer stored entries are multiplied on one thread.

@@ -28,4 +28,6 @@ pub use error::{Result, ThermalError};
 pub use mesh::{BlockGeometry, BlockMeshSpec, Mesh};
 pub use model::ThermalModel;
 pub use solver::CholeskyKind;
-pub use transient::{Convection, EnergyLedger, Initial, Loading, Outputs, Scheme, Series};
+pub use transient::{
+    Convection, EnergyLedger, Initial, Loading, Outputs, Precision, Scheme, Series,
+};

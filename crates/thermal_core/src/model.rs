@@ -12,16 +12,23 @@ use crate::error::{Result, ThermalError};
 use crate::mesh::{block_mesh, BlockGeometry, BlockMeshSpec, Mesh};
 use crate::probe::{build_probes, Probes};
 use crate::solver::{relative_residual, CholeskyFactor, CholeskyKind, SymbolicAnalysis};
-use crate::transient::{Initial, Loading, Outputs, Scheme};
+use crate::transient::{Initial, Loading, Outputs, Precision, Scheme};
 
 /// Most numeric factors kept at once (each is the size of L).
 const CACHE_CAPACITY: usize = 16;
 
-/// A factorised system matrix `M/dt + θ K` with its explicit operator `M/dt − (1−θ) K`.
+/// A factorised step matrix `S = M/τ + K` with the stiffness `K = K_cond + Σ h_s H_s` its
+/// steps' residuals need (stored negated), and `S 1` for the correction of their uniform
+/// part. A theta step of `dt` solves with `θ S`, `τ = θ dt`: Crank–Nicolson's steps and the
+/// backward-Euler half steps of its damped start (`τ = dt/2` both) share one factor.
 #[derive(Debug)]
 pub struct StepSystem {
     pub factor: CholeskyFactor,
-    pub explicit: Vec<f64>,
+    /// `−K`.
+    pub neg_stiffness: Vec<f64>,
+    /// `S 1` and its sum `1ᵀ S 1`.
+    pub row_sums: Vec<f64>,
+    pub total: f64,
     pub residual: f64,
 }
 
@@ -132,33 +139,26 @@ impl ThermalModel {
         self.ops.pattern.combine(&terms)
     }
 
-    /// The factorised step system for (dt, θ, h per face operator), from the cache or built
-    /// and checked (‖Ax − b‖/‖b‖ on a probe vector; refactorised sequentially if the parallel
-    /// factor fails the check).
-    pub fn step_system(
-        &self,
-        dt_s: f64,
-        theta: f64,
-        h_by_face: &[f64],
-    ) -> Result<(Arc<StepSystem>, bool)> {
-        let mut key: CacheKey = vec![dt_s.to_bits(), theta.to_bits()];
+    /// The factorised step system `M/τ + K` for (τ, h per face operator), from the cache or
+    /// built and checked (‖Ax − b‖/‖b‖ on a probe vector; refactorised sequentially if the
+    /// parallel factor fails the check).
+    pub fn step_system(&self, tau_s: f64, h_by_face: &[f64]) -> Result<(Arc<StepSystem>, bool)> {
+        let mut key: CacheKey = vec![tau_s.to_bits()];
         key.extend(h_by_face.iter().map(|h| h.to_bits()));
         if let Some(sys) = self.cache.lock().ok().and_then(|c| c.get(&key).cloned()) {
             return Ok((sys, false));
         }
-        let values = self.system_values(dt_s, theta, h_by_face);
+        let values = self.system_values(tau_s, 1.0, h_by_face);
         let (factor, residual) = self.factorize_checked(&values)?;
-        let mut terms: Vec<(f64, &[f64])> = vec![
-            (1.0 / dt_s, &self.ops.capacity),
-            (theta - 1.0, &self.ops.conduction),
-        ];
-        for (face, h) in self.ops.faces.iter().zip(h_by_face) {
-            terms.push(((theta - 1.0) * h, &face.mass));
-        }
-        let explicit = self.ops.pattern.combine(&terms);
+        let mut row_sums = vec![0.0; self.n_nodes()];
+        self.ops
+            .pattern
+            .matvec(&values, &vec![1.0; self.n_nodes()], &mut row_sums);
         let sys = Arc::new(StepSystem {
             factor,
-            explicit,
+            neg_stiffness: self.system_values(f64::INFINITY, -1.0, h_by_face),
+            total: row_sums.iter().sum(),
+            row_sums,
             residual,
         });
         if let Ok(mut cache) = self.cache.lock() {
@@ -195,7 +195,7 @@ impl ThermalModel {
         } else {
             1.0 / shift
         };
-        let (sys, _) = self.step_system(dt, 1.0, h_by_face)?;
+        let (sys, _) = self.step_system(dt, h_by_face)?;
         let k = rhs.len() / n;
         let mut scratch = sys.factor.scratch(k);
         sys.factor.solve_mat_in_place(
@@ -315,7 +315,7 @@ impl ThermalModel {
         };
         record(&mut out, &t, 0);
         let mut h = vec![0.0; n_faces];
-        let mut rhs = vec![0.0; n];
+        let mut delta = vec![0.0; n];
         let mut scratch = None;
         let damped_mask = scheme.damped_mask(loading);
         let stepping_start = Instant::now();
@@ -333,7 +333,7 @@ impl ThermalModel {
                 (1, loading.dt_s, scheme.theta)
             };
             let fetch_start = Instant::now();
-            let (sys, built) = self.step_system(dt, theta, &h)?;
+            let (sys, built) = self.step_system(theta * dt, &h)?;
             if built {
                 out.factorizations += 1;
                 seconds_factorization += fetch_start.elapsed().as_secs_f64();
@@ -342,17 +342,30 @@ impl ThermalModel {
             for _ in 0..substeps {
                 // convected heat uses G_s · T_theta with G_s = H_s 1
                 let g_old: Vec<f64> = loads.iter().map(|l| l.dot(&t)).collect();
-                self.ops.pattern.matvec(&sys.explicit, &t, &mut rhs);
+                // the residual f − K T_n, then the increment
+                self.ops.pattern.matvec(&sys.neg_stiffness, &t, &mut delta);
                 if q != 0.0 {
-                    flux_load.add_to(q, &mut rhs);
+                    flux_load.add_to(q, &mut delta);
                 }
                 for (load, hs) in loads.iter().zip(&h) {
                     if *hs != 0.0 {
-                        load.add_to(hs * t_amb, &mut rhs);
+                        load.add_to(hs * t_amb, &mut delta);
                     }
                 }
-                sys.factor.solve_in_place(&mut rhs, scratch);
-                std::mem::swap(&mut t, &mut rhs);
+                // θ S ΔT = r: solve S ΔT = r / θ
+                let inv_theta = 1.0 / theta;
+                delta.iter_mut().for_each(|v| *v *= inv_theta);
+                let balance: f64 = delta.iter().sum();
+                match scheme.precision {
+                    Precision::Double => sys.factor.solve_in_place(&mut delta, scratch),
+                    Precision::Mixed => sys.factor.solve_in_place_mixed(&mut delta, scratch),
+                }
+                // the uniform shift that makes 1ᵀ S ΔT = 1ᵀ (f − K T_n) / θ exact
+                let solved: f64 = sys.row_sums.iter().zip(&delta).map(|(a, d)| a * d).sum();
+                let shift = (balance - solved) / sys.total;
+                for (ti, di) in t.iter_mut().zip(&delta) {
+                    *ti += di + shift;
+                }
                 out.energy.flux_in_j += dt * q * flux_area;
                 for (((face, load), hs), go) in
                     self.ops.faces.iter().zip(&loads).zip(&h).zip(&g_old)

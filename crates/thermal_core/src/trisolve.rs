@@ -14,6 +14,47 @@ use faer::sparse::linalg::cholesky::supernodal::SymbolicSupernodalCholesky;
 
 use crate::simd::{has_avx2_fma, madd};
 
+/// How a factor's values may be stored: in double precision, or in single precision and
+/// widened to double as they are read (half the memory traffic of a solve; the arithmetic
+/// stays in double).
+pub trait FactorValue: Copy + Send + Sync + 'static {
+    fn get(self) -> f64;
+
+    /// Four values from `p` on, widened to double.
+    ///
+    /// # Safety
+    /// `p..p + 4` must be readable, and the CPU must have AVX.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn load4(p: *const Self) -> std::arch::x86_64::__m256d;
+}
+
+impl FactorValue for f64 {
+    #[inline(always)]
+    fn get(self) -> f64 {
+        self
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(p: *const Self) -> std::arch::x86_64::__m256d {
+        std::arch::x86_64::_mm256_loadu_pd(p)
+    }
+}
+
+impl FactorValue for f32 {
+    #[inline(always)]
+    fn get(self) -> f64 {
+        f64::from(self)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(p: *const Self) -> std::arch::x86_64::__m256d {
+        use std::arch::x86_64::{_mm256_cvtps_pd, _mm_loadu_ps};
+        _mm256_cvtps_pd(_mm_loadu_ps(p))
+    }
+}
+
 /// Where each supernode lives in the factor's arrays.
 #[derive(Debug, Clone)]
 pub struct SupernodePlan {
@@ -95,7 +136,7 @@ impl SupernodePlan {
 
     /// Solve `L Lᵀ x = b` in the factor's own (permuted) numbering, in place; on two
     /// threads (rayon) where the tree splits and `parallel` is set.
-    pub fn solve_permuted(&self, values: &[f64], x: &mut [f64], parallel: bool) {
+    pub fn solve_permuted<V: FactorValue>(&self, values: &[V], x: &mut [f64], parallel: bool) {
         match (&self.split, parallel) {
             (Some(split), true) => self.solve_split(split, values, x),
             _ => {
@@ -107,7 +148,7 @@ impl SupernodePlan {
         }
     }
 
-    fn solve_split(&self, split: &Split, values: &[f64], x: &mut [f64]) {
+    fn solve_split<V: FactorValue>(&self, split: &Split, values: &[V], x: &mut [f64]) {
         let top_col = self.nodes[split.top].start;
         // forward: each group on its own copy of x (its columns are its own; the rows at
         // and past top_col gather both groups' updates), then the top
@@ -137,10 +178,10 @@ impl SupernodePlan {
 
     /// One group's sweep on a copy of `x` (its ranges in order forward, in reverse
     /// backward); returns the copy.
-    fn sweep_copy(
+    fn sweep_copy<V: FactorValue>(
         &self,
         dir: Sweep,
-        values: &[f64],
+        values: &[V],
         group: &[Range<usize>],
         x: &[f64],
     ) -> Vec<f64> {
@@ -168,10 +209,10 @@ impl SupernodePlan {
         }
     }
 
-    fn sweep(
+    fn sweep<V: FactorValue>(
         &self,
         dir: Sweep,
-        values: &[f64],
+        values: &[V],
         x: &mut [f64],
         work: &mut [f64],
         range: Range<usize>,
@@ -182,29 +223,29 @@ impl SupernodePlan {
             unsafe { self.sweep_avx2(dir, values, x, work, range) };
             return;
         }
-        self.sweep_generic::<false>(dir, values, x, work, range);
+        self.sweep_generic::<V, false>(dir, values, x, work, range);
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma")]
-    unsafe fn sweep_avx2(
+    unsafe fn sweep_avx2<V: FactorValue>(
         &self,
         dir: Sweep,
-        values: &[f64],
+        values: &[V],
         x: &mut [f64],
         work: &mut [f64],
         range: Range<usize>,
     ) {
-        self.sweep_generic::<true>(dir, values, x, work, range);
+        self.sweep_generic::<V, true>(dir, values, x, work, range);
     }
 
     /// The forward solve over the supernodes of `range` in order, or the backward solve
     /// over them in reverse.
     #[inline(always)]
-    fn sweep_generic<const FMA: bool>(
+    fn sweep_generic<V: FactorValue, const FMA: bool>(
         &self,
         dir: Sweep,
-        values: &[f64],
+        values: &[V],
         x: &mut [f64],
         work: &mut [f64],
         range: Range<usize>,
@@ -219,7 +260,7 @@ impl SupernodePlan {
                     let own = node.start..node.start + node.size;
                     w[..node.size].copy_from_slice(&x[own.clone()]);
                     w[node.size..].fill(0.0);
-                    forward::<FMA>(l, w.len(), node.size, w);
+                    forward::<V, FMA>(l, w.len(), node.size, w);
                     x[own].copy_from_slice(&w[..node.size]);
                     // the pattern rows started at zero: they hold −L_bot x_top
                     for (&i, &v) in pattern.iter().zip(&w[node.size..]) {
@@ -235,7 +276,7 @@ impl SupernodePlan {
                     for (wi, &i) in w[node.size..].iter_mut().zip(pattern) {
                         *wi = x[i];
                     }
-                    backward::<FMA>(l, w.len(), node.size, w);
+                    backward::<V, FMA>(l, w.len(), node.size, w);
                     x[own].copy_from_slice(&w[..node.size]);
                 }
             }
@@ -244,12 +285,12 @@ impl SupernodePlan {
 
     /// A supernode's values, its pattern and the part of `work` for its rows.
     #[inline(always)]
-    fn parts<'a>(
+    fn parts<'a, V: FactorValue>(
         &'a self,
         node: &Node,
-        values: &'a [f64],
+        values: &'a [V],
         work: &'a mut [f64],
-    ) -> (&'a [f64], &'a [usize], &'a mut [f64]) {
+    ) -> (&'a [V], &'a [usize], &'a mut [f64]) {
         let rows = node.size + node.pat_len;
         (
             &values[node.val..node.val + rows * node.size],
@@ -336,101 +377,205 @@ fn find_split(nodes: &[Node], pattern: &[usize]) -> Option<Split> {
     Some(Split { groups, top: node })
 }
 
-/// Columns handled together.
-const COLS: usize = 4;
-
 /// Forward solve with one supernode `l` (`rows` x `size`, column-major): on entry `w` holds
 /// the right-hand side's own rows then zeros for the pattern rows; on exit the solution's
 /// own rows then the updates to add to the pattern rows.
+///
+/// Column panels of eight, then four, then one: each panel's columns are read in one pass
+/// over the rows below it (the pass reads and writes `w` once for all of them).
 #[inline(always)]
-fn forward<const FMA: bool>(l: &[f64], rows: usize, size: usize, w: &mut [f64]) {
+fn forward<V: FactorValue, const FMA: bool>(l: &[V], rows: usize, size: usize, w: &mut [f64]) {
     let mut j0 = 0;
     while j0 < size {
-        let nb = COLS.min(size - j0);
-        // the diagonal block
+        let nb = panel_width(size - j0);
+        // the panel's triangle
         for j in j0..j0 + nb {
             let col = &l[j * rows..(j + 1) * rows];
-            let xj = w[j] / col[j];
+            let xj = w[j] / col[j].get();
             w[j] = xj;
             for i in j + 1..j0 + nb {
-                w[i] -= col[i] * xj;
+                w[i] -= col[i].get() * xj;
             }
         }
         let below = j0 + nb;
-        if nb == COLS {
-            let c0 = &l[j0 * rows + below..(j0 + 1) * rows];
-            let c1 = &l[(j0 + 1) * rows + below..(j0 + 2) * rows];
-            let c2 = &l[(j0 + 2) * rows + below..(j0 + 3) * rows];
-            let c3 = &l[(j0 + 3) * rows + below..(j0 + 4) * rows];
-            let (x0, x1, x2, x3) = (-w[j0], -w[j0 + 1], -w[j0 + 2], -w[j0 + 3]);
-            let tail = &mut w[below..rows];
-            for ((((t, &a), &b), &c), &d) in tail.iter_mut().zip(c0).zip(c1).zip(c2).zip(c3) {
-                *t = madd::<FMA>(
-                    a,
-                    x0,
-                    madd::<FMA>(b, x1, madd::<FMA>(c, x2, madd::<FMA>(d, x3, *t))),
-                );
-            }
-        } else {
-            for j in j0..j0 + nb {
-                let col = &l[j * rows + below..(j + 1) * rows];
-                let xj = -w[j];
-                for (t, &a) in w[below..rows].iter_mut().zip(col) {
-                    *t = madd::<FMA>(a, xj, *t);
-                }
-            }
+        let col = |j: usize| &l[j * rows + below..(j + 1) * rows];
+        let (head, tail) = w.split_at_mut(below);
+        match nb {
+            8 => update::<V, 8, FMA>(std::array::from_fn(|k| col(j0 + k)), neg(head, j0), tail),
+            4 => update::<V, 4, FMA>(std::array::from_fn(|k| col(j0 + k)), neg(head, j0), tail),
+            _ => update::<V, 1, FMA>([col(j0)], [-head[j0]], tail),
         }
         j0 += nb;
     }
 }
 
 /// Backward solve with one supernode: on entry `w` holds the own rows of `y` then the
-/// solution at the pattern rows; on exit the own rows are the solution.
+/// solution at the pattern rows; on exit the own rows are the solution. Column panels from
+/// the last column, as wide as [`forward`]'s.
 #[inline(always)]
-fn backward<const FMA: bool>(l: &[f64], rows: usize, size: usize, w: &mut [f64]) {
-    // column blocks from the last; the first block may be short
+fn backward<V: FactorValue, const FMA: bool>(l: &[V], rows: usize, size: usize, w: &mut [f64]) {
     let mut j1 = size;
     while j1 > 0 {
-        let nb = if j1 % COLS == 0 { COLS } else { j1 % COLS };
+        let nb = panel_width(j1);
         let j0 = j1 - nb;
+        let col = |j: usize| &l[j * rows + j1..(j + 1) * rows];
         let (head, tail) = w.split_at_mut(j1);
-        if nb == COLS {
-            let c0 = &l[j0 * rows + j1..(j0 + 1) * rows];
-            let c1 = &l[(j0 + 1) * rows + j1..(j0 + 2) * rows];
-            let c2 = &l[(j0 + 2) * rows + j1..(j0 + 3) * rows];
-            let c3 = &l[(j0 + 3) * rows + j1..(j0 + 4) * rows];
-            let (mut s0, mut s1, mut s2, mut s3) = (0.0, 0.0, 0.0, 0.0);
-            for ((((&t, &a), &b), &c), &d) in tail.iter().zip(c0).zip(c1).zip(c2).zip(c3) {
-                s0 = madd::<FMA>(a, t, s0);
-                s1 = madd::<FMA>(b, t, s1);
-                s2 = madd::<FMA>(c, t, s2);
-                s3 = madd::<FMA>(d, t, s3);
-            }
-            head[j0] -= s0;
-            head[j0 + 1] -= s1;
-            head[j0 + 2] -= s2;
-            head[j0 + 3] -= s3;
-        } else {
-            for j in j0..j1 {
-                let col = &l[j * rows + j1..(j + 1) * rows];
-                let mut s = 0.0;
-                for (&t, &a) in tail.iter().zip(col) {
-                    s = madd::<FMA>(a, t, s);
-                }
-                head[j] -= s;
-            }
+        match nb {
+            8 => subtract(
+                &mut head[j0..j1],
+                dots::<V, 8, FMA>(std::array::from_fn(|k| col(j0 + k)), tail),
+            ),
+            4 => subtract(
+                &mut head[j0..j1],
+                dots::<V, 4, FMA>(std::array::from_fn(|k| col(j0 + k)), tail),
+            ),
+            _ => subtract(&mut head[j0..j1], dots::<V, 1, FMA>([col(j0)], tail)),
         }
-        // the diagonal block, transposed
+        // the panel's triangle, transposed
         for j in (j0..j1).rev() {
             let col = &l[j * rows..(j + 1) * rows];
             let mut v = head[j];
             for i in j + 1..j1 {
-                v -= col[i] * head[i];
+                v -= col[i].get() * head[i];
             }
-            head[j] = v / col[j];
+            head[j] = v / col[j].get();
         }
         j1 = j0;
     }
+}
+
+/// The widest panel (8, 4 or 1 columns) that fits in `remaining` columns.
+#[inline(always)]
+fn panel_width(remaining: usize) -> usize {
+    if remaining >= 8 {
+        8
+    } else if remaining >= 4 {
+        4
+    } else {
+        1
+    }
+}
+
+/// `−x[j0..j0 + W]`.
+#[inline(always)]
+fn neg<const W: usize>(x: &[f64], j0: usize) -> [f64; W] {
+    std::array::from_fn(|k| -x[j0 + k])
+}
+
+#[inline(always)]
+fn subtract<const W: usize>(x: &mut [f64], d: [f64; W]) {
+    for (xi, di) in x.iter_mut().zip(d) {
+        *xi -= di;
+    }
+}
+
+/// `t += Σ_k x[k] cols[k]` (every column as long as `t`), on AVX2 + FMA where `FMA` says
+/// the CPU has them.
+#[inline(always)]
+fn update<V: FactorValue, const W: usize, const FMA: bool>(
+    cols: [&[V]; W],
+    x: [f64; W],
+    t: &mut [f64],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if FMA && cols.iter().all(|c| c.len() == t.len()) {
+        // SAFETY: FMA is set only on the path taken when the CPU has AVX2 and FMA; the
+        // columns are as long as t.
+        unsafe { update_avx2(cols, x, t) };
+        return;
+    }
+    for (r, tr) in t.iter_mut().enumerate() {
+        let mut a = *tr;
+        for (c, xk) in cols.iter().zip(&x) {
+            a = madd::<FMA>(c[r].get(), *xk, a);
+        }
+        *tr = a;
+    }
+}
+
+/// The dot products `cols[k] · t` (every column as long as `t`), on AVX2 + FMA where `FMA`
+/// says the CPU has them.
+#[inline(always)]
+fn dots<V: FactorValue, const W: usize, const FMA: bool>(cols: [&[V]; W], t: &[f64]) -> [f64; W] {
+    #[cfg(target_arch = "x86_64")]
+    if FMA && cols.iter().all(|c| c.len() == t.len()) {
+        // SAFETY: as in `update`.
+        return unsafe { dots_avx2(cols, t) };
+    }
+    let mut out = [0.0; W];
+    for (o, c) in out.iter_mut().zip(&cols) {
+        for (&a, &b) in c.iter().zip(t) {
+            *o = madd::<FMA>(a.get(), b, *o);
+        }
+    }
+    out
+}
+
+/// [`update`], four rows a vector.
+///
+/// # Safety
+/// The CPU must have AVX2 and FMA; every column must be as long as `t`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn update_avx2<V: FactorValue, const W: usize>(cols: [&[V]; W], x: [f64; W], t: &mut [f64]) {
+    use std::arch::x86_64::*;
+    let n = t.len();
+    let mut xs = [_mm256_setzero_pd(); W];
+    for k in 0..W {
+        xs[k] = _mm256_set1_pd(x[k]);
+    }
+    let tp = t.as_mut_ptr();
+    let mut r = 0;
+    while r + 4 <= n {
+        // SAFETY: r + 4 <= n, the length of t and of every column.
+        let mut acc = _mm256_loadu_pd(tp.add(r));
+        for k in 0..W {
+            acc = _mm256_fmadd_pd(V::load4(cols[k].as_ptr().add(r)), xs[k], acc);
+        }
+        _mm256_storeu_pd(tp.add(r), acc);
+        r += 4;
+    }
+    for i in r..n {
+        let mut a = t[i];
+        for k in 0..W {
+            a = cols[k][i].get().mul_add(x[k], a);
+        }
+        t[i] = a;
+    }
+}
+
+/// [`dots`], four rows a vector, one vector of partial sums per column (the compiler keeps
+/// the order of floating-point adds, so a plain loop would be one chain of dependent adds).
+///
+/// # Safety
+/// The CPU must have AVX2 and FMA; every column must be as long as `t`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn dots_avx2<V: FactorValue, const W: usize>(cols: [&[V]; W], t: &[f64]) -> [f64; W] {
+    use std::arch::x86_64::*;
+    let n = t.len();
+    let mut acc = [_mm256_setzero_pd(); W];
+    let tp = t.as_ptr();
+    let mut r = 0;
+    while r + 4 <= n {
+        // SAFETY: r + 4 <= n, the length of t and of every column.
+        let tv = _mm256_loadu_pd(tp.add(r));
+        for k in 0..W {
+            acc[k] = _mm256_fmadd_pd(V::load4(cols[k].as_ptr().add(r)), tv, acc[k]);
+        }
+        r += 4;
+    }
+    let mut out = [0.0; W];
+    for k in 0..W {
+        let mut lanes = [0.0; 4];
+        _mm256_storeu_pd(lanes.as_mut_ptr(), acc[k]);
+        let mut s = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+        for i in r..n {
+            s = cols[k][i].get().mul_add(t[i], s);
+        }
+        out[k] = s;
+    }
+    out
 }
 
 #[cfg(test)]
