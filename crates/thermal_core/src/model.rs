@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use faer::Par;
 
-use crate::assembly::{assemble, Material, Operators};
+use crate::assembly::{assemble, LowerPattern, Material, Operators};
 use crate::error::{Result, ThermalError};
 use crate::mesh::{block_mesh, BlockGeometry, BlockMeshSpec, Mesh};
 use crate::probe::{build_probes, Probes};
@@ -24,7 +24,7 @@ const CACHE_CAPACITY: usize = 16;
 #[derive(Debug)]
 pub struct StepSystem {
     pub factor: CholeskyFactor,
-    /// `−K`.
+    /// `−K`, its lower triangle (on [`ThermalModel::lower`]).
     pub neg_stiffness: Vec<f64>,
     /// `S 1` and its sum `1ᵀ S 1`.
     pub row_sums: Vec<f64>,
@@ -40,6 +40,8 @@ pub struct ThermalModel {
     pub mesh: Mesh,
     pub material: Material,
     pub ops: Operators,
+    /// The pattern's lower triangle, for the steps' mat-vecs.
+    pub lower: LowerPattern,
     pub analysis: SymbolicAnalysis,
     /// Face operator that takes the heat flux and whose mean and maximum are reported.
     pub flux_face: usize,
@@ -84,6 +86,7 @@ impl ThermalModel {
         Ok(ThermalModel {
             mesh,
             material,
+            lower: LowerPattern::new(&ops.pattern)?,
             ops,
             analysis,
             flux_face: flux,
@@ -156,7 +159,9 @@ impl ThermalModel {
             .matvec(&values, &vec![1.0; self.n_nodes()], &mut row_sums);
         let sys = Arc::new(StepSystem {
             factor,
-            neg_stiffness: self.system_values(f64::INFINITY, -1.0, h_by_face),
+            neg_stiffness: self
+                .lower
+                .values(&self.system_values(f64::INFINITY, -1.0, h_by_face)),
             total: row_sums.iter().sum(),
             row_sums,
             residual,
@@ -343,7 +348,7 @@ impl ThermalModel {
                 // convected heat uses G_s · T_theta with G_s = H_s 1
                 let g_old: Vec<f64> = loads.iter().map(|l| l.dot(&t)).collect();
                 // the residual f − K T_n, then the increment
-                self.ops.pattern.matvec(&sys.neg_stiffness, &t, &mut delta);
+                self.lower.matvec(&sys.neg_stiffness, &t, &mut delta);
                 if q != 0.0 {
                     flux_load.add_to(q, &mut delta);
                 }

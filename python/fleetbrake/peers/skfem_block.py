@@ -548,11 +548,15 @@ class SkfemBlockModel:
             [flux, ambient, *(h for _, h in conv)],
         )
         factorise = SOLVERS[self.solver]
-        cache: dict[tuple[float, float, tuple[float, ...]], tuple[Any, Any]] = {}
+        # A = M/dt + th K = th (M/tau + K) with tau = th dt: one factor per (tau, h), shared
+        # by Crank-Nicolson's steps and the damped start's half steps (tau = dt/2 both), as
+        # our core does
+        factors: dict[tuple[float, tuple[float, ...]], Solve] = {}
+        cache: dict[tuple[float, float, tuple[float, ...]], tuple[Solve, Any]] = {}
         t_fact = 0.0
         n_fact = 0
 
-        def system(dt: float, th: float, hs: tuple[float, ...]) -> tuple[Any, Any]:
+        def system(dt: float, th: float, hs: tuple[float, ...]) -> tuple[Solve, Any]:
             """(solve, B) with (M/dt + th K_n) T+ = B T + f; factorised once per matrix."""
             nonlocal t_fact, n_fact
             key = (dt, th, hs)
@@ -563,12 +567,21 @@ class SkfemBlockModel:
             K = self._K.copy()
             for (s, _), h in zip(conv, hs, strict=True):
                 K = K + h * self._H[s]
-            A = (self._M * (1.0 / dt) + th * K).tocsc()
+            tau = th * dt
+            s_solve = factors.get((tau, hs))
+            if s_solve is None:
+                if len(factors) >= 4:  # factors are large: keep the 4 most recent matrices
+                    factors.pop(next(iter(factors)))
+                s_solve = factors[(tau, hs)] = factorise((self._M * (1.0 / tau) + K).tocsc())
+                n_fact += 1
             B = (self._M * (1.0 / dt) - (1.0 - th) * K).tocsr()
-            if len(cache) >= 4:  # factors are large: keep the 4 most recent matrices
+            if len(cache) >= 8:
                 cache.pop(next(iter(cache)))
-            cache[key] = (factorise(A), B)
-            n_fact += 1
+
+            def solve(b: NDArray[np.float64], s_solve: Solve = s_solve) -> NDArray[np.float64]:
+                return s_solve(b / th)
+
+            cache[key] = (solve, B)
             t_fact += time.perf_counter() - t1
             return cache[key]
 
