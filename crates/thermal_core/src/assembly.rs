@@ -294,41 +294,91 @@ struct ElementMatrices {
     volume: f64,
 }
 
+/// Shape functions and their reference gradients at the points of a quadrature rule: the
+/// same for every element of a kind, so evaluated once per assembly.
+struct ReferenceTable {
+    nn: usize,
+    points: Vec<ReferencePoint>,
+}
+
+struct ReferencePoint {
+    xi: [f64; 3],
+    weight: f64,
+    n: Vec<f64>,
+    dn: Vec<[f64; 3]>,
+}
+
+impl ReferenceTable {
+    fn new(kind: ElementKind, rule: &[([f64; 3], f64)]) -> Self {
+        let nn = kind.n_nodes();
+        let points = rule
+            .iter()
+            .map(|&(xi, weight)| {
+                let mut n = vec![0.0; nn];
+                let mut dn = vec![[0.0; 3]; nn];
+                kind.shape(xi, &mut n);
+                kind.grad(xi, &mut dn);
+                ReferencePoint { xi, weight, n, dn }
+            })
+            .collect();
+        ReferenceTable { nn, points }
+    }
+}
+
+/// Positions in the pattern's value array of an element's entries (a, b), row-major.
+fn element_positions(pattern: &Pattern, conn: &[usize]) -> Result<Vec<usize>> {
+    let mut out = Vec::with_capacity(conn.len() * conn.len());
+    for &ia in conn {
+        for &ib in conn {
+            out.push(pattern.position(ia, ib).ok_or_else(|| {
+                ThermalError::InvalidMesh(format!("entry ({ia}, {ib}) missing from the pattern"))
+            })?);
+        }
+    }
+    Ok(out)
+}
+
+/// Capacity and conduction matrices of one element (row-major, symmetric: the upper
+/// triangle is summed over the points and mirrored).
 fn element_matrices(
-    kind: ElementKind,
+    table: &ReferenceTable,
     coords: &[[f64; 3]],
     material: &Material,
-    rule: &[([f64; 3], f64)],
 ) -> Result<ElementMatrices> {
-    let nn = kind.n_nodes();
-    let mut n = vec![0.0; nn];
-    let mut dn = vec![[0.0; 3]; nn];
+    let nn = table.nn;
     let mut gx = vec![[0.0; 3]; nn];
     let mut capacity = vec![0.0; nn * nn];
     let mut conduction = vec![0.0; nn * nn];
     let rho_c = material.density_kg_m3 * material.specific_heat_j_kgk;
     let k = material.conductivity_w_mk;
     let mut volume = 0.0;
-    for (xi, w) in rule {
-        kind.shape(*xi, &mut n);
-        kind.grad(*xi, &mut dn);
-        let j = jacobian(coords, &dn);
-        let (inv, det) = inv3(&j)
-            .filter(|(_, d)| *d > 0.0)
-            .ok_or_else(|| ThermalError::InvalidMesh(format!("degenerate element at {xi:?}")))?;
-        let dv = w * det;
+    for p in &table.points {
+        let (n, dn) = (&p.n, &p.dn);
+        let j = jacobian(coords, dn);
+        let (inv, det) = inv3(&j).filter(|(_, d)| *d > 0.0).ok_or_else(|| {
+            ThermalError::InvalidMesh(format!("degenerate element at {:?}", p.xi))
+        })?;
+        let dv = p.weight * det;
         volume += dv;
-        for a in 0..nn {
+        for (g, d) in gx.iter_mut().zip(dn) {
             for i in 0..3 {
-                gx[a][i] = inv[0][i] * dn[a][0] + inv[1][i] * dn[a][1] + inv[2][i] * dn[a][2];
+                g[i] = inv[0][i] * d[0] + inv[1][i] * d[1] + inv[2][i] * d[2];
             }
         }
+        let (c_dv, k_dv) = (rho_c * dv, k * dv);
         for a in 0..nn {
-            for b in 0..nn {
-                capacity[a * nn + b] += rho_c * n[a] * n[b] * dv;
-                conduction[a * nn + b] +=
-                    k * (gx[a][0] * gx[b][0] + gx[a][1] * gx[b][1] + gx[a][2] * gx[b][2]) * dv;
+            let (na, ga) = (c_dv * n[a], gx[a].map(|v| v * k_dv));
+            let row = a * nn;
+            for b in a..nn {
+                capacity[row + b] += na * n[b];
+                conduction[row + b] += ga[0] * gx[b][0] + ga[1] * gx[b][1] + ga[2] * gx[b][2];
             }
+        }
+    }
+    for a in 0..nn {
+        for b in 0..a {
+            capacity[a * nn + b] = capacity[b * nn + a];
+            conduction[a * nn + b] = conduction[b * nn + a];
         }
     }
     Ok(ElementMatrices {
@@ -381,27 +431,23 @@ pub fn assemble(mesh: &Mesh, material: &Material) -> Result<Operators> {
     let pattern = Pattern::from_mesh(mesh);
     let kind = mesh.kind;
     let nn = kind.n_nodes();
-    let rule = cube_rule(kind.volume_order());
-    let locals: Vec<ElementMatrices> = (0..mesh.n_elements())
+    let table = ReferenceTable::new(kind, &cube_rule(kind.volume_order()));
+    // element matrices and where their entries go, in parallel; the sums in element order
+    let locals: Vec<(ElementMatrices, Vec<usize>)> = (0..mesh.n_elements())
         .into_par_iter()
-        .map(|e| element_matrices(kind, &mesh.element_coords(e), material, &rule))
+        .map(|e| {
+            let local = element_matrices(&table, &mesh.element_coords(e), material)?;
+            Ok((local, element_positions(&pattern, mesh.element(e))?))
+        })
         .collect::<Result<_>>()?;
     let mut capacity = vec![0.0; pattern.nnz()];
     let mut conduction = vec![0.0; pattern.nnz()];
     let mut volume_m3 = 0.0;
-    for (e, local) in locals.iter().enumerate() {
-        let conn = mesh.element(e);
+    for (local, positions) in &locals {
         volume_m3 += local.volume;
-        for (a, &ia) in conn.iter().enumerate() {
-            for (b, &ib) in conn.iter().enumerate() {
-                let pos = pattern.position(ia, ib).ok_or_else(|| {
-                    ThermalError::InvalidMesh(format!(
-                        "entry ({ia}, {ib}) missing from the pattern"
-                    ))
-                })?;
-                capacity[pos] += local.capacity[a * nn + b];
-                conduction[pos] += local.conduction[a * nn + b];
-            }
+        for ((&pos, c), k) in positions.iter().zip(&local.capacity).zip(&local.conduction) {
+            capacity[pos] += c;
+            conduction[pos] += k;
         }
     }
     let mut faces = Vec::with_capacity(mesh.face_sets.len());

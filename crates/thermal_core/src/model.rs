@@ -65,11 +65,20 @@ impl ThermalModel {
         let ops = assemble(&mesh, &material)?;
         let flux = ops.face_index(flux_face)?;
         // fill-reducing order: faer's AMD, or the mesher's nested dissection where it has
-        // one, whichever leaves the smaller factor (symbolic analysis costs milliseconds)
-        let mut analysis = SymbolicAnalysis::new(&ops.pattern, cholesky)?;
-        let mut ordering = "amd";
-        if let Some(order) = mesh.ordering.as_deref() {
-            let nd = SymbolicAnalysis::with_ordering(&ops.pattern, cholesky, Some(order))?;
+        // one, whichever leaves the smaller factor (the two analyses side by side)
+        let (amd, nd) = rayon::join(
+            || SymbolicAnalysis::new(&ops.pattern, cholesky),
+            || {
+                mesh.ordering
+                    .as_deref()
+                    .map(|order| {
+                        SymbolicAnalysis::with_ordering(&ops.pattern, cholesky, Some(order))
+                    })
+                    .transpose()
+            },
+        );
+        let (mut analysis, mut ordering) = (amd?, "amd");
+        if let Some(nd) = nd? {
             if nd.factor_nnz() < analysis.factor_nnz() {
                 analysis = nd;
                 ordering = "nested-dissection";
