@@ -11,7 +11,7 @@ from fleetbrake.bench_solver import bench_solver, print_table
 
 @pytest.fixture(scope="module")
 def figures():
-    return bench_solver(element="hex8", steps=240, refinement=0.5, precision="mixed")
+    return bench_solver(element="hex8", steps=240, refinement=0.5, precision="mixed", repeats=2)
 
 
 def test_both_engines_solve_the_same_problem(figures):
@@ -25,6 +25,13 @@ def test_both_engines_solve_the_same_problem(figures):
     # a simplicial factor (this small mesh, when faer picks it) is solved in double anyway
     assert (diff_vs_double > 0.0) == figures["supernodal"]
     assert figures["sensor_peak_c"] > 23.0
+
+
+def test_each_engine_reports_its_fastest_run(figures):
+    assert figures["repeats"] == 2
+    assert figures["seconds_total"] == min(figures["seconds_total_runs"])
+    assert figures["skfem_seconds_total"] == min(figures["skfem_seconds_total_runs"])
+    assert figures["speedup_vs_scikit_fem_median"] > 0.0
 
 
 def test_the_figures_add_up(figures):
@@ -54,3 +61,5 @@ def test_the_table_prints(figures, capsys):
 def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="precision must be one of"):
         bench_solver(precision="half")
+    with pytest.raises(ValueError, match="repeats must be >= 1"):
+        bench_solver(repeats=0)

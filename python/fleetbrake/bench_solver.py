@@ -24,6 +24,11 @@ bound of the two triangular solves of a step: 2 x nnz(L) x 4 or 8 bytes (the val
 the precision read) and 2 x nnz(L) x (that + 8) bytes (values + one 8-byte row index per
 entry, as a simplicial CSC factor would read). See ``docs/benchmarks.md``.
 
+The two engines run alternately ``repeats`` times (3 by default); each engine's figures are
+those of its fastest run (a shared machine's neighbours only ever add time), every run's
+total is reported beside them (``seconds_total_runs``, ``skfem_seconds_total_runs``) with
+the ratio of the medians (``speedup_vs_scikit_fem_median``).
+
 The figures come back as one flat dict (ours without prefix, scikit-fem's with ``skfem_``).
 """
 
@@ -244,8 +249,11 @@ def bench_solver(
     refinement: float = 1.0,
     cholesky: str = "auto",
     precision: str = "mixed",
+    repeats: int = 3,
 ) -> dict[str, Any]:
-    """Run both engines (each in a child process) and the bandwidth probe; the figures."""
+    """Run both engines (each in a child process, alternately, ``repeats`` times) and the
+    bandwidth probe; the figures of each engine's fastest run (shared machines add noise,
+    never speed), with every run's total time beside them."""
     if element not in ELEMENTS:
         raise ValueError(f"element must be one of {ELEMENTS}, got {element!r}")
     if cholesky not in CHOLESKY:
@@ -254,31 +262,35 @@ def bench_solver(
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
     if not (refinement > 0 and np.isfinite(refinement)):
         raise ValueError(f"refinement must be a positive number, got {refinement}")
 
     load = os.getloadavg()[0]
     common = ["--steps", str(steps)]
+    ours_args = [
+        "--engine",
+        "ours",
+        "--element",
+        element,
+        "--refinement",
+        repr(refinement),
+        "--cholesky",
+        cholesky,
+        "--precision",
+        precision,
+    ]
+    ours_runs: list[dict[str, Any]] = []
+    skfem_runs: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="fleetbrake-bench-") as tmp:
         mesh_path = str(Path(tmp) / "mesh.npz")
-        ours = _run_child(
-            [
-                "--engine",
-                "ours",
-                "--element",
-                element,
-                "--refinement",
-                repr(refinement),
-                "--cholesky",
-                cholesky,
-                "--precision",
-                precision,
-                "--mesh-out",
-                mesh_path,
-                *common,
-            ]
-        )
-        skfem = _run_child(["--engine", "skfem", "--mesh-in", mesh_path, *common])
+        for run in range(repeats):
+            mesh_arg = ["--mesh-out", mesh_path] if run == 0 else []
+            ours_runs.append(_run_child([*ours_args, *mesh_arg, *common]))
+            skfem_runs.append(_run_child(["--engine", "skfem", "--mesh-in", mesh_path, *common]))
+    ours = min(ours_runs, key=lambda f: f["seconds_total"])
+    skfem = min(skfem_runs, key=lambda f: f["seconds_total"])
 
     # after the children: a child's ru_maxrss starts from this process's resident size at the
     # spawn (Linux keeps the high-water mark of the image replaced by exec), so no 512 MB here
@@ -301,9 +313,16 @@ def bench_solver(
     out["cholesky"] = cholesky
     out.update(ours)
     out.update({f"skfem_{k}": v for k, v in skfem.items()})
+    ours_totals = [f["seconds_total"] for f in ours_runs]
+    skfem_totals = [f["seconds_total"] for f in skfem_runs]
     out.update(
         {
+            "repeats": repeats,
+            "seconds_total_runs": ours_totals,
+            "skfem_seconds_total_runs": skfem_totals,
             "speedup_vs_scikit_fem": skfem["seconds_total"] / ours["seconds_total"],
+            "speedup_vs_scikit_fem_median": float(np.median(skfem_totals))
+            / float(np.median(ours_totals)),
             "speedup_stepping_vs_scikit_fem": skfem["seconds_stepping"] / ours["seconds_stepping"],
             "read_bandwidth_gb_s": bandwidth,
             "bytes_per_step_values": bytes_values,
@@ -318,8 +337,16 @@ def bench_solver(
             "cpus": os.cpu_count(),
         }
     )
+
     # six significant digits (not decimals: the differences in kelvins are small numbers)
-    return {k: (float(f"{v:.6g}") if isinstance(v, float) else v) for k, v in out.items()}
+    def rounded(v: Any) -> Any:
+        if isinstance(v, float):
+            return float(f"{v:.6g}")
+        if isinstance(v, list):
+            return [rounded(x) for x in v]
+        return v
+
+    return {k: rounded(v) for k, v in out.items()}
 
 
 def print_table(figures: dict[str, Any]) -> None:
@@ -381,9 +408,18 @@ def print_table(figures: dict[str, Any]) -> None:
         for o in PRECISIONS
         if f"sensor_max_abs_diff_vs_{o}_k" in f
     )
+    runs = ""
+    if "seconds_total_runs" in f:
+        runs = (
+            f" (fastest of {f['repeats']} runs each; totals ours "
+            + ", ".join(f"{s:.2f}" for s in f["seconds_total_runs"])
+            + " s, scikit-fem "
+            + ", ".join(f"{s:.2f}" for s in f["skfem_seconds_total_runs"])
+            + f" s; medians' ratio {f['speedup_vs_scikit_fem_median']:.2f}x)"
+        )
     console.print(
         f"speedup vs scikit-fem: {f['speedup_vs_scikit_fem']:.2f}x total, "
-        f"{f['speedup_stepping_vs_scikit_fem']:.2f}x stepping\n"
+        f"{f['speedup_stepping_vs_scikit_fem']:.2f}x stepping{runs}\n"
         f"read bandwidth {f['read_bandwidth_gb_s']:.1f} GB/s (numpy sum, 512 MB, best of 3); "
         f"two triangular solves read {f['bytes_per_step_values'] / 1e6:.0f} MB of values "
         f"({f['bytes_per_step_values_indices'] / 1e6:.0f} MB with 8-byte row indices) per step\n"
@@ -407,12 +443,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--refinement", type=float, default=1.0)
     parser.add_argument("--cholesky", choices=CHOLESKY, default="auto")
     parser.add_argument("--precision", choices=PRECISIONS, default="mixed")
+    parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--mesh-out")
     parser.add_argument("--mesh-in")
     args = parser.parse_args(argv)
     if args.engine is None:  # the whole benchmark, as `fleetbrake bench solver --json`
         figures = bench_solver(
-            args.element, args.steps, args.refinement, args.cholesky, args.precision
+            args.element, args.steps, args.refinement, args.cholesky, args.precision, args.repeats
         )
         print_table(figures)
         print(json.dumps(figures))

@@ -237,6 +237,12 @@ def bench_solver_command(
             "the other is timed too.",
         ),
     ] = "mixed",
+    repeats: Annotated[
+        int,
+        typer.Option(
+            "--repeats", help="Runs of each engine, alternately; the fastest of each is kept."
+        ),
+    ] = 3,
 ) -> None:
     """Our block model against scikit-fem on manoeuvre A: time, memory, traffic bound."""
     import json
@@ -244,7 +250,7 @@ def bench_solver_command(
     from fleetbrake.bench_solver import bench_solver, print_table
 
     with _exit_on("bench solver", (ValueError, RuntimeError)):
-        figures = bench_solver(element, steps, refinement, cholesky, precision)
+        figures = bench_solver(element, steps, refinement, cholesky, precision, repeats)
     print_table(figures)
     if json_out:
         typer.echo(json.dumps(figures))
