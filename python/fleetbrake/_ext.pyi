@@ -96,6 +96,9 @@ def rom_simulate_switched(
     xi0: NDArray[np.float64],
     c: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+def rom_exact_propagator(
+    lam: NDArray[np.float64], dt_s: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
 def rom_simulate_batch(
     lam: NDArray[np.float64],
     b_q: NDArray[np.float64],

@@ -544,9 +544,7 @@ class ReducedModel:
             lam, q = self.lam, None
         x = lam * dt_s
         if scheme == "exact":
-            e = np.exp(-x)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                g = np.where(np.abs(x) > 1e-12, -np.expm1(-x) / lam, dt_s)
+            e, g = _ext.rom_exact_propagator(np.ascontiguousarray(lam, dtype=np.float64), dt_s)
         elif scheme == "crank-nicolson":
             e = (1.0 - 0.5 * x) / (1.0 + 0.5 * x)
             g = dt_s / (1.0 + 0.5 * x)

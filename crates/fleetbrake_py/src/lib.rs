@@ -15,7 +15,7 @@ use pyo3::types::PyDict;
 
 use thermal_core::error::catch_panic;
 use thermal_core::mesh::{box_mesh, BlockGeometry, BlockMeshSpec};
-use thermal_core::rom::{ModalStepper, Propagators};
+use thermal_core::rom::{exact_propagator, ModalStepper, Propagators};
 use thermal_core::{
     CholeskyKind, Convection, ElementKind, Initial, Loading, Material, Precision, Scheme, Series,
     ThermalError, ThermalModel,
@@ -566,6 +566,21 @@ fn rom_simulate_batch<'py>(
     ))
 }
 
+/// The exact propagator (e, g) of modes with rates `lam` over a step of `dt_s`: e =
+/// exp(-lam dt), g = (1 - e) / lam.
+#[pyfunction]
+fn rom_exact_propagator<'py>(
+    py: Python<'py>,
+    lam: PyReadonlyArray1<'py, f64>,
+    dt_s: f64,
+) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    if !(dt_s.is_finite() && dt_s > 0.0) {
+        return Err(to_pyerr(ThermalError::InvalidTimeStep(dt_s)));
+    }
+    let (e, g) = exact_propagator(lam.as_slice()?, dt_s);
+    Ok((e.into_pyarray(py), g.into_pyarray(py)))
+}
+
 /// One run of a reduced model through switching step systems: propagators e, g (K, r),
 /// q (K, r, r), rotated (K); per step the propagator index and repeat count (S), the modal
 /// input u (S, r); xi0 (r); output rows c (n_out, r). Returns (C xi (S+1, n_out), final xi).
@@ -627,6 +642,7 @@ fn _ext(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyThermalModel>()?;
     m.add_function(wrap_pyfunction!(rom_simulate_batch, m)?)?;
     m.add_function(wrap_pyfunction!(rom_simulate_switched, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_exact_propagator, m)?)?;
     m.add("ThermalCoreError", py.get_type::<ThermalCoreError>())?;
     m.add(
         "InvalidParameterError",

@@ -11,6 +11,24 @@ use rayon::prelude::*;
 use crate::error::{Result, ThermalError};
 use crate::simd::{has_avx2_fma, madd};
 
+/// The exact one-step propagator of modes `dξ/dt = −λ ξ + u` with `u` held over the step:
+/// `e = exp(−λ dt)`, `g = (1 − e)/λ` (`dt` where `λ dt` vanishes), computed without
+/// cancellation. The one place it is computed: the batch stepper uses it, and Python's
+/// reduced model calls it (`rom_exact_propagator`) for its switching propagators.
+pub fn exact_propagator(lam: &[f64], dt_s: f64) -> (Vec<f64>, Vec<f64>) {
+    lam.iter()
+        .map(|&l| {
+            let x = l * dt_s;
+            let g = if x.abs() > 1e-12 {
+                -(-x).exp_m1() / l
+            } else {
+                dt_s
+            };
+            ((-x).exp(), g)
+        })
+        .unzip()
+}
+
 /// A reduced model in modal form at one time step.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ModalStepper {
@@ -59,21 +77,9 @@ impl ModalStepper {
                 got: n_out,
             });
         }
-        let mut e = Vec::with_capacity(r);
-        let mut g_bq = Vec::with_capacity(r);
-        let mut g_ba = Vec::with_capacity(r);
-        for i in 0..r {
-            let x = lam[i] * dt_s;
-            let ei = (-x).exp();
-            let gi = if x.abs() > 1e-12 {
-                -(-x).exp_m1() / lam[i]
-            } else {
-                dt_s
-            };
-            e.push(ei);
-            g_bq.push(gi * b_q[i]);
-            g_ba.push(gi * b_a[i]);
-        }
+        let (e, g) = exact_propagator(lam, dt_s);
+        let g_bq = g.iter().zip(b_q).map(|(gi, b)| gi * b).collect();
+        let g_ba = g.iter().zip(b_a).map(|(gi, b)| gi * b).collect();
         Ok(ModalStepper {
             e,
             g_bq,
@@ -437,6 +443,21 @@ struct BlockInputs<'a> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_exact_propagator_has_its_limits() {
+        let dt = 2.0;
+        let (e, g) = exact_propagator(&[0.0, 1e-15, 0.3, 1e6], dt);
+        // no decay: e = 1, g = dt (the limit of (1 - e)/λ), also just above zero
+        assert_eq!((e[0], g[0]), (1.0, dt));
+        assert!((g[1] - dt).abs() <= 1e-12 * dt && e[1] <= 1.0);
+        // the middle: the formula itself
+        assert!((e[2] - (-0.6f64).exp()).abs() < 1e-15);
+        assert!((g[2] - (1.0 - (-0.6f64).exp()) / 0.3).abs() < 1e-14);
+        // fast modes: gone in one step, g = 1/λ (the steady response)
+        assert_eq!(e[3], 0.0);
+        assert!((g[3] - 1e-6).abs() < 1e-20);
+    }
 
     #[test]
     fn one_mode_matches_the_exact_exponential_response() {
