@@ -566,6 +566,9 @@ fn rom_simulate_batch<'py>(
     ))
 }
 
+/// Two vectors handed back to Python.
+type VectorPair<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
+
 /// The exact propagator (e, g) of modes with rates `lam` over a step of `dt_s`: e =
 /// exp(-lam dt), g = (1 - e) / lam.
 #[pyfunction]
@@ -573,7 +576,7 @@ fn rom_exact_propagator<'py>(
     py: Python<'py>,
     lam: PyReadonlyArray1<'py, f64>,
     dt_s: f64,
-) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+) -> PyResult<VectorPair<'py>> {
     if !(dt_s.is_finite() && dt_s > 0.0) {
         return Err(to_pyerr(ThermalError::InvalidTimeStep(dt_s)));
     }
