@@ -370,10 +370,21 @@ def freeze_speed(
     start: int | None = None,
 ) -> pl.DataFrame:
     """GPS speed frozen while the fix is poor: ``duration_s`` rows repeat the speed of the first."""
+    return _freeze(frame, "speed_kmh", rng, duration_s, start)
+
+
+def _freeze(
+    frame: pl.DataFrame,
+    column: str,
+    rng: np.random.Generator,
+    duration_s: int,
+    start: int | None,
+) -> pl.DataFrame:
+    """``duration_s`` rows of ``column`` (a span drawn by :func:`_span`) repeat the first's value."""
     first, stop = _span(rng, frame.height, duration_s, start)
-    speed = frame["speed_kmh"].to_numpy().copy()
-    speed[first:stop] = speed[first]
-    return frame.with_columns(pl.Series("speed_kmh", speed, dtype=pl.Float64))
+    values = frame[column].to_numpy().copy()
+    values[first:stop] = values[first]
+    return frame.with_columns(pl.Series(column, values, dtype=pl.Float64))
 
 
 def jump_speed(
@@ -425,10 +436,7 @@ def pt1000_frozen(
     start: int | None = None,
 ) -> pl.DataFrame:
     """A loose Pt1000 reading a frozen value: ``duration_s`` rows repeat the first one's reading."""
-    first, stop = _span(rng, frame.height, duration_s, start)
-    temp_c = frame["block_temp_c"].to_numpy().copy()
-    temp_c[first:stop] = temp_c[first]
-    return frame.with_columns(pl.Series("block_temp_c", temp_c, dtype=pl.Float64))
+    return _freeze(frame, "block_temp_c", rng, duration_s, start)
 
 
 def pt1000_drift_to_ambient(

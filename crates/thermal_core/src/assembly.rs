@@ -576,7 +576,7 @@ pub fn l2_error(mesh: &Mesh, field: &[f64], exact: impl Fn([f64; 3]) -> f64) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::{block_mesh, box_mesh, BlockGeometry, BlockMeshSpec};
+    use crate::mesh::{block_mesh, box_mesh};
 
     fn unit_material() -> Material {
         Material {
@@ -614,15 +614,7 @@ mod tests {
 
     #[test]
     fn block_volume_and_friction_area_match_the_geometry() {
-        let g = BlockGeometry::default();
-        let m = block_mesh(
-            &g,
-            &BlockMeshSpec {
-                refinement: 0.5,
-                ..Default::default()
-            },
-        )
-        .unwrap();
+        let (g, m) = crate::mesh::coarse_block_mesh();
         let ops = assemble(&m, &Material::CAST_IRON).unwrap();
         let half = 0.5 * g.contact_angle_deg.to_radians();
         let r0 = g.wheel_radius_m;

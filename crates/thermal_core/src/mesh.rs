@@ -664,6 +664,18 @@ pub fn block_mesh(geometry: &BlockGeometry, spec: &BlockMeshSpec) -> Result<Mesh
     )
 }
 
+/// The reference block (default geometry) at half the default resolution, for tests.
+#[cfg(test)]
+pub(crate) fn coarse_block_mesh() -> (BlockGeometry, Mesh) {
+    let g = BlockGeometry::default();
+    let spec = BlockMeshSpec {
+        refinement: 0.5,
+        ..Default::default()
+    };
+    let m = block_mesh(&g, &spec).expect("the default block meshes");
+    (g, m)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -143,19 +143,10 @@ pub fn build_probes(mesh: &Mesh, points: &[[f64; 3]]) -> Result<Probes> {
 mod tests {
     use super::*;
     use crate::element::ElementKind;
-    use crate::mesh::{block_mesh, BlockGeometry, BlockMeshSpec};
 
     #[test]
     fn interpolates_a_quadratic_field_exactly_on_the_block() {
-        let g = BlockGeometry::default();
-        let m = block_mesh(
-            &g,
-            &BlockMeshSpec {
-                refinement: 0.5,
-                ..Default::default()
-            },
-        )
-        .unwrap();
+        let (_, m) = crate::mesh::coarse_block_mesh();
         assert_eq!(m.kind, ElementKind::Hex20);
         // y is not polynomial in the (theta, r) parameters, but z and a linear field in z are
         let field: Vec<f64> = m
@@ -179,15 +170,7 @@ mod tests {
 
     #[test]
     fn points_outside_are_rejected_with_their_index() {
-        let g = BlockGeometry::default();
-        let m = block_mesh(
-            &g,
-            &BlockMeshSpec {
-                refinement: 0.5,
-                ..Default::default()
-            },
-        )
-        .unwrap();
+        let (_, m) = crate::mesh::coarse_block_mesh();
         // inside the lug's radial range but beside it (z beyond the lug width)
         let pts = [[0.0, 0.515, 0.0], [0.0, 0.52, 0.035]];
         match build_probes(&m, &pts) {
