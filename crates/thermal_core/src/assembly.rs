@@ -4,7 +4,7 @@
 
 use rayon::prelude::*;
 
-use crate::element::{cross, inv3, jacobian, ElementKind, FACE_CORNERS};
+use crate::element::{cross, inv3, jacobian, ElementKind, ReferenceTable, FACE_CORNERS};
 use crate::error::{check_positive, Result, ThermalError};
 use crate::mesh::Mesh;
 use crate::quadrature::{cube_rule, square_rule};
@@ -292,37 +292,6 @@ struct ElementMatrices {
     capacity: Vec<f64>,
     conduction: Vec<f64>,
     volume: f64,
-}
-
-/// Shape functions and their reference gradients at the points of a quadrature rule: the
-/// same for every element of a kind, so evaluated once per assembly.
-struct ReferenceTable {
-    nn: usize,
-    points: Vec<ReferencePoint>,
-}
-
-struct ReferencePoint {
-    xi: [f64; 3],
-    weight: f64,
-    n: Vec<f64>,
-    dn: Vec<[f64; 3]>,
-}
-
-impl ReferenceTable {
-    fn new(kind: ElementKind, rule: &[([f64; 3], f64)]) -> Self {
-        let nn = kind.n_nodes();
-        let points = rule
-            .iter()
-            .map(|&(xi, weight)| {
-                let mut n = vec![0.0; nn];
-                let mut dn = vec![[0.0; 3]; nn];
-                kind.shape(xi, &mut n);
-                kind.grad(xi, &mut dn);
-                ReferencePoint { xi, weight, n, dn }
-            })
-            .collect();
-        ReferenceTable { nn, points }
-    }
 }
 
 /// Positions in the pattern's value array of an element's entries (a, b), row-major.

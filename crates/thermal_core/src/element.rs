@@ -222,6 +222,37 @@ fn other_axes(m: usize) -> (usize, usize) {
     }
 }
 
+/// Shape functions and their reference gradients at a set of points (a quadrature rule's,
+/// with its weights): the same for every element of a kind, so evaluated once per mesh.
+pub struct ReferenceTable {
+    pub nn: usize,
+    pub points: Vec<ReferencePoint>,
+}
+
+pub struct ReferencePoint {
+    pub xi: [f64; 3],
+    pub weight: f64,
+    pub n: Vec<f64>,
+    pub dn: Vec<[f64; 3]>,
+}
+
+impl ReferenceTable {
+    pub fn new(kind: ElementKind, rule: &[([f64; 3], f64)]) -> Self {
+        let nn = kind.n_nodes();
+        let points = rule
+            .iter()
+            .map(|&(xi, weight)| {
+                let mut n = vec![0.0; nn];
+                let mut dn = vec![[0.0; 3]; nn];
+                kind.shape(xi, &mut n);
+                kind.grad(xi, &mut dn);
+                ReferencePoint { xi, weight, n, dn }
+            })
+            .collect();
+        ReferenceTable { nn, points }
+    }
+}
+
 /// Jacobian dx/dxi (rows: x, y, z; columns: xi, eta, zeta) from nodal coordinates and gradients.
 pub fn jacobian(coords: &[[f64; 3]], dn: &[[f64; 3]]) -> [[f64; 3]; 3] {
     let mut j = [[0.0; 3]; 3];

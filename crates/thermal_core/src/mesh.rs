@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use crate::element::{det3, jacobian, ElementKind, FACE_CORNERS, NODE_NATURAL};
+use crate::element::{det3, jacobian, ElementKind, ReferenceTable, FACE_CORNERS, NODE_NATURAL};
 use crate::error::{check_positive, Result, ThermalError};
 use crate::quadrature::cube_rule;
 
@@ -86,24 +86,19 @@ impl Mesh {
     /// Smallest Jacobian determinant over every element's quadrature points; an error when an
     /// element is inverted or degenerate.
     pub fn check_jacobians(&self) -> Result<f64> {
-        let kind = self.kind;
-        let rule = cube_rule(kind.volume_order());
-        let mut dn = vec![[0.0; 3]; kind.n_nodes()];
+        // the quadrature points and the corners
+        let mut points = cube_rule(self.kind.volume_order());
+        points.extend(NODE_NATURAL[..8].iter().map(|p| (*p, 0.0)));
+        let table = ReferenceTable::new(self.kind, &points);
         let mut min_det = f64::INFINITY;
         for e in 0..self.n_elements() {
             let coords = self.element_coords(e);
-            for (xi, _) in rule.iter().chain(
-                NODE_NATURAL[..8]
-                    .iter()
-                    .map(|p| (*p, 0.0))
-                    .collect::<Vec<_>>()
-                    .iter(),
-            ) {
-                kind.grad(*xi, &mut dn);
-                let d = det3(&jacobian(&coords, &dn));
+            for p in &table.points {
+                let d = det3(&jacobian(&coords, &p.dn));
                 if !(d > 0.0) {
                     return Err(ThermalError::InvalidMesh(format!(
-                        "element {e} has a non-positive Jacobian determinant {d:e} at {xi:?}"
+                        "element {e} has a non-positive Jacobian determinant {d:e} at {:?}",
+                        p.xi
                     )));
                 }
                 min_det = min_det.min(d);

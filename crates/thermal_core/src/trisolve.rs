@@ -3,9 +3,10 @@
 //!
 //! A supernode is a dense column-major block: its `size` diagonal rows (lower triangle used),
 //! then the rows of its pattern (ancestors). Each solve reads every value of the factor once,
-//! so a step is bound by memory traffic; the kernels below stream each column block once,
-//! four columns at a time (one pass over the rows below the block instead of four), with
-//! fused multiply-adds where the CPU has them. The permutation is applied around them as
+//! so a step is bound by memory traffic; the kernels below stream each supernode's columns
+//! in panels of eight (then four, then one: one pass over the rows below a panel for all its
+//! columns), with AVX2 fused multiply-adds where the CPU has them, reading the values in
+//! double or single precision ([`FactorValue`]). The permutation is applied around them as
 //! faer does (`x[i] = b[fwd[i]]`, result `b[i] = x[inv[i]]`).
 
 use std::ops::Range;
