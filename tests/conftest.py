@@ -35,7 +35,7 @@ def reduced_model_for(rom_cache_dir: Path) -> Iterator[Callable[..., object]]:
     """``reduced_model_for(wagon)``: the wagon's reduced model at ``TEST_REFINEMENT``, built
     once per session (a file lock keeps parallel workers from building it twice) and cached
     in ``rom_cache_dir``. Nothing is put in the environment."""
-    from fleetbrake.rom import ReducedModel
+    from fleetbrake.model.rom import ReducedModel
 
     models: dict[tuple[object, ...], ReducedModel] = {}
 
@@ -60,6 +60,6 @@ def reduced_model_for(rom_cache_dir: Path) -> Iterator[Callable[..., object]]:
 @pytest.fixture(scope="session")
 def default_rom(reduced_model_for: Callable[..., object]) -> object:
     """The reduced model of the registry's default wagon (the reference block and seat)."""
-    from fleetbrake.registry import WagonConfig
+    from fleetbrake.fleet.registry import WagonConfig
 
     return reduced_model_for(WagonConfig(wagon_id="TEST-0001"))

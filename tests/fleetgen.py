@@ -1,7 +1,7 @@
 """Test helpers: synthetic sessions with known braking, small fleets, table snapshots.
 
 Not the project's fleet generator (that one is written elsewhere on top of
-``fleetbrake.logfile``); just what the ingestion and event tests need, with the truth kept.
+``fleetbrake.fleet.logfile``); just what the ingestion and event tests need, with the truth kept.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import duckdb
 import numpy as np
 import polars as pl
 
-from fleetbrake.logfile import COLUMNS, log_relpath, write_log
+from fleetbrake.fleet.logfile import COLUMNS, log_relpath, write_log
 
 T0_UTC = dt.datetime(2024, 3, 1, 6, 0, 0)
 
@@ -208,7 +208,7 @@ def write_session(
     compress: bool | None = None,
 ) -> Path:
     """Write a session at its conventional path (``.csv.gz`` if ``gzip``); ``compress`` as
-    :func:`~fleetbrake.logfile.write_log`'s ``gzip`` (None: by the name). Returns the path."""
+    :func:`~fleetbrake.fleet.logfile.write_log`'s ``gzip`` (None: by the name). Returns the path."""
     return write_log(fleet_dir / log_relpath(wagon_id, start_utc, gzip=gzip), frame, gzip=compress)
 
 

@@ -83,8 +83,9 @@ def fleet_db(
     rom_cache_dir: Path,
 ) -> Iterator[Path]:
     """2 wagons x 2 days with anomalies, through ``run_fleet``."""
-    from fleetbrake.pipeline import SimulationConfig, run_fleet
-    from fleetbrake.synth import SynthConfig, generate_fleet
+    from fleetbrake.app.run import run_fleet
+    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     out = tmp_path_factory.mktemp("analyst")
     with pytest.MonkeyPatch.context() as mp:

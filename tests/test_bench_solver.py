@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from fleetbrake.bench_solver import bench_solver, print_table
+from fleetbrake.bench.solver import bench_solver, print_table
 
 
 @pytest.fixture(scope="module")

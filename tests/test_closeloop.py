@@ -19,10 +19,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake.closeloop import run_close_loop
-from fleetbrake.effects import EFFECTS, EffectSet
-from fleetbrake.pipeline import run_fleet
-from fleetbrake.synth import SynthConfig, generate_fleet
+from fleetbrake.app.run import run_fleet
+from fleetbrake.closeloop.loop import run_close_loop
+from fleetbrake.model.effects import EFFECTS, EffectSet
+from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
 NOISE_K = 0.1
 

@@ -19,8 +19,7 @@ import pytest
 from rich.console import Console
 from typer.testing import CliRunner
 
-from fleetbrake.cli import app
-from fleetbrake.demo import (
+from fleetbrake.app.demo import (
     MARKER,
     DemoConfig,
     DemoError,
@@ -29,6 +28,7 @@ from fleetbrake.demo import (
     prepare_out_dir,
     run_demo,
 )
+from fleetbrake.cli.main import app
 
 
 @pytest.fixture

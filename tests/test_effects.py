@@ -1,4 +1,4 @@
-"""The undeclared effects (fleetbrake.effects) and the one simulation (fleetbrake.simulate).
+"""The undeclared effects (fleetbrake.model.effects) and the one simulation (fleetbrake.model.timeline).
 
 Every effect is checked where it acts, against what physics says it must do, with its
 parameters drawn at random from its PARAMETER_RANGES (seeded). The reduced model is the
@@ -13,7 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from fleetbrake.effects import (
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.effects import (
     EFFECT_ORDER,
     EFFECTS,
     AmbientOffset,
@@ -28,9 +29,8 @@ from fleetbrake.effects import (
     effect_from_dict,
     parse_effect,
 )
-from fleetbrake.physics import heat_partition_alpha, time_resolved_flux_series_w_m2
-from fleetbrake.registry import WagonConfig
-from fleetbrake.simulate import FixedPointError, simulate_timeline
+from fleetbrake.model.physics import heat_partition_alpha, time_resolved_flux_series_w_m2
+from fleetbrake.model.timeline import FixedPointError, simulate_timeline
 
 WAGON = WagonConfig(wagon_id="TEST-0001")
 N_S = 3600

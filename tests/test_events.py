@@ -1,4 +1,4 @@
-"""Braking event detection (fleetbrake.events): accuracy on generated sessions, rules, increments."""
+"""Braking event detection (fleetbrake.ingest.events): accuracy on generated sessions, rules, increments."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake import events as events_module
-from fleetbrake import logfile as lf
-from fleetbrake.events import EVENT_COLUMNS, EventConfig, detect_events
-from fleetbrake.ingest import IngestConfig, run_ingest
+from fleetbrake.fleet import logfile as lf
+from fleetbrake.ingest import events as events_module
+from fleetbrake.ingest.events import EVENT_COLUMNS, EventConfig, detect_events
+from fleetbrake.ingest.files import IngestConfig, run_ingest
 from fleetgen import T0_UTC, Session, TrueEvent, make_session, write_registry, write_session
 
 WAGON = "SGG-0001"

@@ -1,4 +1,4 @@
-"""Tests of fleetbrake.flags: each detector on hand-made series, the configuration file, the
+"""Tests of fleetbrake.flags.detect: each detector on hand-made series, the configuration file, the
 flags table, and end to end on generated fleets against the generator's truth."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake.flags import (
+from fleetbrake.flags.detect import (
     CONFIG_KEYS,
     EventStat,
     Finding,
@@ -481,9 +481,9 @@ def test_sensor_faults_close_together_are_one_flag() -> None:
 
 
 def _warehouse_with_samples(tmp_path: Path) -> tuple[object, object]:
-    from fleetbrake.pipeline import ensure_declared
-    from fleetbrake.registry import load_registry
-    from fleetbrake.warehouse import open_warehouse
+    from fleetbrake.fleet.registry import load_registry
+    from fleetbrake.simulation.predictions import ensure_declared
+    from fleetbrake.warehouse.connection import open_warehouse
 
     (tmp_path / "fleet.toml").write_text("[defaults]\nambient_temp_c = 8.0\n", encoding="utf-8")
     registry = load_registry(tmp_path / "fleet.toml")
@@ -552,7 +552,7 @@ def test_raise_flags_replaces_a_wagons_flags_with_stable_ids(tmp_path: Path) -> 
 
 
 def test_flag_ids_are_unique_for_flags_starting_together() -> None:
-    from fleetbrake.flags import _flag_ids
+    from fleetbrake.flags.detect import _flag_ids
 
     same = Finding("sensor_fault", "info", at(0), at(10), "a.")
     flags = _flag_ids("W-1", [same, dataclasses.replace(same, evidence="b.")])
@@ -585,10 +585,14 @@ def run_fleet(
     """``run_fleet(seed=, wagons=, days=, anomalies=)``: generate, ingest, simulate with the
     declared model, raise flags; memoised per arguments."""
     from conftest import TEST_REFINEMENT
-    from fleetbrake.ingest import load_fleet_registry, run_ingest
-    from fleetbrake.pipeline import SimulationConfig, current_revision, simulate_events
-    from fleetbrake.synth import SynthConfig, generate_fleet
-    from fleetbrake.warehouse import open_warehouse
+    from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.predictions import (
+        SimulationConfig,
+        current_revision,
+        simulate_events,
+    )
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
+    from fleetbrake.warehouse.connection import open_warehouse
 
     done: dict[tuple[object, ...], Outcome] = {}
     with pytest.MonkeyPatch.context() as mp:

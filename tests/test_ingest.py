@@ -19,10 +19,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from fleetbrake import ingest as ingest_module
-from fleetbrake import logfile as lf
-from fleetbrake.cli import app
-from fleetbrake.ingest import (
+from fleetbrake.cli.main import app
+from fleetbrake.fleet import logfile as lf
+from fleetbrake.fleet.registry import RegistryError
+from fleetbrake.ingest import files as ingest_module
+from fleetbrake.ingest.files import (
     IngestConfig,
     IngestReport,
     Quarantine,
@@ -30,8 +31,7 @@ from fleetbrake.ingest import (
     read_log,
     run_ingest,
 )
-from fleetbrake.registry import RegistryError
-from fleetbrake.warehouse import open_warehouse
+from fleetbrake.warehouse.connection import open_warehouse
 from fleetgen import (
     T0_UTC,
     relpath_of,
@@ -792,7 +792,7 @@ def test_a_file_removed_after_the_scan_is_skipped(
 
 def _child_env() -> dict[str, str]:
     """The environment for a child python that imports this fleetbrake."""
-    package_root = str(Path(ingest_module.__file__).resolve().parents[1])
+    package_root = str(Path(ingest_module.__file__).resolve().parents[2])
     return {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([package_root, os.environ.get("PYTHONPATH", "")]),
@@ -801,7 +801,7 @@ def _child_env() -> dict[str, str]:
 
 def test_bench_ingest_prints_its_figures_as_json_last(tmp_path: Path) -> None:
     fleet = tmp_path / "bench-fleet"
-    command = [sys.executable, "-m", "fleetbrake.cli", "bench", "ingest", "--json"]
+    command = [sys.executable, "-m", "fleetbrake.cli.main", "bench", "ingest", "--json"]
     command += ["--rows", "200000", "--fleet", str(fleet), "--workdir", str(tmp_path)]
     for _ in range(2):  # made, then reused
         result = subprocess.run(

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import fleetbrake
-from fleetbrake import logfile as lf
-from fleetbrake.ingest import IngestConfig, run_ingest
+from fleetbrake.fleet import logfile as lf
+from fleetbrake.ingest.files import IngestConfig, run_ingest
 from fleetgen import T0_UTC, make_session, snapshot, write_registry, write_session
 
 WALL_CLOCK = ("ingested_utc", "detected_utc", "applied_utc")
@@ -102,7 +102,7 @@ def reference(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str
 PAUSE_INGEST = """
 import sys, time
 from pathlib import Path
-import fleetbrake.ingest as ingest
+import fleetbrake.ingest.files as ingest
 fleet, db, marker, after = sys.argv[1], sys.argv[2], Path(sys.argv[3]), int(sys.argv[4])
 insert = ingest._insert
 flushes = []
@@ -149,7 +149,7 @@ def test_sigkill_inside_a_transaction_then_rerun_equals_uninterrupted(
 PAUSE_EVENTS = """
 import sys, time
 from pathlib import Path
-import fleetbrake.events as events
+import fleetbrake.ingest.events as events
 fleet, db, marker = sys.argv[1], sys.argv[2], Path(sys.argv[3])
 update_wagon = events._update_wagon
 done = []
@@ -160,7 +160,7 @@ def pausing(*args, **kwargs):
         marker.write_text(",".join(done))
         time.sleep(600)
 events._update_wagon = pausing
-from fleetbrake.ingest import IngestConfig, run_ingest
+from fleetbrake.ingest.files import IngestConfig, run_ingest
 run_ingest(fleet, db, config=IngestConfig(batch_rows=20_000), progress=False)
 """
 
@@ -183,7 +183,7 @@ def test_sigkill_during_event_detection_then_rerun_equals_uninterrupted(
 
 RUN = """
 import sys
-from fleetbrake.ingest import IngestConfig, run_ingest
+from fleetbrake.ingest.files import IngestConfig, run_ingest
 run_ingest(sys.argv[1], sys.argv[2], config=IngestConfig(batch_rows=20_000), progress=False)
 """
 
@@ -218,7 +218,7 @@ def test_sigkill_at_random_moments_then_rerun_equals_uninterrupted(
 HOLD = """
 import sys, time
 from pathlib import Path
-from fleetbrake.warehouse import open_warehouse
+from fleetbrake.warehouse.connection import open_warehouse
 with open_warehouse(sys.argv[1]) as wh:
     Path(sys.argv[2]).write_text("holding")
     time.sleep(float(sys.argv[3]))
@@ -235,7 +235,7 @@ time.sleep(float(sys.argv[3]))
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "fleetbrake.cli", *args],
+        [sys.executable, "-m", "fleetbrake.cli.main", *args],
         env=_env(),
         capture_output=True,
         text=True,

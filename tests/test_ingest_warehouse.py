@@ -8,13 +8,13 @@ from pathlib import Path
 import duckdb
 import pytest
 
-from fleetbrake.warehouse import (
+from fleetbrake.warehouse.connection import (
     SCHEMA_VERSION,
-    SQL_DIR,
     WarehouseError,
     WarehouseLockedError,
     open_warehouse,
     sql,
+    sql_files,
 )
 
 TABLES = {"schema_version", "files", "samples", "event_dirty", "events"}
@@ -51,7 +51,7 @@ def test_open_creates_everything_and_reopening_changes_nothing(tmp_path: Path) -
 
 
 def test_every_view_is_in_its_own_file_and_sql_files_exist() -> None:
-    assert {p.stem for p in SQL_DIR.glob("v_*.sql")} >= VIEWS
+    assert {name.removesuffix(".sql") for name in sql_files() if name.startswith("v_")} >= VIEWS
     for name in ("schema", "q_insert_files", "q_insert_samples", "q_insert_events"):
         assert sql(name).strip()
     with pytest.raises(WarehouseError, match=r"no_such\.sql: SQL file not found"):

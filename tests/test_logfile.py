@@ -1,4 +1,4 @@
-"""The log file format: names, writer, imperfection injectors (fleetbrake.logfile)."""
+"""The log file format: names, writer, imperfection injectors (fleetbrake.fleet.logfile)."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake import logfile as lf
-from fleetbrake.ingest import read_log
+from fleetbrake.fleet import logfile as lf
+from fleetbrake.ingest.files import read_log
 from fleetgen import T0_UTC, simple_session
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Tests of the paper reproduction (fleetbrake.paper, .plots, .export, `fleetbrake paper`)."""
+"""Tests of the paper reproduction (fleetbrake.paper.reproduction, .plots, .export, `fleetbrake paper`)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from fleetbrake.cli import app
-from fleetbrake.export import write_field_series, write_fields_vtu
-from fleetbrake.paper import (
+from fleetbrake.cli.main import app
+from fleetbrake.model.physics import PAPER_MANOEUVRES, event_heat_input
+from fleetbrake.paper.export import write_field_series, write_fields_vtu
+from fleetbrake.paper.plots import plot_block_field, plot_sensor_curve
+from fleetbrake.paper.reproduction import (
     STUDY_DEPTHS_M,
     PaperReproduction,
     RunSettings,
@@ -26,8 +28,6 @@ from fleetbrake.paper import (
     simulate_manoeuvre,
     superposed_curves,
 )
-from fleetbrake.physics import PAPER_MANOEUVRES, event_heat_input
-from fleetbrake.plots import plot_block_field, plot_sensor_curve
 
 PAPER_TIMES_S = {"A": 271.0, "B": 220.0}
 COARSE = RunSettings(element="hex8", refinement=0.5, workers=1)
@@ -203,7 +203,7 @@ def test_vtu_round_trip(coarse: PaperReproduction, tmp_path: Path) -> None:
 
 
 def test_vtu_round_trip_hex20_and_series(tmp_path: Path) -> None:
-    from fleetbrake.thermal import BlockModel
+    from fleetbrake.model.thermal import BlockModel
 
     model = BlockModel(element="hex20", refinement=0.5)
     mesh = model.mesh

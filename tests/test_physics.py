@@ -1,4 +1,4 @@
-"""Tests of fleetbrake.physics: the paper's eqs. 1-12 as block-model.md fixes them."""
+"""Tests of fleetbrake.model.physics: the paper's eqs. 1-12 as block-model.md fixes them."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from fleetbrake.block import BLOCK_MATERIAL, WHEEL_MATERIAL, BlockGeometry, Material
-from fleetbrake.physics import (
+from fleetbrake.fleet.block import BLOCK_MATERIAL, WHEEL_MATERIAL, BlockGeometry, Material
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.physics import (
     BAR_TO_PA,
     KMH_TO_M_S,
     PAPER_MANOEUVRES,
@@ -36,7 +37,6 @@ from fleetbrake.physics import (
     pulse_flux_series_w_m2,
     time_resolved_flux_series_w_m2,
 )
-from fleetbrake.registry import WagonConfig
 
 WAGON = WagonConfig(wagon_id="SGG-0001")  # every value the default of fleet-data.md
 

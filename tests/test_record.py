@@ -13,14 +13,14 @@ import pytest
 from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
-from fleetbrake.cli import app
-from fleetbrake.record import (
+from fleetbrake.cli.main import app
+from fleetbrake.viz.record import (
     FIELD_EVERY_S,
     TIMELINE,
     RecordError,
     record,
 )
-from fleetbrake.warehouse import open_warehouse
+from fleetbrake.warehouse.connection import open_warehouse
 
 WAGON = "TW-0001"
 BARE_WAGON = "TW-0002"  # samples, no events, no predictions
@@ -406,7 +406,7 @@ def test_registry_gives_the_block(fleet_db: dict[str, object], tmp_path: Path) -
 
 
 def test_flags_of_one_kind_overlapping_show_the_highest_severity() -> None:
-    from fleetbrake.record import _flag_lane
+    from fleetbrake.viz.record import _flag_lane
 
     t = [dt.datetime(2024, 3, 1, 10, 0, s) for s in range(6)]
     lane = _flag_lane(
@@ -430,7 +430,7 @@ def test_block_of_the_registry_run_stored(fleet_db: dict[str, object], tmp_path:
     import json
     import shutil
 
-    from fleetbrake.registry import WagonConfig
+    from fleetbrake.fleet.registry import WagonConfig
 
     db = tmp_path / "stored.duckdb"
     shutil.copy(fleet_db["db"], db)  # type: ignore[arg-type]

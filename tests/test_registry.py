@@ -1,4 +1,4 @@
-"""Tests of fleetbrake.registry: the ``fleet.toml`` reader of fleet-data.md."""
+"""Tests of fleetbrake.fleet.registry: the ``fleet.toml`` reader of fleet-data.md."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from fleetbrake.block import BlockGeometry, sensor_point_m
-from fleetbrake.registry import (
+from fleetbrake.fleet.block import BlockGeometry, sensor_point_m
+from fleetbrake.fleet.registry import (
     CONFIG_KEYS,
     SPEC_DEFAULTS,
     Registry,

@@ -14,10 +14,10 @@ import time
 import numpy as np
 import pytest
 
-from fleetbrake.physics import PAPER_MANOEUVRES, event_flux_series_w_m2
-from fleetbrake.registry import WagonConfig
-from fleetbrake.rom import ReducedModel, first_order_lag
-from fleetbrake.thermal import BlockModel, InvalidParameterError, LengthMismatchError
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.physics import PAPER_MANOEUVRES, event_flux_series_w_m2
+from fleetbrake.model.rom import ReducedModel, first_order_lag
+from fleetbrake.model.thermal import BlockModel, InvalidParameterError, LengthMismatchError
 
 REFINEMENT = 0.6
 WAGON = WagonConfig(wagon_id="ROM-TEST")

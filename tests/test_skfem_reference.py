@@ -1,4 +1,4 @@
-"""The scikit-fem reference (``fleetbrake.peers.skfem_block``) against exact results.
+"""The scikit-fem reference (``fleetbrake.bench.peers.skfem_block``) against exact results.
 
 Everything here is independent of the module under test: the VTK node tables, the box mesh,
 the trilinear maps, the quadrature weights and the analytical solution are written out
@@ -13,12 +13,12 @@ import sys
 import numpy as np
 import pytest
 
-from fleetbrake.block import BLOCK_MATERIAL, Material
+from fleetbrake.fleet.block import BLOCK_MATERIAL, Material
 
 pytest.importorskip("skfem")
 pytest.importorskip("scipy")
 
-from fleetbrake.peers.skfem_block import SkfemBlockModel
+from fleetbrake.bench.peers.skfem_block import SkfemBlockModel
 
 K, RHO, C = 48.0, 7100.0, 520.0
 RHO_C = RHO * C

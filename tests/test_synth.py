@@ -1,4 +1,4 @@
-"""The synthetic fleet generator (fleetbrake.synth, ``fleetbrake synth``).
+"""The synthetic fleet generator (fleetbrake.synth.generator, ``fleetbrake synth``).
 
 The default fleet (4 wagons x 2 days, every imperfection and anomaly on) is generated once
 per session into a directory the xdist workers share (a file lock decides who writes it);
@@ -21,12 +21,12 @@ import polars as pl
 import pytest
 from typer.testing import CliRunner
 
-from fleetbrake import logfile
-from fleetbrake.cli import app
-from fleetbrake.effects import EffectSet, SensorLag
-from fleetbrake.physics import block_force_n
-from fleetbrake.registry import load_registry
-from fleetbrake.synth import (
+from fleetbrake.cli.main import app
+from fleetbrake.fleet import logfile
+from fleetbrake.fleet.registry import load_registry
+from fleetbrake.model.effects import EffectSet, SensorLag
+from fleetbrake.model.physics import block_force_n
+from fleetbrake.synth.generator import (
     SENSOR_FAULT_SUBTYPES,
     FleetTruth,
     SynthConfig,
@@ -246,7 +246,7 @@ def test_the_projects_reader_takes_the_fleet_as_the_truth_says(fleet, tmp_path):
     the wagons without a good registry entry, and finds the recorded braking events."""
     import duckdb
 
-    from fleetbrake.ingest import run_ingest
+    from fleetbrake.ingest.files import run_ingest
 
     db = tmp_path / "fleet.duckdb"
     report = run_ingest(fleet.out_dir, db, progress=False)

@@ -1,4 +1,4 @@
-"""The Rust block model (``fleetbrake.thermal``) against the scikit-fem reference, and the
+"""The Rust block model (``fleetbrake.model.thermal``) against the scikit-fem reference, and the
 Python API's error mapping and energy ledger.
 
 The comparison: the reference block under the paper's manoeuvre A in the declared model
@@ -9,7 +9,7 @@ but for the flux; Crank-Nicolson, dt = 1 s, 600 steps, the contract's default da
 
 - hex8: nothing but rounding: identical trilinear geometry, identical time scheme;
 - hex20: our elements are isoparametric (midside nodes on the arcs); scikit-fem's geometry is
-  trilinear from the corners (the chords; see ``fleetbrake.peers.skfem_block``). The chord
+  trilinear from the corners (the chords; see ``fleetbrake.bench.peers.skfem_block``). The chord
   geometry has a relative volume about 6e-5 (default mesh) to 2e-4 (refinement 0.5) smaller;
   with a rise of ~25 K on the friction face that is a few 1e-3 K at most. Measured: sensor
   1.7e-3 K / 7.2e-3 K, friction-face mean 4.2e-4 K / 1.6e-3 K (default / refinement 0.5).
@@ -24,11 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from fleetbrake import thermal
-from fleetbrake.block import Material
-from fleetbrake.physics import PAPER_MANOEUVRES, event_flux_series_w_m2, event_mean_flux_w_m2
-from fleetbrake.registry import WagonConfig
-from fleetbrake.thermal import (
+from fleetbrake.fleet.block import Material
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model import thermal
+from fleetbrake.model.physics import PAPER_MANOEUVRES, event_flux_series_w_m2, event_mean_flux_w_m2
+from fleetbrake.model.thermal import (
     BlockModel,
     InvalidParameterError,
     InvalidTimeStepError,
@@ -41,7 +41,7 @@ from fleetbrake.thermal import (
 pytest.importorskip("skfem")
 pytest.importorskip("scipy")
 
-from fleetbrake.peers.skfem_block import SkfemBlockModel
+from fleetbrake.bench.peers.skfem_block import SkfemBlockModel
 
 WAGON = WagonConfig(wagon_id="SGG-0001")  # registry defaults (fleet-data.md)
 MANOEUVRE = PAPER_MANOEUVRES["A"]

@@ -1,4 +1,4 @@
-"""Type stubs of the Rust extension (crates/fleetbrake_py). Use fleetbrake.thermal instead."""
+"""Type stubs of the Rust extension (crates/fleetbrake_py). Use fleetbrake.model.thermal instead."""
 
 from typing import Any
 

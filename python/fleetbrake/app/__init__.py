@@ -1,0 +1,2 @@
+"""The jobs users run, each composed of the layers below: ``run`` (files to flags), the fleet
+report, and the demo."""

@@ -1,0 +1,153 @@
+"""``fleetbrake bench fleet``: a fleet-day from log files to flags, timed end to end.
+
+A synthetic fleet (:func:`fleetbrake.synth.generator.generate_fleet`: ``wagons`` registered wagons over
+``days`` UTC days, with the ordinary imperfections of real logs and injected anomalies, no
+undeclared effect) is generated first, timed apart (it is not what is measured), then
+:func:`fleetbrake.app.run.run_fleet` (``fleetbrake run``) is timed on it into a fresh
+database: ingestion, event detection, simulation of every event with the declared model,
+flags. The stages' seconds are the ones ``run_fleet`` reports (``RunReport.stage_s``); the
+rest of the total is opening the database.
+
+The reduced thermal model is loaded (or built and cached) before the clock starts, as a
+fleet server would have it; the refinement is ``$FLEETBRAKE_REFINEMENT`` or 1.0, the
+default mesh. The figures carry the machine's CPU count and load average: other processes
+on the machine slow them down.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+__all__ = ["bench_fleet", "print_figures"]
+
+
+def _generate(fleet_dir: Path, wagons: int, days: int, seed: int, show: bool) -> Any:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+    from rich.progress import TimeElapsedColumn as Elapsed
+
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet, load_truth
+
+    if (fleet_dir / "fleet.toml").is_file() and (fleet_dir / "truth").is_dir():
+        truth = load_truth(fleet_dir)
+        if (truth.config.wagons, truth.config.days, truth.config.seed) != (wagons, days, seed):
+            raise ValueError(
+                f"{fleet_dir}: holds a fleet of {truth.config.wagons} wagons x "
+                f"{truth.config.days} days, seed {truth.config.seed}; give another --fleet"
+            )
+        return truth
+    config = SynthConfig(wagons=wagons, days=days, seed=seed)
+    total = wagons + int(config.unregistered_wagon) + int(config.bad_registry_entry)
+    with Progress(
+        TextColumn("generating the fleet"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        Elapsed(),
+        disable=not show,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("generate", total=total)
+        return generate_fleet(
+            fleet_dir,
+            config,
+            progress=lambda text: bar.advance(task) if text.startswith("simulating") else None,
+        )
+
+
+def bench_fleet(
+    wagons: int = 100,
+    days: int = 1,
+    *,
+    seed: int = 0,
+    workdir: str | Path | None = None,
+    fleet_dir: str | Path | None = None,
+    progress: bool | None = None,
+) -> dict[str, Any]:
+    """Generate the fleet (or reuse ``fleet_dir`` if it holds the same one), then time
+    ``run_fleet`` on it into a fresh database; return the figures. Everything but a given
+    ``fleet_dir`` is made in a temporary directory (in ``workdir``) and removed after."""
+    import psutil
+
+    from fleetbrake.app.run import run_fleet
+    from fleetbrake.fleet.registry import WagonConfig
+    from fleetbrake.model.rom import ReducedModel
+
+    show = os.isatty(2) if progress is None else progress
+    refinement = float(os.environ.get("FLEETBRAKE_REFINEMENT", "1.0"))
+    tmp = Path(tempfile.mkdtemp(prefix="fleetbrake-bench-fleet-", dir=workdir))
+    try:
+        began = time.perf_counter()
+        ReducedModel.for_wagon(WagonConfig(wagon_id="SGG-0001"), refinement=refinement)
+        model_s = time.perf_counter() - began
+
+        fleet = Path(fleet_dir) if fleet_dir is not None else tmp / "fleet"
+        began = time.perf_counter()
+        truth = _generate(fleet, wagons, days, seed, show)
+        generate_s = time.perf_counter() - began
+
+        db = tmp / "fleet.duckdb"
+        load = os.getloadavg()[0]
+        began = time.perf_counter()
+        report = run_fleet(fleet, db, progress=show)
+        seconds = time.perf_counter() - began
+        stages = report.stage_s
+        ingest: Any = report.ingest
+        sim = report.simulation
+        flag_report: Any = report.flags
+        events = ingest.events.total if ingest.events is not None else sim.events_simulated
+        figures: dict[str, Any] = {
+            "benchmark": "fleet",
+            "wagons": wagons,
+            "days": days,
+            "wagons_with_logs": len(truth.wagons),
+            "files": ingest.files_seen,
+            "files_quarantined": len(ingest.quarantined),
+            "rows": ingest.rows,
+            "events": events,
+            "events_simulated": sim.events_simulated,
+            "prediction_rows": sim.prediction_rows,
+            "flags": len(flag_report.flags) if flag_report is not None else None,
+            "seconds": round(seconds, 2),
+            "events_per_s": round(sim.events_simulated / seconds, 1) if seconds else None,
+            "rows_per_s": round(ingest.rows / seconds) if seconds else None,
+            "stages_s": {k: round(v, 2) for k, v in stages.items()},
+            "other_s": round(seconds - sum(stages.values()), 2),
+            "generate_s": round(generate_s, 1),
+            "model_s": round(model_s, 1),
+            "refinement": refinement,
+            "cpus": os.cpu_count(),
+            "load_avg_1min_at_start": round(load, 2),
+            "rss_end_mb": round(psutil.Process().memory_info().rss / 2**20),
+            "date_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        }
+        return figures
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def print_figures(figures: dict[str, Any], echo: Callable[[str], None] = print) -> None:
+    """The figures for people (the JSON line is printed by the caller)."""
+    stages = ", ".join(f"{k} {v:.1f} s" for k, v in figures["stages_s"].items())
+    echo(
+        f"fleet of {figures['wagons']} wagons x {figures['days']} day(s) "
+        f"({figures['wagons_with_logs']} wagons with logs, {figures['files']} files, "
+        f"{figures['files_quarantined']} quarantined, {figures['rows']:,} rows), "
+        f"generated in {figures['generate_s']} s (not timed)"
+    )
+    echo(
+        f"run_fleet: {figures['events_simulated']:,} of {figures['events']:,} events simulated, "
+        f"{figures['flags']} flags, in {figures['seconds']} s: "
+        f"{figures['events_per_s']} events/s, {figures['rows_per_s']:,} rows/s"
+    )
+    echo(f"stages: {stages}, other {figures['other_s']:.1f} s")
+    echo(
+        f"reduced model at refinement {figures['refinement']:g} (ready in "
+        f"{figures['model_s']} s before timing); {figures['cpus']} CPUs, load average "
+        f"{figures['load_avg_1min_at_start']} at start; RSS {figures['rss_end_mb']} MB at the end"
+    )

@@ -1,0 +1,2 @@
+"""The reproduction of the paper's Ansys study: manoeuvres A and B, calibration, the figures and
+VTU fields."""

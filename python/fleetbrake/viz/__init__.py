@@ -1,0 +1,1 @@
+"""What people look at: rerun recordings of a wagon's timeline."""

@@ -1,0 +1,271 @@
+"""The DuckDB warehouse: open or create it, keep its schema and views current, one writer at a time.
+
+::
+
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse("warehouse/fleet.duckdb") as wh:    # WarehouseLockedError if busy
+        with wh.transaction():
+            wh.con.execute("INSERT INTO ... VALUES ($x)", {"x": 1})
+        wh.con.sql("SELECT * FROM v_files").pl()
+
+SQL lives in ``warehouse/`` at the top of the repository: ``schema*.sql`` (tables, applied
+first), ``v_*.sql`` (one view per file, applied next), both at every open and idempotent, and
+``q_*.sql`` (statements the code runs with bound parameters, read with :func:`sql`).
+
+One writer at a time: DuckDB lets a single process open a file for writing. A writer first
+takes an exclusive ``flock`` on ``<db>.lock`` (released by the kernel when the process ends,
+even on SIGKILL), so a second writer waits up to ``wait_s`` and then raises
+:class:`WarehouseLockedError` naming the database and the process holding it, before DuckDB is
+touched. Every change goes through DuckDB transactions, so a killed writer leaves the last
+committed state.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import fcntl
+import functools
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from importlib import resources
+from pathlib import Path
+
+import duckdb
+
+from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
+
+__all__ = [
+    "DEFAULT_DB_PATH",
+    "SCHEMA_VERSION",
+    "SQL_PACKAGE",
+    "Warehouse",
+    "WarehouseError",
+    "WarehouseLockedError",
+    "apply_schema",
+    "open_warehouse",
+    "sql",
+    "sql_files",
+]
+
+DEFAULT_DB_PATH = Path("warehouse/fleet.duckdb")
+"""Where the database is when ``--db`` is not given (relative to the working directory)."""
+
+SCHEMA_VERSION = 1
+"""Version of the tables in ``schema.sql``; a database of a newer version is not opened."""
+
+SQL_PACKAGE = "fleetbrake.warehouse.sql"
+"""The package whose ``*.sql`` resources are the schema, views and queries (shipped in the wheel)."""
+
+DEFAULT_MEMORY_LIMIT = "1GB"
+"""DuckDB's buffer pool bound: the ingestion's memory does not grow with the fleet."""
+
+_LOCK_POLL_S = 0.2
+
+
+class WarehouseError(FleetbrakeError):
+    """The warehouse cannot be opened or used; the message names the database file."""
+
+
+class WarehouseLockedError(WarehouseError, DatabaseLockedError):
+    """Another process is writing to the database."""
+
+
+def sql_files() -> list[str]:
+    return sorted(
+        entry.name
+        for entry in resources.files(SQL_PACKAGE).iterdir()
+        if entry.name.endswith(".sql")
+    )
+
+
+@functools.cache
+def sql(name: str) -> str:
+    """Text of the packaged ``fleetbrake/warehouse/sql/<name>.sql``."""
+    try:
+        return resources.files(SQL_PACKAGE).joinpath(f"{name}.sql").read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise WarehouseError(
+            f"{name}.sql: SQL file not found in {SQL_PACKAGE} (is the installation complete?)"
+        ) from None
+
+
+def _schema_files() -> list[str]:
+    """Names of the schema's statements, in order: the tables, then the views."""
+    names = sql_files()
+    tables = [n[:-4] for n in names if n.startswith("schema")]
+    views = [n[:-4] for n in names if n.startswith("v_")]
+    if not tables:
+        raise WarehouseError(f"{SQL_PACKAGE}: no schema*.sql found (is the installation complete?)")
+    return tables + views
+
+
+def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> None:
+    """Create what is missing (tables, then views) and record the schema version; idempotent.
+
+    Raises :class:`WarehouseError` if the database was made by a newer schema version.
+    """
+    con.execute("BEGIN TRANSACTION")
+    try:
+        for name in _schema_files():
+            con.execute(sql(name))
+        (found,) = con.execute("SELECT max(version) FROM schema_version").fetchone()
+        if found is not None and found > SCHEMA_VERSION:
+            raise WarehouseError(
+                f"{db_label}: schema version {found} was written by a newer fleetbrake "
+                f"(this one knows version {SCHEMA_VERSION}); it was left unchanged"
+            )
+        if found is None or found < SCHEMA_VERSION:
+            con.execute(
+                "INSERT INTO schema_version (version, applied_utc) VALUES ($version, $now)",
+                {"version": SCHEMA_VERSION, "now": _utc_now()},
+            )
+        con.execute("COMMIT")
+    except BaseException:
+        con.execute("ROLLBACK")
+        raise
+
+
+def _utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC).replace(tzinfo=None)
+
+
+class _ProcessLock:
+    """An exclusive ``flock`` on ``<db>.lock``, holding the owner's pid and start time."""
+
+    def __init__(self, db_path: Path) -> None:
+        self.path = db_path.with_name(db_path.name + ".lock")
+        self._fd: int | None = None
+
+    def acquire(self, db_path: Path, wait_s: float) -> None:
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        deadline = time.monotonic() + max(wait_s, 0.0)
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    holder = self._holder()
+                    os.close(fd)
+                    waited = f" after waiting {wait_s:g} s" if wait_s > 0 else ""
+                    raise WarehouseLockedError(
+                        f"{db_path}: another fleetbrake process ({holder}) is writing to this "
+                        f"database{waited}; nothing was changed. Run again when it has "
+                        "finished, or give --wait SECONDS to wait for it."
+                    ) from None
+                time.sleep(_LOCK_POLL_S)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}, since {_utc_now():%Y-%m-%dT%H:%M:%SZ}\n".encode())
+        self._fd = fd
+
+    def _holder(self) -> str:
+        try:
+            text = self.path.read_text(encoding="utf-8").strip()
+        except OSError:
+            text = ""
+        return text or "pid unknown"
+
+    def release(self) -> None:
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+
+class Warehouse:
+    """An open warehouse: a DuckDB connection (``con``) and, when writable, the process lock."""
+
+    def __init__(
+        self, path: Path, con: duckdb.DuckDBPyConnection, lock: _ProcessLock | None
+    ) -> None:
+        self.path = path
+        self.con = con
+        self._lock = lock
+
+    @property
+    def read_only(self) -> bool:
+        """True when opened with ``read_only=True`` (no lock, no writes)."""
+        return self._lock is None
+
+    @contextmanager
+    def transaction(self) -> Iterator[duckdb.DuckDBPyConnection]:
+        """``BEGIN`` ... ``COMMIT``, or ``ROLLBACK`` if the block raises."""
+        self.con.execute("BEGIN TRANSACTION")
+        try:
+            yield self.con
+        except BaseException:
+            self.con.execute("ROLLBACK")
+            raise
+        self.con.execute("COMMIT")
+
+    def close(self) -> None:
+        """Close the connection, then release the lock."""
+        try:
+            self.con.close()
+        finally:
+            if self._lock is not None:
+                self._lock.release()
+
+    def __enter__(self) -> Warehouse:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_warehouse(
+    path: str | os.PathLike[str] = DEFAULT_DB_PATH,
+    *,
+    read_only: bool = False,
+    wait_s: float = 0.0,
+    memory_limit: str = DEFAULT_MEMORY_LIMIT,
+    threads: int | None = None,
+) -> Warehouse:
+    """Open (creating it and its directory if needed) the warehouse at ``path``.
+
+    Writable (the default): takes the process lock, waiting up to ``wait_s`` seconds for
+    another writer (:class:`WarehouseLockedError` after that), then applies the schema and
+    views. ``read_only=True``: no lock, no schema changes; the database must exist.
+    """
+    path = Path(path)
+    config: dict[str, str | int] = {"memory_limit": memory_limit}
+    if threads is not None:
+        config["threads"] = threads
+    if read_only:
+        if not path.exists():
+            raise WarehouseError(f"{path}: no such database")
+        return Warehouse(path, _connect(path, read_only=True, config=config), None)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = _ProcessLock(path)
+    lock.acquire(path, wait_s)
+    try:
+        con = _connect(path, read_only=False, config=config)
+        try:
+            apply_schema(con, str(path))
+        except BaseException:
+            con.close()
+            raise
+    except BaseException:
+        lock.release()
+        raise
+    return Warehouse(path, con, lock)
+
+
+def _connect(
+    path: Path, *, read_only: bool, config: dict[str, str | int]
+) -> duckdb.DuckDBPyConnection:
+    try:
+        return duckdb.connect(str(path), read_only=read_only, config=config)
+    except duckdb.IOException as error:
+        message = str(error)
+        if "lock" in message.lower():
+            raise WarehouseLockedError(
+                f"{path}: the database is open in another process (not through fleetbrake's "
+                f"lock); nothing was changed. DuckDB says: {message}"
+            ) from None
+        raise WarehouseError(f"{path}: cannot open the database: {message}") from None
+    except duckdb.Error as error:
+        raise WarehouseError(f"{path}: cannot open the database: {error}") from None
