@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
+from fleetbrake.app.run import run_fleet
 from fleetbrake.cli.main import app
 from fleetbrake.fleet import logfile as lf
 from fleetbrake.fleet.registry import RegistryError
@@ -31,9 +33,11 @@ from fleetbrake.ingest.files import (
     read_log,
     run_ingest,
 )
+from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.warehouse.connection import open_warehouse
 from fleetgen import (
     T0_UTC,
+    make_session,
     relpath_of,
     simple_session,
     snapshot,
@@ -191,6 +195,23 @@ def _not_finite(frame: pl.DataFrame, rng: np.random.Generator) -> pl.DataFrame:
     return frame.with_columns(pl.Series("speed_kmh", speed))
 
 
+def _impossible(frame: pl.DataFrame, rng: np.random.Generator) -> pl.DataFrame:
+    """Finite numbers no channel can take: a speed of 1e308 km/h, a pressure of -5 bar, ..."""
+    changes = {
+        "speed_kmh": {5: 1e308, 6: -3.0},
+        "brake_pressure_bar": {7: -5.0},
+        "lat_deg": {8: 91.0},
+        "ambient_temp_c": {9: 1000.0},
+    }
+    columns = []
+    for name, rows in changes.items():
+        values = frame[name].to_numpy().copy()
+        for row, value in rows.items():
+            values[row] = value
+        columns.append(pl.Series(name, values))
+    return frame.with_columns(columns)
+
+
 def _bom(frame: pl.DataFrame, rng: np.random.Generator) -> bytes:
     return b"\xef\xbb\xbf" + lf.to_csv_bytes(frame)
 
@@ -221,6 +242,9 @@ CASES: dict[str, Case] = {
         note="not a time",
     ),
     "not finite numbers": Case(_not_finite, {"cells_unparsable": 2}),
+    "physically impossible numbers": Case(
+        _impossible, {"cells_unparsable": 5}, note="outside the range the channel can take"
+    ),
     "gps speed frozen": Case(lambda f, r: lf.freeze_speed(f, r, 200)),
     "gps speed jumps": Case(lambda f, r: lf.jump_speed(f, r, 6)),
     "pt1000 frozen": Case(lambda f, r: lf.pt1000_frozen(f, r, 300)),
@@ -314,6 +338,51 @@ def test_open_circuit_readings_are_faults_not_temperatures(fleet: Path, db: Path
     row = file_row(db, relpath_of(WAGON, T0_UTC))
     assert "55 block_temp_c readings outside [-60, 600] degC" in row["repairs"]
     assert "lines 102, 103, 104, 105, 106 and 50 more" in row["repairs"]
+
+
+def test_impossible_readings_are_counted_emptied_and_warn_nowhere(
+    fleet: Path,
+    db: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    rom_refinement: float,
+    rom_cache_dir: Path,
+    default_rom: object,  # the session's reduced model, built once under the conftest's lock
+) -> None:
+    """A speed of 1e308 km/h and a pressure of -5 bar inside a braking: the file is ingested,
+    the cells are recorded as unparsable ones are (counted, noted with their lines, stored
+    empty), and the whole run (events, simulation, flags) raises no warning (before, numpy's
+    overflow warning reached the console from the simulation)."""
+    monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+    session = make_session(np.random.default_rng(3), n_events=4, kinds=("slowdown", "stop"))
+    onset = int((session.events[1].onset_utc - T0_UTC).total_seconds())
+    speed = session.frame["speed_kmh"].to_numpy().copy()
+    pressure = session.frame["brake_pressure_bar"].to_numpy().copy()
+    speed[onset + 5 : onset + 8] = 1e308
+    pressure[onset + 10 : onset + 12] = -5.0
+    frame = session.frame.with_columns(
+        pl.Series("speed_kmh", speed), pl.Series("brake_pressure_bar", pressure)
+    )
+    write_session(fleet, WAGON, frame, T0_UTC)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        report = run_fleet(
+            fleet, db, simulation=SimulationConfig(refinement=rom_refinement), progress=False
+        )
+    assert [r.status for r in report.ingest.results] == ["ingested"]  # type: ignore[attr-defined]
+    assert report.simulation.events_simulated == len(session.events)
+    path = relpath_of(WAGON, T0_UTC)
+    row = file_row(db, path)
+    assert row["rows"] == frame.height
+    assert row["cells_unparsable"] == 5
+    lines = ", ".join(str(onset + 2 + k) for k in (5, 6, 7))
+    assert f"speed_kmh outside [0, 350] lines {lines} (1e+308, 1e+308, ...)" in row["repairs"]
+    lines = ", ".join(str(onset + 2 + k) for k in (10, 11))
+    assert f"brake_pressure_bar outside [-1, 12] lines {lines} (-5, -5)" in row["repairs"]
+    samples = stored(db, path)
+    assert samples["speed_kmh"].slice(onset + 5, 3).null_count() == 3
+    assert samples["brake_pressure_bar"].slice(onset + 10, 2).null_count() == 2
+    assert samples["speed_kmh"].null_count() == 3
+    assert samples["brake_pressure_bar"].null_count() == 2
 
 
 def test_repair_notes_name_lines(fleet: Path, db: Path) -> None:
@@ -467,6 +536,7 @@ SAFE_TO_COMBINE = [
     "out of order",
     "blank cells",
     "not finite numbers",
+    "physically impossible numbers",
     "gps speed frozen",
     "gps speed jumps",
     "pt1000 frozen",

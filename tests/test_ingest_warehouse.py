@@ -104,6 +104,25 @@ def test_read_only(tmp_path: Path) -> None:
             wh.con.execute("DELETE FROM files")
 
 
+def test_settings_hold_for_the_block_only(tmp_path: Path) -> None:
+    with open_warehouse(tmp_path / "fleet.duckdb", memory_limit="512MB") as wh:
+
+        def setting(name: str) -> object:
+            return wh.con.execute("SELECT current_setting($n)", {"n": name}).fetchone()[0]  # type: ignore[index]
+
+        before = setting("memory_limit"), setting("preserve_insertion_order")
+        with wh.settings(memory_limit="64MB", preserve_insertion_order=False):
+            assert setting("preserve_insertion_order") is False
+            assert setting("memory_limit") != before[0]
+        assert (setting("memory_limit"), setting("preserve_insertion_order")) == before
+        with pytest.raises(RuntimeError), wh.settings(memory_limit="64MB"):
+            raise RuntimeError("the block failed")
+        assert setting("memory_limit") == before[0]
+        with pytest.raises(ValueError, match="not a DuckDB setting the warehouse changes: x"):
+            with wh.settings(x=1):
+                pass
+
+
 def test_transaction_rolls_back_on_error(tmp_path: Path) -> None:
     with open_warehouse(tmp_path / "fleet.duckdb") as wh:
         with pytest.raises(RuntimeError), wh.transaction() as con:

@@ -233,6 +233,17 @@ def test_pt1000_faults(session: pl.DataFrame) -> None:
     assert np.all(np.abs(tail + 5.0) < 0.01 * np.abs(session["block_temp_c"][900] + 5.0) + 0.1)
 
 
+def test_every_numeric_channel_has_a_plausible_range(session: pl.DataFrame) -> None:
+    assert set(lf.PLAUSIBLE_RANGES) == set(lf.FLOAT_COLUMNS)
+    assert all(low < high for low, high in lf.PLAUSIBLE_RANGES.values())
+    assert lf.PLAUSIBLE_RANGES["block_temp_c"] == lf.BLOCK_TEMP_VALID_C
+    # what real units write stays inside, GPS jumps and frozen speeds included: those are
+    # the event detection's to deal with, not impossible values
+    rough = lf.freeze_speed(lf.jump_speed(session, _rng(), 20, jump_kmh=120.0), _rng(1), 60)
+    for column, (low, high) in lf.PLAUSIBLE_RANGES.items():
+        assert rough[column].is_between(low, high).all(), column
+
+
 def test_truncate_mid_row() -> None:
     data = lf.to_csv_bytes(simple_session(rows=200))
     for seed in range(20):

@@ -1,10 +1,11 @@
 """The on-board log file format of ``shared/spec/fleet-data.md``: the one implementation.
 
-Everything that knows what a log file looks like lives here: the column names, the file-name
-convention ``logs/<wagon_id>/<wagon_id>_<YYYYMMDDTHHMMSSZ>.csv[.gz]`` (parse and build), a
-writer that turns one session (a polars frame) into exactly the bytes a unit writes, and the
-imperfections real units produce, as small pure functions that a synthetic-fleet generator and
-the tests combine::
+Everything that knows what a log file looks like lives here: the column names, the range of
+values each channel can physically take (:data:`PLAUSIBLE_RANGES`), the file-name convention
+``logs/<wagon_id>/<wagon_id>_<YYYYMMDDTHHMMSSZ>.csv[.gz]`` (parse and build), a writer that
+turns one session (a polars frame) into exactly the bytes a unit writes, and the imperfections
+real units produce, as small pure functions that a synthetic-fleet generator and the tests
+combine::
 
     rng = np.random.default_rng(7)
     frame = swap_neighbours(duplicate_rows(drop_gap(session, rng, gap_s=90), rng, 0.01), rng, 0.01)
@@ -24,12 +25,15 @@ import datetime as dt
 import gzip as gzip_module
 import os
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
+from types import MappingProxyType
 
 import numpy as np
 import polars as pl
 
+from fleetbrake.errors import FleetbrakeError
 from fleetbrake.fleet.registry import WAGON_ID_PATTERN
 
 __all__ = [
@@ -38,6 +42,7 @@ __all__ = [
     "FLOAT_COLUMNS",
     "LOG_NAME_PATTERN",
     "OPTIONAL_COLUMNS",
+    "PLAUSIBLE_RANGES",
     "REQUIRED_COLUMNS",
     "TIME_FORMAT",
     "WAGON_ID_PATTERN",
@@ -97,6 +102,36 @@ TIME_FORMAT = "%Y-%m-%dT%H:%M:%SZ"
 BLOCK_TEMP_VALID_C: tuple[float, float] = (-60.0, 600.0)
 """A Pt1000 reading outside this closed range is a broken wire, not a temperature."""
 
+PLAUSIBLE_RANGES: Mapping[str, tuple[float, float]] = MappingProxyType(
+    {
+        # GPS ground speed: never negative; no train runs at 350 km/h, and a GPS jump of some
+        # tens of km/h stays inside (the event detection's running median deals with it)
+        "speed_kmh": (0.0, 350.0),
+        # since the session began, non-decreasing: at most 48 h (a session's longest) at 350 km/h
+        "distance_m": (0.0, 2.0e7),
+        # GPS altitude: below the lowest land (Dead Sea, -430 m) or above any railway (5,072 m),
+        # with room for a poor fix, is not a position
+        "elevation_m": (-1_000.0, 9_000.0),
+        "lat_deg": (-90.0, 90.0),
+        "lon_deg": (-180.0, 180.0),
+        # gauge pressure: -1 bar is a vacuum; no wagon's air system holds more than 10 bar
+        "brake_pressure_bar": (-1.0, 12.0),
+        # outside: a broken Pt1000 wire, kept as a fault (not cleared, see below)
+        "block_temp_c": BLOCK_TEMP_VALID_C,
+        # air where wagons run: the coldest and hottest ever measured lie within
+        "ambient_temp_c": (-90.0, 60.0),
+    }
+)
+"""The closed range of values each numeric channel can physically take, in its unit.
+
+A cell outside is not a measurement (a speed of 1e308 km/h, a pressure of -5 bar): the
+ingestion records it as it records a cell that is not a number (counted in
+``files.cells_unparsable``, described with its line in ``files.repairs``) and stores the cell
+empty. ``block_temp_c`` is the exception the format describes: a reading outside
+:data:`BLOCK_TEMP_VALID_C` is a broken wire, stored as a fault with its raw value. ``time_utc``
+has its own range, the session's: from the file name's time to 48 h after it.
+"""
+
 # --------------------------------------------------------------------------------------------
 # File names
 
@@ -108,7 +143,7 @@ LOG_NAME_PATTERN = re.compile(
 """``<wagon_id>_<YYYYMMDDTHHMMSSZ>.csv[.gz]`` (whole name)."""
 
 
-class LogNameError(ValueError):
+class LogNameError(FleetbrakeError, ValueError):
     """A path that does not follow the log file-name convention; the message names it."""
 
 

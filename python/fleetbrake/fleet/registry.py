@@ -349,8 +349,9 @@ class WagonConfig:
             problems.append(
                 f"wagon_id must match {WAGON_ID_PATTERN.pattern}, {_got(self.wagon_id)}"
             )
-        if self.type is not None and not isinstance(self.type, str):
-            problems.append(f"type must be a string, {_got(self.type)}")
+        wagon_type: object = self.type  # a registry file can hold anything here
+        if wagon_type is not None and not isinstance(wagon_type, str):
+            problems.append(f"type must be a string, {_got(wagon_type)}")
         values = {key: getattr(self, key) for key in CONFIG_KEYS}
         for key, value in values.items():
             problem = check_value(key, value)

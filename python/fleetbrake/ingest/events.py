@@ -474,16 +474,15 @@ def update_events(wh: Warehouse, config: EventConfig | None = None) -> EventUpda
     config = config or EventConfig()
     con = wh.con
     update = EventUpdate()
-    dirty = con.execute(
-        "SELECT wagon_id, from_utc, to_utc FROM event_dirty ORDER BY wagon_id, from_utc"
-    ).fetchall()
+    dirty = con.execute(sql("q_events_dirty")).fetchall()
     by_wagon: dict[str, list[tuple[dt.datetime, dt.datetime]]] = {}
     for wagon_id, from_utc, to_utc in dirty:
         by_wagon.setdefault(wagon_id, []).append((from_utc, to_utc))
     for wagon_id in sorted(by_wagon):
         _update_wagon(wh, wagon_id, by_wagon[wagon_id], config, update)
         update.wagons += 1
-    (update.total,) = con.execute("SELECT count(*) FROM events").fetchone()
+    row = con.execute(sql("q_events_count")).fetchone()
+    update.total = int(row[0]) if row is not None else 0
     return update
 
 
@@ -497,12 +496,7 @@ def _update_wagon(
     """One wagon, one transaction: detect its touched chains again, bring its events in line."""
     con = wh.con
     with wh.transaction():
-        files = con.execute(
-            "SELECT first_utc, last_utc, rows FROM files "
-            "WHERE wagon_id = $wagon_id AND status = 'ingested' AND rows > 0 "
-            "ORDER BY first_utc, file_id",
-            {"wagon_id": wagon_id},
-        ).fetchall()
+        files = con.execute(sql("q_events_wagon_files"), {"wagon_id": wagon_id}).fetchall()
         chains = _chains(files, config.max_gap_s)
         touched = _merged(dirty, dt.timedelta(seconds=config.max_gap_s))
         affected = [c for c in chains if _overlaps(touched, c.from_utc, c.to_utc)]
@@ -514,7 +508,7 @@ def _update_wagon(
         gone = [i for i, row in old_rows.items() if new_rows.get(i) != row]
         fresh = [i for i, row in new_rows.items() if old_rows.get(i) != row]
         if gone:
-            con.execute("DELETE FROM events WHERE list_contains($ids, event_id)", {"ids": gone})
+            con.execute(sql("q_events_delete"), {"ids": gone})
         if fresh:
             batch = new.filter(pl.col("event_id").is_in(fresh)).with_columns(
                 pl.lit(_utc_now()).alias("detected_utc")
@@ -524,7 +518,7 @@ def _update_wagon(
                 con.execute(sql("q_insert_events"))
             finally:
                 con.unregister("event_batch")
-        con.execute("DELETE FROM event_dirty WHERE wagon_id = $wagon_id", {"wagon_id": wagon_id})
+        con.execute(sql("q_events_clear_dirty"), {"wagon_id": wagon_id})
     update.chains += len(affected)
     update.added += len(fresh)
     update.removed += len(gone)
@@ -576,8 +570,7 @@ def _events_in(
     if not windows:
         return pl.DataFrame(schema=EVENT_COLUMNS)
     stored = wh.con.sql(
-        f"SELECT {', '.join(EVENT_COLUMNS)} FROM events "
-        "WHERE wagon_id = $wagon_id AND start_utc <= $to_utc AND end_utc >= $from_utc",
+        sql("q_events_stored"),
         params={"wagon_id": wagon_id, "from_utc": windows[0][0], "to_utc": windows[-1][1]},
     ).pl()
     keep = [

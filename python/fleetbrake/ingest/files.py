@@ -33,7 +33,9 @@ ignored: they are temporary files of copies in progress):
   numbers): a last row cut short (the file does not end in a newline) is dropped; a row whose
   time cell is empty or not a time is dropped; a row timed before the file name's time or more
   than ``max_session_s`` after it is dropped; a repeated time keeps its first row; rows out of
-  order are sorted; a numeric cell that is not a finite number becomes empty (the row is kept);
+  order are sorted; a numeric cell that is not a finite number, or that lies outside the range
+  its channel can physically take (``fleet.logfile.PLAUSIBLE_RANGES``: a speed of 1e308 km/h,
+  a pressure of -5 bar), becomes empty (the row is kept; both counted in ``cells_unparsable``);
   a ``block_temp_c`` reading outside [-60, 600] °C is a broken wire: stored as
   ``block_temp_raw_c`` with ``block_temp_fault = true``, ``block_temp_c`` null. A
   line with fewer cells than the header has empty trailing cells, one with more has its extra
@@ -54,9 +56,8 @@ import sys
 import time
 import zlib
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -78,6 +79,7 @@ from fleetbrake.fleet.logfile import (
     BLOCK_TEMP_VALID_C,
     FLOAT_COLUMNS,
     OPTIONAL_COLUMNS,
+    PLAUSIBLE_RANGES,
     REQUIRED_COLUMNS,
     TIME_FORMAT,
     LogNameError,
@@ -138,8 +140,11 @@ class IngestConfig:
     memory_limit: str = "128MB"
     """DuckDB's buffer pool during the ingestion (restored afterwards): the written blocks it
     caches would otherwise grow with the fleet up to the connection's limit."""
-    block_temp_valid_c: tuple[float, float] = BLOCK_TEMP_VALID_C
-    """Pt1000 readings outside this closed range are faults, not temperatures."""
+    plausible_ranges: Mapping[str, tuple[float, float]] = field(
+        default_factory=lambda: PLAUSIBLE_RANGES
+    )
+    """Closed range of each numeric channel: a cell outside is cleared and counted as
+    unparsable, except ``block_temp_c``, whose readings outside are Pt1000 faults."""
 
 
 class Quarantine(Exception):
@@ -161,6 +166,7 @@ class Repairs:
     rows_duplicate: int = 0
     rows_out_of_order: int = 0
     cells_unparsable: int = 0
+    """Cells not a finite number or outside their channel's plausible range (now empty)."""
     block_temp_faults: int = 0
     partial_row_dropped: bool = False
     notes: list[str] = field(default_factory=list)
@@ -399,6 +405,50 @@ def _clear_unparsable(
     )
 
 
+def _clear_implausible(
+    frame: pl.DataFrame, ranges: Mapping[str, tuple[float, float]], repairs: Repairs
+) -> pl.DataFrame:
+    """Numeric cells outside their channel's plausible range become null; counted with the
+    unparsable ones and noted. ``block_temp_c`` is left to :func:`_block_temp_faults`."""
+    checked = {c: ranges[c] for c in FLOAT_COLUMNS if c in ranges and c in frame.columns}
+    checked.pop("block_temp_c", None)
+    if not checked or frame.height == 0:
+        return frame
+    # fast path (every file of a working unit): each column's extremes within its range
+    lowest = frame.select(pl.col(c).min() for c in checked).row(0, named=True)
+    highest = frame.select(pl.col(c).max() for c in checked).row(0, named=True)
+    inside = [
+        (lowest[c] is None or lowest[c] >= lo) and (highest[c] is None or highest[c] <= hi)
+        for c, (lo, hi) in checked.items()
+    ]
+    if all(inside):
+        return frame
+    bad = frame.select(
+        (~pl.col(c).is_between(lo, hi)).fill_null(False).alias(c) for c, (lo, hi) in checked.items()
+    )
+    counts = bad.sum().row(0, named=True)
+    total = sum(counts.values())
+    repairs.cells_unparsable += total
+    examples = []
+    for c, n in counts.items():
+        if not n:
+            continue
+        low, high = checked[c]
+        rows = bad[c].arg_true()
+        shown = [f"{v:g}" for v in frame[c].gather(rows.head(2)).to_list()]
+        examples.append(
+            f"{c} outside [{low:g}, {high:g}] {_lines((rows + 2).head(_EXAMPLES).to_list(), n)} "
+            f"({', '.join(shown)}" + (", ..." if n > 2 else "") + ")"
+        )
+    repairs.notes.append(
+        f"{total} cell{'s' if total > 1 else ''} outside the range the channel can take (not a "
+        "measurement), now empty: " + "; ".join(examples)
+    )
+    return frame.with_columns(
+        pl.when(bad[c]).then(None).otherwise(pl.col(c)).alias(c) for c in counts if counts[c]
+    )
+
+
 def _in_order(time_utc: pl.Series, start_utc: dt.datetime, latest_utc: dt.datetime) -> bool:
     """Every time present, within the session, strictly increasing: nothing to repair."""
     if time_utc.null_count() or time_utc.is_empty():
@@ -475,7 +525,7 @@ def _times(
 
 def _block_temp_faults(frame: pl.DataFrame, config: IngestConfig, repairs: Repairs) -> pl.DataFrame:
     """Split ``block_temp_c`` into valid readings and out-of-range faults (raw value kept)."""
-    low_c, high_c = config.block_temp_valid_c
+    low_c, high_c = config.plausible_ranges.get("block_temp_c", BLOCK_TEMP_VALID_C)
     raw = pl.col("block_temp_c")
     fault = (raw < low_c) | (raw > high_c)
     faulty = frame.select(fault.fill_null(False)).to_series()
@@ -528,6 +578,7 @@ def read_log(
     frame, text = _parse_cells(body, names)
     repairs.rows_in_file = frame.height
     frame = _clear_unparsable(frame, text, repairs)
+    frame = _clear_implausible(frame, config.plausible_ranges, repairs)
     for name in OPTIONAL_COLUMNS:
         if name not in frame.columns:
             frame = frame.with_columns(pl.lit(None, dtype=pl.Float64).alias(name))
@@ -592,10 +643,7 @@ class _Known:
 
 
 def _known_files(wh: Warehouse) -> dict[str, _Known]:
-    rows = wh.con.execute(
-        "SELECT path, file_id, sha256, size_bytes, mtime_ns, status, quarantine_code, reason, "
-        "wagon_id, first_utc, last_utc FROM files"
-    ).fetchall()
+    rows = wh.con.execute(sql("q_ingest_known_files")).fetchall()
     return {row[0]: _Known(*row[1:]) for row in rows}
 
 
@@ -696,25 +744,25 @@ def _utc_now() -> dt.datetime:
 
 _FILES_SCHEMA = pl.Schema(
     {
-        "file_id": pl.Int64,
-        "path": pl.String,
-        "wagon_id": pl.String,
-        "sha256": pl.String,
-        "size_bytes": pl.Int64,
-        "mtime_ns": pl.Int64,
-        "status": pl.String,
-        "quarantine_code": pl.String,
-        "reason": pl.String,
-        "rows": pl.Int64,
-        "rows_in_file": pl.Int64,
-        "rows_no_time": pl.Int64,
-        "rows_outside_session": pl.Int64,
-        "rows_duplicate": pl.Int64,
-        "rows_out_of_order": pl.Int64,
-        "cells_unparsable": pl.Int64,
-        "block_temp_faults": pl.Int64,
-        "partial_row_dropped": pl.Boolean,
-        "repairs": pl.String,
+        "file_id": pl.Int64(),
+        "path": pl.String(),
+        "wagon_id": pl.String(),
+        "sha256": pl.String(),
+        "size_bytes": pl.Int64(),
+        "mtime_ns": pl.Int64(),
+        "status": pl.String(),
+        "quarantine_code": pl.String(),
+        "reason": pl.String(),
+        "rows": pl.Int64(),
+        "rows_in_file": pl.Int64(),
+        "rows_no_time": pl.Int64(),
+        "rows_outside_session": pl.Int64(),
+        "rows_duplicate": pl.Int64(),
+        "rows_out_of_order": pl.Int64(),
+        "cells_unparsable": pl.Int64(),
+        "block_temp_faults": pl.Int64(),
+        "partial_row_dropped": pl.Boolean(),
+        "repairs": pl.String(),
         "first_utc": pl.Datetime("us"),
         "last_utc": pl.Datetime("us"),
         "ingested_utc": pl.Datetime("us"),
@@ -724,10 +772,10 @@ _FILES_SCHEMA = pl.Schema(
 
 _DIRTY_SCHEMA = pl.Schema(
     {
-        "wagon_id": pl.String,
+        "wagon_id": pl.String(),
         "from_utc": pl.Datetime("us"),
         "to_utc": pl.Datetime("us"),
-        "file_id": pl.Int64,
+        "file_id": pl.Int64(),
     }
 )
 
@@ -828,18 +876,13 @@ class _Batch:
         with self._wh.transaction():
             if self._replaced:
                 ids = {"ids": self._replaced}
-                con.execute("DELETE FROM samples WHERE list_contains($ids, file_id)", ids)
-                con.execute("DELETE FROM files WHERE list_contains($ids, file_id)", ids)
+                con.execute(sql("q_ingest_delete_samples"), ids)
+                con.execute(sql("q_ingest_delete_files"), ids)
             _insert(con, "file_batch", files, sql("q_insert_files"))
             if samples is not None:
                 _insert(con, "sample_batch", samples, sql("q_insert_samples"))
             if dirty.height:
-                _insert(
-                    con,
-                    "dirty_batch",
-                    dirty,
-                    "INSERT INTO event_dirty BY NAME SELECT * FROM dirty_batch",
-                )
+                _insert(con, "dirty_batch", dirty, sql("q_insert_event_dirty"))
         self._clear()
 
     def __enter__(self) -> _Batch:
@@ -942,13 +985,12 @@ def ingest_fleet(
     known = _known_files(wh)
     todo = [e for e in entries if _needs_reading(e, known.get(e.relpath), config)]
     report.files_unchanged = len(entries) - len(todo)
-    (last_id,) = wh.con.execute("SELECT coalesce(max(file_id), 0) FROM files").fetchone()
-    next_id = int(last_id) + 1
+    row = wh.con.execute(sql("q_ingest_last_file_id")).fetchone()
+    next_id = (int(row[0]) if row is not None else 0) + 1
 
     # Cheaper bulk inserts: rows of a batch need not keep their order (parallel appends), and
     # zstd (tried on every string column) costs about a tenth of the insert for no smaller file.
-    with _duckdb_settings(
-        wh,
+    with wh.settings(
         memory_limit=config.memory_limit,
         preserve_insertion_order=False,
         disabled_compression_methods="zstd",
@@ -973,29 +1015,6 @@ def ingest_fleet(
             wh.con.execute("CHECKPOINT")  # while the memory is bounded, not at close
     report.seconds = time.perf_counter() - started
     return report
-
-
-_SETTINGS_SQL = {
-    "memory_limit": "SET memory_limit = $value",
-    "preserve_insertion_order": "SET preserve_insertion_order = $value",
-    "disabled_compression_methods": "SET disabled_compression_methods = $value",
-}
-
-
-@contextmanager
-def _duckdb_settings(wh: Warehouse, **values: object) -> Iterator[None]:
-    """DuckDB settings changed for the block, then restored."""
-    before = {
-        name: wh.con.execute("SELECT current_setting($name)", {"name": name}).fetchone()[0]
-        for name in values
-    }
-    for name, value in values.items():
-        wh.con.execute(_SETTINGS_SQL[name], {"value": value})
-    try:
-        yield
-    finally:
-        for name, value in before.items():
-            wh.con.execute(_SETTINGS_SQL[name], {"value": value})
 
 
 class _Progress:

@@ -380,7 +380,7 @@ EFFECTS: Mapping[str, type[Effect]] = {cls.name: cls for cls in EFFECT_ORDER}
 def effect_from_dict(data: Mapping[str, Any]) -> Effect:
     """The inverse of :meth:`Effect.to_dict`."""
     name = data.get("name")
-    if name not in EFFECTS:
+    if not isinstance(name, str) or name not in EFFECTS:
         raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
     parameters = data.get("parameters", {})
     if not isinstance(parameters, Mapping):

@@ -27,6 +27,14 @@ probe output (``fleetbrake.model.rom.first_order_lag``).
 
 The face maximum is taken over the friction-face nodes that attained it in training, plus
 their neighbours (``face_max_nodes``); the a-posteriori check covers it.
+
+Building a model at the default mesh takes about a minute, so built models are cached on disk,
+keyed by everything they depend on: in ``$FLEETBRAKE_CACHE_DIR/rom``, else
+``~/.cache/fleetbrake/rom`` (or the ``cache_dir`` a caller passes). ``FLEETBRAKE_CACHE_DIR`` is
+the one environment variable the package reads. An entry is written to a temporary file of
+its own in the same directory and renamed into place, so processes building the same model at
+once each leave a whole file, and a reader never sees a partial one. The mesh's fineness is
+an explicit parameter (``refinement``, :data:`DEFAULT_REFINEMENT` unless given).
 """
 
 from __future__ import annotations
@@ -34,8 +42,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import secrets
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -55,6 +64,8 @@ from fleetbrake.model.thermal import (
 )
 
 __all__ = [
+    "CACHE_DIR_ENV",
+    "DEFAULT_REFINEMENT",
     "ROM_VERSION",
     "FullModelRunner",
     "ReducedModel",
@@ -67,6 +78,14 @@ __all__ = [
 
 ROM_VERSION = 3
 """Bumped whenever the construction changes, so that cached models are rebuilt."""
+
+DEFAULT_REFINEMENT = 1.0
+"""Mesh refinement of the models the pipeline builds unless told otherwise: the default
+mesh (about 21,000 hex20 nodes); 0.6 builds a reduced model in a fifth of the time."""
+
+CACHE_DIR_ENV = "FLEETBRAKE_CACHE_DIR"
+"""The environment variable naming the directory of built reduced models (documented; the
+only one the package reads)."""
 
 TRAINING_INITIAL_C = 23.0
 """Uniform start of the training run (manoeuvre A's block temperature)."""
@@ -84,7 +103,9 @@ def _limit_blas_threads() -> None:
     first made; processes that never use one are unaffected."""
     global _BLAS_LIMITED
     if not _BLAS_LIMITED:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import (  # type: ignore[import-untyped]  # ships no type information
+            threadpool_limits,
+        )
 
         threadpool_limits(limits=1, user_api="blas")
         _BLAS_LIMITED = True
@@ -92,7 +113,7 @@ def _limit_blas_threads() -> None:
 
 def default_cache_dir() -> Path:
     """``$FLEETBRAKE_CACHE_DIR``, else ``~/.cache/fleetbrake``."""
-    env = os.environ.get("FLEETBRAKE_CACHE_DIR")
+    env = os.environ.get(CACHE_DIR_ENV)
     return Path(env) if env else Path.home() / ".cache" / "fleetbrake"
 
 
@@ -297,16 +318,27 @@ class ReducedModel:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
+        """Write the model to ``path`` atomically: to a temporary file of its own in the same
+        directory (a unique name, so concurrent writers never share one), flushed, then
+        renamed into place; a reader sees the old file, or a whole new one."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(
-                fh,
-                meta=np.array(json.dumps(self.meta)),
-                **{k: getattr(self, k) for k in self._ARRAYS},
-            )
-        tmp.replace(path)
+        # pid and random token: unique among processes and threads; created exclusively ("x"),
+        # with the permissions the umask gives (mkstemp's would be private to the owner)
+        temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(8)}.tmp")
+        try:
+            with open(temporary, "xb") as fh:
+                np.savez(
+                    fh,
+                    meta=np.array(json.dumps(self.meta)),
+                    **{k: getattr(self, k) for k in self._ARRAYS},
+                )
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(temporary, path)
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path: str | Path) -> ReducedModel:
@@ -334,7 +366,7 @@ class ReducedModel:
         probes = np.asarray(probes_m, dtype=np.float64).reshape(-1, 3)
         key_src = {
             "factory": {
-                k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v)  # type: ignore[arg-type]
+                k: (asdict(v) if is_dataclass(v) and not isinstance(v, type) else v)
                 for k, v in sorted(model_factory.items())
             },
             "probes": np.round(probes, 9).tolist(),
@@ -359,14 +391,13 @@ class ReducedModel:
         cls,
         wagon: WagonConfig,
         *,
-        refinement: float | None = None,
+        refinement: float = DEFAULT_REFINEMENT,
         cache_dir: str | Path | None = None,
     ) -> ReducedModel:
         """The reduced model of a wagon's block with its sensor seat as the one probe, at the
-        declared model's nominal convection; cached on disk. ``refinement`` defaults to
-        ``$FLEETBRAKE_REFINEMENT`` or 1.0 (the default mesh, about 21,000 nodes)."""
-        if refinement is None:
-            refinement = float(os.environ.get("FLEETBRAKE_REFINEMENT", "1.0"))
+        declared model's nominal convection, on the mesh of ``refinement`` (1.0: the default
+        mesh, about 21,000 nodes); cached on disk (``cache_dir``, else
+        :func:`default_cache_dir`)."""
         sensor = wagon.sensor_point_m
         factory = {
             "geometry": wagon.geometry,
@@ -452,7 +483,7 @@ class ReducedModel:
         y += t_ref
         p = self.n_probes
         return RomSimulation(
-            time_s=np.arange(n_steps + 1) * float(dt_s),
+            time_s=np.arange(n_steps + 1, dtype=np.float64) * np.float64(dt_s),
             probe_c=y[:, :p],
             face_mean_c=y[:, p],
             face_max_c=y[:, p + 1 :].max(axis=1),
@@ -506,7 +537,7 @@ class ReducedModel:
             t_ref,
         )
         return RomBatch(
-            time_s=np.arange(n_steps + 1) * float(dt_s),
+            time_s=np.arange(n_steps + 1, dtype=np.float64) * np.float64(dt_s),
             probe_c=probe.reshape(n_events, n_steps + 1, self.n_probes),
             face_mean_c=mean,
             face_max_c=fmax,
@@ -575,9 +606,11 @@ class FullModelRunner:
         )
 
     @classmethod
-    def for_wagon(cls, wagon: WagonConfig, *, refinement: float | None = None) -> FullModelRunner:
-        if refinement is None:
-            refinement = float(os.environ.get("FLEETBRAKE_REFINEMENT", "1.0"))
+    def for_wagon(
+        cls, wagon: WagonConfig, *, refinement: float = DEFAULT_REFINEMENT
+    ) -> FullModelRunner:
+        """The full model of a wagon's block on the mesh of ``refinement``, its sensor seat
+        the one probe."""
         model = BlockModel(
             wagon.geometry,
             wagon.block_material,

@@ -9,9 +9,12 @@
             wh.con.execute("INSERT INTO ... VALUES ($x)", {"x": 1})
         wh.con.sql("SELECT * FROM v_files").pl()
 
-SQL lives in ``warehouse/`` at the top of the repository: ``schema*.sql`` (tables, applied
-first), ``v_*.sql`` (one view per file, applied next), both at every open and idempotent, and
-``q_*.sql`` (statements the code runs with bound parameters, read with :func:`sql`).
+The SQL ships inside the package, in :mod:`fleetbrake.warehouse.sql` (read with
+``importlib.resources``, so an installed wheel has it): ``schema*.sql`` (tables, applied first),
+``v_*.sql`` (one view per file, applied next), both at every open and idempotent, and
+``q_*.sql`` (one statement each, run by the code with bound ``$name`` parameters, read with
+:func:`sql`). What stays Python here is the connection: opening, the lock, transactions and
+DuckDB settings (:meth:`Warehouse.settings`).
 
 One writer at a time: DuckDB lets a single process open a file for writing. A writer first
 takes an exclusive ``flock`` on ``<db>.lock`` (released by the kernel when the process ends,
@@ -28,7 +31,7 @@ import fcntl
 import functools
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from importlib import resources
 from pathlib import Path
@@ -74,6 +77,7 @@ class WarehouseLockedError(WarehouseError, DatabaseLockedError):
 
 
 def sql_files() -> list[str]:
+    """Names of the packaged ``*.sql`` files, sorted."""
     return sorted(
         entry.name
         for entry in resources.files(SQL_PACKAGE).iterdir()
@@ -111,7 +115,8 @@ def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> 
     try:
         for name in _schema_files():
             con.execute(sql(name))
-        (found,) = con.execute("SELECT max(version) FROM schema_version").fetchone()
+        row = con.execute(sql("q_schema_version")).fetchone()
+        found = None if row is None or row[0] is None else int(row[0])
         if found is not None and found > SCHEMA_VERSION:
             raise WarehouseError(
                 f"{db_label}: schema version {found} was written by a newer fleetbrake "
@@ -119,8 +124,7 @@ def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> 
             )
         if found is None or found < SCHEMA_VERSION:
             con.execute(
-                "INSERT INTO schema_version (version, applied_utc) VALUES ($version, $now)",
-                {"version": SCHEMA_VERSION, "now": _utc_now()},
+                sql("q_insert_schema_version"), {"version": SCHEMA_VERSION, "now": _utc_now()}
             )
         con.execute("COMMIT")
     except BaseException:
@@ -130,6 +134,20 @@ def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> 
 
 def _utc_now() -> dt.datetime:
     return dt.datetime.now(dt.UTC).replace(tzinfo=None)
+
+
+def _scalar(row: tuple[object, ...] | None) -> object:
+    """The one value of a one-row, one-column result (None if there is no row)."""
+    return None if row is None else row[0]
+
+
+_SETTINGS_SQL: Mapping[str, str] = {
+    "memory_limit": "SET memory_limit = $value",
+    "preserve_insertion_order": "SET preserve_insertion_order = $value",
+    "disabled_compression_methods": "SET disabled_compression_methods = $value",
+}
+"""The DuckDB settings :meth:`Warehouse.settings` may change (a setting's name cannot be a
+bound parameter: each has its statement, the value bound)."""
 
 
 class _ProcessLock:
@@ -179,11 +197,18 @@ class Warehouse:
     """An open warehouse: a DuckDB connection (``con``) and, when writable, the process lock."""
 
     def __init__(
-        self, path: Path, con: duckdb.DuckDBPyConnection, lock: _ProcessLock | None
+        self,
+        path: Path,
+        con: duckdb.DuckDBPyConnection,
+        lock: _ProcessLock | None,
+        opened_with: Mapping[str, object] | None = None,
     ) -> None:
         self.path = path
         self.con = con
         self._lock = lock
+        self._opened_with = dict(opened_with or {})
+        """The settings the connection was opened with, restored exactly by :meth:`settings`
+        (DuckDB reports a memory limit rounded)."""
 
     @property
     def read_only(self) -> bool:
@@ -200,6 +225,29 @@ class Warehouse:
             self.con.execute("ROLLBACK")
             raise
         self.con.execute("COMMIT")
+
+    @contextmanager
+    def settings(self, **values: object) -> Iterator[None]:
+        """DuckDB settings (names of :data:`_SETTINGS_SQL`) changed for the block, then
+        restored to what they were."""
+        unknown = sorted(set(values) - set(_SETTINGS_SQL))
+        if unknown:
+            raise ValueError(f"not a DuckDB setting the warehouse changes: {', '.join(unknown)}")
+        before = {
+            name: self._opened_with[name]
+            if name in self._opened_with
+            else _scalar(
+                self.con.execute("SELECT current_setting($name)", {"name": name}).fetchone()
+            )
+            for name in values
+        }
+        for name, value in values.items():
+            self.con.execute(_SETTINGS_SQL[name], {"value": value})
+        try:
+            yield
+        finally:
+            for name, value in before.items():
+                self.con.execute(_SETTINGS_SQL[name], {"value": value})
 
     def close(self) -> None:
         """Close the connection, then release the lock."""
@@ -231,13 +279,13 @@ def open_warehouse(
     views. ``read_only=True``: no lock, no schema changes; the database must exist.
     """
     path = Path(path)
-    config: dict[str, str | int] = {"memory_limit": memory_limit}
+    config: dict[str, str | bool | int | float | list[str]] = {"memory_limit": memory_limit}
     if threads is not None:
         config["threads"] = threads
     if read_only:
         if not path.exists():
             raise WarehouseError(f"{path}: no such database")
-        return Warehouse(path, _connect(path, read_only=True, config=config), None)
+        return Warehouse(path, _connect(path, read_only=True, config=config), None, config)
     path.parent.mkdir(parents=True, exist_ok=True)
     lock = _ProcessLock(path)
     lock.acquire(path, wait_s)
@@ -251,11 +299,11 @@ def open_warehouse(
     except BaseException:
         lock.release()
         raise
-    return Warehouse(path, con, lock)
+    return Warehouse(path, con, lock, config)
 
 
 def _connect(
-    path: Path, *, read_only: bool, config: dict[str, str | int]
+    path: Path, *, read_only: bool, config: dict[str, str | bool | int | float | list[str]]
 ) -> duckdb.DuckDBPyConnection:
     try:
         return duckdb.connect(str(path), read_only=read_only, config=config)

@@ -27,7 +27,8 @@ CREATE TABLE IF NOT EXISTS files (
     rows_outside_session BIGINT,   -- dropped: time before the file name's or > 48 h after it
     rows_duplicate       BIGINT,   -- dropped: time already seen in the file (first row kept)
     rows_out_of_order    BIGINT,   -- kept, sorted: time earlier than a previous row's
-    cells_unparsable     BIGINT,   -- cells with a value that is not a finite number: now null
+    cells_unparsable     BIGINT,   -- cells with a value that is not a finite number, or that
+                                   -- is outside its channel's plausible range: now null
     block_temp_faults    BIGINT,   -- block_temp_c readings out of range: kept as faults
     partial_row_dropped  BOOLEAN,  -- the file ended inside a row (unit lost power)
     repairs              VARCHAR,  -- the repairs above, readable, with line numbers
