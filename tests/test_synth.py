@@ -583,7 +583,6 @@ def test_generate_refuses_a_directory_in_use(tmp_path):
 
 def test_command_line(tmp_path, monkeypatch, rom_cache_dir, rom_refinement, default_rom):
     # default_rom: the model is built (under the lock) before the command looks for it
-    monkeypatch.setenv("FLEETBRAKE_REFINEMENT", str(rom_refinement))
     monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
     # the command sets it (setdefault) for its process; keep this one's environment as it was
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", os.environ.get("OPENBLAS_NUM_THREADS", "1"))
@@ -608,6 +607,8 @@ def test_command_line(tmp_path, monkeypatch, rom_cache_dir, rom_refinement, defa
             "1",
             "--start",
             "2024-06-01",
+            "--refinement",
+            str(rom_refinement),
         ],
     )
     assert result.exit_code == 0, result.output
@@ -621,4 +622,4 @@ def test_command_line(tmp_path, monkeypatch, rom_cache_dir, rom_refinement, defa
     again = runner.invoke(app, ["synth", str(out)])
     assert again.exit_code == 1 and "not empty" in again.output
     wrong = runner.invoke(app, ["synth", str(tmp_path / "w"), "--effect", "sensor_lag:tau=1"])
-    assert wrong.exit_code == 1 and "unknown parameter" in wrong.output
+    assert wrong.exit_code == 2 and "unknown parameter" in wrong.output  # a bad --effect: usage

@@ -38,36 +38,31 @@ ever deleted.
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import json
-import os
 import shutil
 import time
 from collections import Counter
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import rich
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-)
 
-from fleetbrake.errors import FleetbrakeError
+from fleetbrake.app.progress import generation_bar, spinner
+from fleetbrake.errors import ConfigError, FleetbrakeError
+
+if TYPE_CHECKING:
+    from fleetbrake.app.run import RunReport
+    from fleetbrake.flags import FlagReport
 
 __all__ = [
     "DEMO_EFFECT",
     "MARKER",
     "DemoConfig",
+    "DemoConfigError",
     "DemoError",
     "DemoExistsError",
     "DemoResult",
@@ -96,6 +91,10 @@ class DemoExistsError(DemoError):
     """The output directory holds something already and ``force`` was not given."""
 
 
+class DemoConfigError(DemoError, ConfigError):
+    """A setting of :class:`DemoConfig` is not usable (exit 2); the message names it."""
+
+
 @dataclass(frozen=True)
 class DemoConfig:
     """What the demo generates and how."""
@@ -110,21 +109,20 @@ class DemoConfig:
     """The one undeclared effect, ``NAME[:key=value,...]`` as ``fleetbrake synth --effect``."""
     anomalies: bool = True
     start: dt.date = dt.date(2024, 3, 4)
-    refinement: float | None = None
-    """Mesh refinement of the reduced model (None: ``$FLEETBRAKE_REFINEMENT`` or 1.0, the
-    default mesh). Set, it is put in ``$FLEETBRAKE_REFINEMENT`` for the demo's duration so
-    that every step uses the same model."""
+    refinement: float = 1.0
+    """Mesh refinement of the reduced model (1.0: the default mesh); every step (generation,
+    run, closed loop) uses the model of this refinement."""
     recordings: bool = True
 
     def __post_init__(self) -> None:
         if self.wagons < 1:
-            raise ValueError(f"wagons must be >= 1, got {self.wagons}")
+            raise DemoConfigError(f"wagons must be >= 1, got {self.wagons}")
         if self.days < 2:
-            raise ValueError(
+            raise DemoConfigError(
                 f"days must be >= 2 (the last day is held out of the fit), got {self.days}"
             )
-        if self.refinement is not None and not self.refinement > 0:
-            raise ValueError(f"refinement must be > 0, got {self.refinement}")
+        if not self.refinement > 0:
+            raise DemoConfigError(f"refinement must be > 0, got {self.refinement}")
 
     @property
     def holdout_from(self) -> dt.date:
@@ -146,10 +144,10 @@ class DemoResult:
     recordings: list[Path]
     truth: Any
     """The generator's :class:`fleetbrake.synth.generator.FleetTruth`."""
-    run: Any
-    """The :class:`fleetbrake.app.run.RunReport` of the first run."""
+    run: RunReport
+    """The report of the first run."""
     close_loop: dict[str, Any]
-    rerun: Any | None
+    rerun: RunReport | None
     """The run after the closed loop (flags judged with the new revision), if one was made."""
     close_loop_error: str | None
     event_id: str | None
@@ -222,42 +220,6 @@ def prepare_out_dir(out_dir: str | Path, *, force: bool = False) -> Path:
 # Helpers
 
 
-@contextlib.contextmanager
-def _refinement_env(refinement: float | None) -> Iterator[float]:
-    """Put ``refinement`` in ``$FLEETBRAKE_REFINEMENT`` for the block (every step reads it
-    there when not told otherwise); yield the refinement in force."""
-    name = "FLEETBRAKE_REFINEMENT"
-    before = os.environ.get(name)
-    if refinement is not None:
-        os.environ[name] = repr(float(refinement))
-    try:
-        yield float(os.environ.get(name, "1.0"))
-    finally:
-        if refinement is not None:
-            if before is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = before
-
-
-@contextlib.contextmanager
-def _spinner(console: Console, text: str, show: bool) -> Iterator[None]:
-    """A spinner with the elapsed time (on ``console``, so that bars drawn inside on the
-    same console nest), or nothing."""
-    if not show:
-        yield
-        return
-    with Progress(
-        SpinnerColumn(),
-        TextColumn("{task.description}"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
-        bar.add_task(text, total=None)
-        yield
-
-
 def _seconds(value: float) -> str:
     if value < 90:
         return f"{value:.0f} s"
@@ -275,7 +237,7 @@ def _rom(refinement: float, console: Console, show: bool) -> tuple[float, bool]:
         f"reduced thermal model (refinement {refinement:g}): loading from "
         f"{default_cache_dir()}, or building it once (about a minute at the default mesh)"
     )
-    with _spinner(console, text, show):
+    with spinner(text, show, console):
         ReducedModel.for_wagon(WagonConfig(wagon_id="SGG-0001"), refinement=refinement)
     seconds = time.perf_counter() - began
     return seconds, seconds > 3.0
@@ -295,31 +257,8 @@ def _generate(fleet_dir: Path, config: DemoConfig, console: Console, show: bool)
         refinement=config.refinement,
     )
     total = synth.wagons + int(synth.unregistered_wagon) + int(synth.bad_registry_entry)
-    if not show:
-        return generate_fleet(fleet_dir, synth)
-    with Progress(
-        TextColumn("generating the fleet"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[now]}"),
-        TimeElapsedColumn(),
-        console=console,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("generate", total=total, now="")
-        seen = 0
-
-        def step(message: str) -> None:
-            nonlocal seen
-            if message.startswith("simulating"):
-                if seen:
-                    bar.advance(task)
-                seen += 1
-                bar.update(task, now=message.removeprefix("simulating").strip())
-
-        truth = generate_fleet(fleet_dir, synth, progress=step)
-        bar.update(task, completed=total, now="")
-    return truth
+    with generation_bar(total, show, console) as step:
+        return generate_fleet(fleet_dir, synth, progress=step)
 
 
 def pick_event(db_path: str | Path) -> tuple[str, str, str] | None:
@@ -331,26 +270,13 @@ def pick_event(db_path: str | Path) -> tuple[str, str, str] | None:
     """
     import duckdb
 
+    from fleetbrake.warehouse.connection import sql
+
     con = duckdb.connect(str(db_path), read_only=True)
     try:
-        current = con.sql(
-            "SELECT model_revision FROM v_model_revisions ORDER BY created_utc DESC LIMIT 1"
-        ).fetchall()
-        rev = current[0][0] if current else None
-        errors = con.sql(
-            "SELECT event_id, wagon_id, "
-            "sqrt(avg(power(measured_sensor_c - predicted_sensor_c, 2))) AS rmse_k "
-            "FROM v_predictions WHERE model_revision = $rev AND measured_sensor_c IS NOT NULL "
-            "GROUP BY event_id, wagon_id",
-            params={"rev": rev},
-        ).pl()
-        flagged = con.sql(
-            "SELECT f.kind, f.severity, f.event_id AS tied, e.event_id, e.wagon_id, "
-            "e.start_utc FROM v_flags f JOIN v_events e ON e.wagon_id = f.wagon_id "
-            "AND (e.event_id = f.event_id OR (f.event_id IS NULL "
-            "AND e.start_utc <= f.end_utc AND e.end_utc >= f.start_utc))"
-        ).pl()
-        any_event = con.sql("SELECT event_id, wagon_id FROM v_events LIMIT 1").fetchall()
+        errors = con.sql(sql("q_demo_event_errors")).pl()
+        flagged = con.sql(sql("q_demo_flagged_events")).pl()
+        any_event = con.sql(sql("q_demo_first_event")).fetchall()
     finally:
         con.close()
     rmse = dict(zip(errors["event_id"], errors["rmse_k"], strict=True))
@@ -376,14 +302,15 @@ def pick_event(db_path: str | Path) -> tuple[str, str, str] | None:
             return (
                 top["event_id"][0],
                 top["wagon_id"][0],
-                f"largest error of revision {rev} ({top['rmse_k'][0]:.2f} K RMSE)",
+                f"largest error of revision {top['model_revision'][0]} "
+                f"({top['rmse_k'][0]:.2f} K RMSE)",
             )
     if any_event:
         return any_event[0][0], any_event[0][1], "the first event"
     return None
 
 
-def _flag_counts(flag_report: Any) -> str:
+def _flag_counts(flag_report: FlagReport | None) -> str:
     if flag_report is None:
         return "not raised"
     counts = Counter(f.kind for f in flag_report.flags)
@@ -399,9 +326,11 @@ def _found_anomalies(db_path: Path, truth: Any) -> tuple[int, list[str]]:
     missed ones described."""
     import duckdb
 
+    from fleetbrake.warehouse.connection import sql
+
     con = duckdb.connect(str(db_path), read_only=True)
     try:
-        flags = con.sql("SELECT wagon_id, kind, start_utc, end_utc FROM v_flags").fetchall()
+        flags = con.sql(sql("q_demo_flag_spans")).fetchall()
     finally:
         con.close()
     slack = dt.timedelta(minutes=15)
@@ -436,11 +365,9 @@ def run_demo(
     :class:`DemoExistsError`) with a message that says what to do."""
     from fleetbrake.app.report import write_report
     from fleetbrake.app.run import run_fleet
-    from fleetbrake.closeloop.loop import CloseLoopError, run_close_loop
-    from fleetbrake.fleet.registry import RegistryError
-    from fleetbrake.ingest.files import FleetDirError
-    from fleetbrake.viz.record import RecordError, record
-    from fleetbrake.warehouse.connection import WarehouseError
+    from fleetbrake.closeloop.loop import CloseLoopConfig, CloseLoopError, run_close_loop
+    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.viz.record import record
 
     config = config or DemoConfig()
     console = console or rich.get_console()
@@ -459,148 +386,147 @@ def run_demo(
     def clock(name: str, t0: float) -> None:
         timings[name] = round(time.perf_counter() - t0, 2)
 
-    with _refinement_env(config.refinement) as refinement:
+    refinement = config.refinement
+    simulation = SimulationConfig(refinement=refinement)  # every step on the same model
+    try:
+        step(1, f"reduced thermal model of the block (refinement {refinement:g})")
+        rom_seconds, rom_built = _rom(refinement, console, show)
+        timings["model"] = round(rom_seconds, 2)
+        console.print(
+            f"    {'built and cached' if rom_built else 'loaded from the cache'} "
+            f"in {_seconds(rom_seconds)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+        step(
+            2,
+            f"generating {_n(config.wagons, 'wagon')} x {config.days} days "
+            f"(seed {config.seed}) "
+            f"with an undeclared effect and anomalies into {fleet_dir}",
+        )
+        t0 = time.perf_counter()
+        truth = _generate(fleet_dir, config, console, show)
+        clock("generate", t0)
+
+        step(3, "fleetbrake run: ingest, detect events, simulate them, raise flags")
+        t0 = time.perf_counter()
+        run = run_fleet(fleet_dir, db_path, simulation=simulation, progress=show)
+        clock("run", t0)
+        console.print(
+            f"    {len(run.ingest.ingested)} files ingested, "
+            f"{len(run.ingest.quarantined)} quarantined, "
+            f"{run.simulation.events_simulated} events simulated, "
+            f"flags: {_flag_counts(run.flags)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+        step(
+            4,
+            f"fleetbrake close-loop: fit before {config.holdout_from}, hold that day out "
+            "(the longest step)",
+        )
+        t0 = time.perf_counter()
+        loop_error = None
         try:
-            step(1, f"reduced thermal model of the block (refinement {refinement:g})")
-            rom_seconds, rom_built = _rom(refinement, console, show)
-            timings["model"] = round(rom_seconds, 2)
-            console.print(
-                f"    {'built and cached' if rom_built else 'loaded from the cache'} "
-                f"in {_seconds(rom_seconds)}",
-                highlight=False,
-                soft_wrap=True,
-            )
-
-            step(
-                2,
-                f"generating {_n(config.wagons, 'wagon')} x {config.days} days "
-                f"(seed {config.seed}) "
-                f"with an undeclared effect and anomalies into {fleet_dir}",
-            )
-            t0 = time.perf_counter()
-            truth = _generate(fleet_dir, config, console, show)
-            clock("generate", t0)
-
-            step(3, "fleetbrake run: ingest, detect events, simulate them, raise flags")
-            t0 = time.perf_counter()
-            run: Any = run_fleet(fleet_dir, db_path, progress=show)
-            clock("run", t0)
-            console.print(
-                f"    {len(run.ingest.ingested)} files ingested, "
-                f"{len(run.ingest.quarantined)} quarantined, "
-                f"{run.simulation.events_simulated} events simulated, "
-                f"flags: {_flag_counts(run.flags)}",
-                highlight=False,
-                soft_wrap=True,
-            )
-
-            step(
-                4,
-                f"fleetbrake close-loop: fit before {config.holdout_from}, hold that day out "
-                "(the longest step)",
-            )
-            t0 = time.perf_counter()
-            loop_error = None
-            try:
-                with _spinner(console, "finding the effect the model lacks", show):
-                    loop = run_close_loop(db_path, config.holdout_from, close_json)
-            except CloseLoopError as error:  # e.g. every fit event flagged: say so, go on
-                loop, loop_error = {}, str(error)
-            clock("close_loop", t0)
-            said = _loop_line(loop) if loop_error is None else f"could not run: {loop_error}"
-            console.print(f"    {said}", highlight=False, soft_wrap=True)
-
-            rerun = None
-            if loop.get("new_revision"):
-                step(5, f"flags judged again with revision {loop['new_revision']}")
-                t0 = time.perf_counter()
-                rerun = run_fleet(fleet_dir, db_path, progress=show)
-                clock("flags_again", t0)
-                console.print(
-                    f"    flags: {_flag_counts(rerun.flags)}", highlight=False, soft_wrap=True
+            with spinner("finding the effect the model lacks", show, console):
+                loop = run_close_loop(
+                    db_path,
+                    config.holdout_from,
+                    close_json,
+                    config=CloseLoopConfig(config.holdout_from, simulation=simulation),
                 )
-            else:
-                step(5, "no effect added: the flags stand")
+        except CloseLoopError as error:  # e.g. every fit event flagged: say so, go on
+            loop, loop_error = {}, str(error)
+        clock("close_loop", t0)
+        said = _loop_line(loop) if loop_error is None else f"could not run: {loop_error}"
+        console.print(f"    {said}", highlight=False, soft_wrap=True)
 
-            recordings: list[Path] = []
-            picked = pick_event(db_path)
-            event_id = reason = None
-            if config.recordings and picked is not None:
-                event_id, wagon_id, reason = picked
-                step(6, f"rerun recordings of wagon {wagon_id} and of event {event_id}")
-                t0 = time.perf_counter()
-                rec_dir = out / "recordings"
-                with _spinner(console, "writing recordings", show):
-                    recordings.append(
-                        record(db_path, wagon_id, rec_dir / f"{wagon_id}-timeline.rrd").out
-                    )
-                    recordings.append(
-                        record(
-                            db_path, wagon_id, rec_dir / f"{event_id}.rrd", event_id=event_id
-                        ).out
-                    )
-                clock("record", t0)
-            else:
-                step(6, "no recordings")
-
-            step(7, "the report")
+        rerun = None
+        if loop.get("new_revision"):
+            step(5, f"flags judged again with revision {loop['new_revision']}")
             t0 = time.perf_counter()
-            result = DemoResult(
-                out_dir=out,
-                config=config,
-                fleet_dir=fleet_dir,
-                db_path=db_path,
-                close_loop_json=close_json,
-                close_loop_md=close_json.with_suffix(".md"),
-                report=out / "report.md",
-                pictures=[],
-                recordings=recordings,
-                truth=truth,
-                run=run,
-                close_loop=loop,
-                rerun=rerun,
-                close_loop_error=loop_error,
-                event_id=event_id,
-                event_reason=reason,
-                refinement=refinement,
-                rom_seconds=rom_seconds,
-                rom_built=rom_built,
-                timings=timings,
+            rerun = run_fleet(fleet_dir, db_path, simulation=simulation, progress=show)
+            clock("flags_again", t0)
+            console.print(
+                f"    flags: {_flag_counts(rerun.flags)}", highlight=False, soft_wrap=True
             )
-            notes = [
-                f"Synthetic fleet of the demo: {_n(config.wagons, 'wagon')} x {config.days} "
-                f"days, seed {config.seed}, undeclared effect `{truth.effects}`"
-                + (", with anomalies" if config.anomalies else "")
-                + f"; reduced model at refinement {refinement:g}. "
-                f"Closed loop fitted before {config.holdout_from}, that day held out."
-            ]
-            if event_id is not None:
-                notes.append(
-                    f"Recordings: wagon {picked[1] if picked else '-'} and event "
-                    f"`{event_id}` ({reason}); open them with `rerun FILE.rrd`."
+        else:
+            step(5, "no effect added: the flags stand")
+
+        recordings: list[Path] = []
+        picked = pick_event(db_path)
+        event_id = reason = None
+        if config.recordings and picked is not None:
+            event_id, wagon_id, reason = picked
+            step(6, f"rerun recordings of wagon {wagon_id} and of event {event_id}")
+            t0 = time.perf_counter()
+            rec_dir = out / "recordings"
+            with spinner("writing recordings", show, console):
+                recordings.append(
+                    record(db_path, wagon_id, rec_dir / f"{wagon_id}-timeline.rrd").out
                 )
-            if loop_error is not None:
-                notes.append(f"The closed loop could not run: {loop_error}.")
-            written = write_report(
-                db_path,
-                out,
-                close_loop=loop or None,
-                truth=truth,
-                artefacts=[(w, p.relative_to(out)) for w, p in result.artefacts()],
-                title="fleetbrake demo report",
-                notes=notes,
+                recordings.append(
+                    record(db_path, wagon_id, rec_dir / f"{event_id}.rrd", event_id=event_id).out
+                )
+            clock("record", t0)
+        else:
+            step(6, "no recordings")
+
+        step(7, "the report")
+        t0 = time.perf_counter()
+        result = DemoResult(
+            out_dir=out,
+            config=config,
+            fleet_dir=fleet_dir,
+            db_path=db_path,
+            close_loop_json=close_json,
+            close_loop_md=close_json.with_suffix(".md"),
+            report=out / "report.md",
+            pictures=[],
+            recordings=recordings,
+            truth=truth,
+            run=run,
+            close_loop=loop,
+            rerun=rerun,
+            close_loop_error=loop_error,
+            event_id=event_id,
+            event_reason=reason,
+            refinement=refinement,
+            rom_seconds=rom_seconds,
+            rom_built=rom_built,
+            timings=timings,
+        )
+        notes = [
+            f"Synthetic fleet of the demo: {_n(config.wagons, 'wagon')} x {config.days} "
+            f"days, seed {config.seed}, undeclared effect `{truth.effects}`"
+            + (", with anomalies" if config.anomalies else "")
+            + f"; reduced model at refinement {refinement:g}. "
+            f"Closed loop fitted before {config.holdout_from}, that day held out."
+        ]
+        if event_id is not None:
+            notes.append(
+                f"Recordings: wagon {picked[1] if picked else '-'} and event "
+                f"`{event_id}` ({reason}); open them with `rerun FILE.rrd`."
             )
-            result.pictures = written.pictures
-            clock("report", t0)
-        except (
-            FleetDirError,
-            RegistryError,
-            WarehouseError,
-            RecordError,
-            ValueError,
-            OSError,
-        ) as error:
-            raise DemoError(f"demo in {out}: {error}") from error
+        if loop_error is not None:
+            notes.append(f"The closed loop could not run: {loop_error}.")
+        written = write_report(
+            db_path,
+            out,
+            close_loop=loop or None,
+            truth=truth,
+            artefacts=[(w, p.relative_to(out)) for w, p in result.artefacts()],
+            title="fleetbrake demo report",
+            notes=notes,
+        )
+        result.pictures = written.pictures
+        clock("report", t0)
+    except DemoError:
+        raise
+    except (FleetbrakeError, OSError) as error:  # a step could not do its job: say which demo
+        raise DemoError(f"demo in {out}: {error}") from error
     timings["total"] = round(time.perf_counter() - began, 2)
     result.summary = summary(result)
     (out / "summary.txt").write_text(result.summary + "\n", encoding="utf-8")

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 import polars as pl
 
 if TYPE_CHECKING:
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from fleetbrake.synth.generator import FleetTruth
 
@@ -75,7 +75,14 @@ def _pyplot() -> Any:
     return plt
 
 
-def _save(fig: plt.Figure, path: str | Path) -> Path:
+def _dates() -> Any:
+    """``matplotlib.dates`` (its ``date2num`` and ``DateFormatter`` are not annotated)."""
+    import matplotlib.dates
+
+    return matplotlib.dates
+
+
+def _save(fig: Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -118,8 +125,11 @@ class ReportData:
         return self.revisions["model_revision"].to_list()
 
 
-def _sql(con: Any, query: str, params: Mapping[str, Any] | None = None) -> pl.DataFrame:
-    return con.sql(query, params=dict(params) if params else None).pl()
+def _query(con: Any, name: str, params: Mapping[str, Any] | None = None) -> pl.DataFrame:
+    """The rows of the packaged query ``name`` (``warehouse/sql/<name>.sql``)."""
+    from fleetbrake.warehouse.connection import sql
+
+    return con.sql(sql(name), params=dict(params) if params else None).pl()
 
 
 def load_report_data(db_path: str | Path, per_wagon: int = 3) -> ReportData:
@@ -131,27 +141,12 @@ def load_report_data(db_path: str | Path, per_wagon: int = 3) -> ReportData:
     db_path = Path(db_path)
     con = duckdb.connect(str(db_path), read_only=True)
     try:
-        files = _sql(con, "SELECT * FROM v_files ORDER BY path")
-        events = _sql(con, "SELECT * FROM v_events ORDER BY wagon_id, start_utc")
-        flags = _sql(con, "SELECT * FROM v_flags ORDER BY wagon_id, start_utc")
-        revisions = _sql(con, "SELECT * FROM v_model_revisions ORDER BY created_utc")
-        event_stats = _sql(
-            con,
-            """
-            SELECT event_id, wagon_id, model_revision,
-                   min(time_utc) AS first_utc,
-                   max(measured_sensor_c) AS measured_max_c,
-                   max(predicted_sensor_c) AS predicted_max_c,
-                   max(predicted_contact_mean_c) AS contact_mean_max_c,
-                   max(predicted_contact_max_c) AS contact_max_c,
-                   sqrt(avg(power(measured_sensor_c - predicted_sensor_c, 2))) AS rmse_k,
-                   count(measured_sensor_c) AS valid_s
-            FROM v_predictions
-            GROUP BY event_id, wagon_id, model_revision
-            ORDER BY wagon_id, first_utc, model_revision
-            """,
-        )
-        span = con.sql("SELECT min(start_utc), max(end_utc) FROM v_events").fetchall()[0]
+        files = _query(con, "q_report_files")
+        events = _query(con, "q_report_events")
+        flags = _query(con, "q_report_flags")
+        revisions = _query(con, "q_report_revisions")
+        event_stats = _query(con, "q_report_event_stats")
+        span = _query(con, "q_report_events_span").row(0)
         current = revisions["model_revision"][-1] if revisions.height else None
         data = ReportData(
             db_path=db_path,
@@ -166,13 +161,7 @@ def load_report_data(db_path: str | Path, per_wagon: int = 3) -> ReportData:
         data.representative = _representative_events(data, per_wagon)
         ids = [e for picks in data.representative.values() for e, _ in picks]
         if ids:
-            data.series = _sql(
-                con,
-                "SELECT event_id, wagon_id, time_utc, model_revision, measured_sensor_c, "
-                "predicted_sensor_c, predicted_contact_max_c FROM v_predictions "
-                "WHERE list_contains($ids, event_id) ORDER BY event_id, model_revision, time_utc",
-                {"ids": ids},
-            )
+            data.series = _query(con, "q_report_series", {"event_ids": ids})
     finally:
         con.close()
     return data
@@ -294,7 +283,7 @@ def plot_flag_timeline(
     """The flags on a timeline: a row per wagon, a bar per flag coloured by kind (alarms
     with a black edge), the events as grey ticks; ``truth_anomalies`` (dicts with
     ``wagon_id``, ``kind``, ``start_utc``, ``end_utc``), if given, as hollow bars beneath."""
-    import matplotlib.dates as mdates
+    mdates = _dates()
     from matplotlib.patches import Patch
 
     plt = _pyplot()
@@ -392,7 +381,7 @@ def plot_contact_temperatures(
 ) -> Path:
     """The peak predicted wheel-block contact temperature (friction-face maximum) of every
     event of ``revision``, over time, one colour per wagon."""
-    import matplotlib.dates as mdates
+    mdates = _dates()
 
     plt = _pyplot()
     frame = event_stats.filter(pl.col("model_revision") == (revision or "")).drop_nulls(

@@ -5,10 +5,13 @@ current model revision, raise flags; one writer at a time (contract:
 from __future__ import annotations
 
 import contextlib
+import logging
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fleetbrake.simulation.predictions import (
     SimulationConfig,
@@ -18,7 +21,13 @@ from fleetbrake.simulation.predictions import (
     store_registry,
 )
 
+if TYPE_CHECKING:
+    from fleetbrake.flags import FlagReport
+    from fleetbrake.ingest.files import IngestReport
+
 __all__ = ["RunReport", "default_db_path", "run_fleet"]
+
+logger = logging.getLogger(__name__)
 
 
 def default_db_path() -> Path:
@@ -29,10 +38,10 @@ def default_db_path() -> Path:
 class RunReport:
     """Outcome of ``fleetbrake run``."""
 
-    ingest: object
+    ingest: IngestReport
     simulation: SimulationReport
     revision: str
-    flags: object | None = None
+    flags: FlagReport | None = None
     stage_s: dict[str, float] = field(default_factory=dict)
     """Wall-clock seconds of each stage: ``ingest``, ``events``, ``simulate``, ``flags``."""
 
@@ -43,7 +52,9 @@ def _clock(stage_s: dict[str, float], stage: str) -> Iterator[None]:
     try:
         yield
     finally:
-        stage_s[stage] = stage_s.get(stage, 0.0) + time.perf_counter() - began
+        seconds = time.perf_counter() - began
+        stage_s[stage] = stage_s.get(stage, 0.0) + seconds
+        logger.info("stage %s: %.2f s", stage, seconds)
 
 
 def run_fleet(
@@ -59,15 +70,17 @@ def run_fleet(
     new event with the current model revision, raise flags; one writer at a time.
 
     Raises (before anything is written) what :func:`fleetbrake.ingest.files.run_ingest` raises for
-    an unusable fleet directory, registry or database.
+    an unusable fleet directory, registry or database. ``progress``: show progress bars
+    (None: when stdout is a terminal).
     """
     import duckdb
 
-    from fleetbrake.flags.detect import FlagConfig, load_flag_config, raise_flags
+    from fleetbrake.flags import FlagConfig, load_flag_config, raise_flags
     from fleetbrake.ingest.events import update_events
     from fleetbrake.ingest.files import ingest_fleet, load_fleet_registry
     from fleetbrake.warehouse.connection import WarehouseError, open_warehouse
 
+    progress = sys.stdout.isatty() if progress is None else progress
     registry = load_fleet_registry(fleet_dir)
     flag_config = load_flag_config(flag_config_path) if flag_config_path else FlagConfig()
     stage_s: dict[str, float] = {}

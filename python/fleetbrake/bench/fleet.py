@@ -9,8 +9,8 @@ flags. The stages' seconds are the ones ``run_fleet`` reports (``RunReport.stage
 rest of the total is opening the database.
 
 The reduced thermal model is loaded (or built and cached) before the clock starts, as a
-fleet server would have it; the refinement is ``$FLEETBRAKE_REFINEMENT`` or 1.0, the
-default mesh. The figures carry the machine's CPU count and load average: other processes
+fleet server would have it; the refinement (``--refinement``) is 1.0, the default mesh,
+unless given; the generator and the run use the same model. The figures carry the machine's CPU count and load average: other processes
 on the machine slow them down.
 """
 
@@ -19,45 +19,36 @@ from __future__ import annotations
 import datetime as dt
 import os
 import shutil
+import sys
 import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from fleetbrake.app.progress import generation_bar
+from fleetbrake.bench import BenchConfigError, require_extra
+
 __all__ = ["bench_fleet", "print_figures"]
 
 
-def _generate(fleet_dir: Path, wagons: int, days: int, seed: int, show: bool) -> Any:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-    from rich.progress import TimeElapsedColumn as Elapsed
-
+def _generate(
+    fleet_dir: Path, wagons: int, days: int, seed: int, refinement: float, show: bool
+) -> Any:
     from fleetbrake.synth.generator import SynthConfig, generate_fleet, load_truth
 
     if (fleet_dir / "fleet.toml").is_file() and (fleet_dir / "truth").is_dir():
         truth = load_truth(fleet_dir)
         if (truth.config.wagons, truth.config.days, truth.config.seed) != (wagons, days, seed):
-            raise ValueError(
+            raise BenchConfigError(
                 f"{fleet_dir}: holds a fleet of {truth.config.wagons} wagons x "
                 f"{truth.config.days} days, seed {truth.config.seed}; give another --fleet"
             )
         return truth
-    config = SynthConfig(wagons=wagons, days=days, seed=seed)
+    config = SynthConfig(wagons=wagons, days=days, seed=seed, refinement=refinement)
     total = wagons + int(config.unregistered_wagon) + int(config.bad_registry_entry)
-    with Progress(
-        TextColumn("generating the fleet"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        Elapsed(),
-        disable=not show,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("generate", total=total)
-        return generate_fleet(
-            fleet_dir,
-            config,
-            progress=lambda text: bar.advance(task) if text.startswith("simulating") else None,
-        )
+    with generation_bar(total, show) as step:
+        return generate_fleet(fleet_dir, config, progress=step)
 
 
 def bench_fleet(
@@ -68,18 +59,27 @@ def bench_fleet(
     workdir: str | Path | None = None,
     fleet_dir: str | Path | None = None,
     progress: bool | None = None,
+    refinement: float = 1.0,
 ) -> dict[str, Any]:
     """Generate the fleet (or reuse ``fleet_dir`` if it holds the same one), then time
     ``run_fleet`` on it into a fresh database; return the figures. Everything but a given
-    ``fleet_dir`` is made in a temporary directory (in ``workdir``) and removed after."""
+    ``fleet_dir`` is made in a temporary directory (in ``workdir``) and removed after.
+    ``progress``: show progress bars (None: when stdout is a terminal). Needs psutil (the
+    ``bench`` extra)."""
+    require_extra("bench fleet", "psutil")
+    for name, value in (("wagons", wagons), ("days", days)):
+        if value < 1:
+            raise BenchConfigError(f"{name} must be >= 1, got {value}")
+    if not refinement > 0:
+        raise BenchConfigError(f"refinement must be > 0, got {refinement}")
     import psutil
 
     from fleetbrake.app.run import run_fleet
     from fleetbrake.fleet.registry import WagonConfig
     from fleetbrake.model.rom import ReducedModel
+    from fleetbrake.simulation.predictions import SimulationConfig
 
-    show = os.isatty(2) if progress is None else progress
-    refinement = float(os.environ.get("FLEETBRAKE_REFINEMENT", "1.0"))
+    show = sys.stdout.isatty() if progress is None else progress
     tmp = Path(tempfile.mkdtemp(prefix="fleetbrake-bench-fleet-", dir=workdir))
     try:
         began = time.perf_counter()
@@ -88,13 +88,15 @@ def bench_fleet(
 
         fleet = Path(fleet_dir) if fleet_dir is not None else tmp / "fleet"
         began = time.perf_counter()
-        truth = _generate(fleet, wagons, days, seed, show)
+        truth = _generate(fleet, wagons, days, seed, refinement, show)
         generate_s = time.perf_counter() - began
 
         db = tmp / "fleet.duckdb"
         load = os.getloadavg()[0]
         began = time.perf_counter()
-        report = run_fleet(fleet, db, progress=show)
+        report = run_fleet(
+            fleet, db, simulation=SimulationConfig(refinement=refinement), progress=show
+        )
         seconds = time.perf_counter() - began
         stages = report.stage_s
         ingest: Any = report.ingest

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import polars as pl
-import psutil
 
+from fleetbrake.bench import BenchError, require_extra
 from fleetbrake.fleet.logfile import log_relpath, write_log
 from fleetbrake.ingest.files import IngestConfig, ingest_fleet
 from fleetbrake.warehouse.connection import open_warehouse
@@ -124,6 +124,8 @@ class _RssSampler:
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def _run(self) -> None:
+        import psutil
+
         process = psutil.Process()
         while not self._stop.is_set():
             self.samples_mb.append(process.memory_info().rss / 1e6)
@@ -158,8 +160,10 @@ def bench_ingest(
 
     The fleet is made in a temporary directory (under ``workdir``) and removed afterwards,
     unless ``fleet_dir`` is given: then it is made there if it holds no ``fleet.toml`` yet,
-    reused if it does (``rows`` is then what it holds), and kept.
+    reused if it does (``rows`` is then what it holds), and kept. Needs psutil (the
+    ``bench`` extra).
     """
+    require_extra("bench ingest", "psutil")
     root = Path(tempfile.mkdtemp(prefix="fleetbrake-bench-", dir=workdir))
     try:
         make_s = 0.0
@@ -175,9 +179,9 @@ def bench_ingest(
             started = time.perf_counter()
             report = ingest_fleet(fleet_dir, wh, config=config, progress=False)
             seconds = time.perf_counter() - started
-            (stored,) = wh.con.execute("SELECT count(*) FROM samples").fetchone()
+            ((stored,),) = wh.con.execute("SELECT count(*) FROM samples").fetchall()
         if (written is not None and stored != written) or report.quarantined:
-            raise RuntimeError(
+            raise BenchError(
                 f"bench ingest: wrote {written} rows, stored {stored}, "
                 f"{len(report.quarantined)} files quarantined"
             )

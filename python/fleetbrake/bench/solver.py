@@ -47,6 +47,8 @@ from typing import Any
 
 import numpy as np
 
+from fleetbrake.bench import BenchConfigError, BenchError, require_extra
+
 __all__ = [
     "CHOLESKY",
     "ELEMENTS",
@@ -167,8 +169,8 @@ def _child_ours(
 
 def _child_skfem(steps: int, mesh_in: str) -> dict[str, Any]:
     # imported here, outside the timings
-    import scipy.sparse.linalg  # type: ignore[import-untyped]  # noqa: F401
-    import skfem  # type: ignore[import-untyped]  # noqa: F401
+    import scipy.sparse.linalg  # noqa: F401
+    import skfem  # noqa: F401
 
     from fleetbrake.bench.peers.skfem_block import DEFAULT_SOLVER, SOLVERS, SkfemBlockModel
 
@@ -217,13 +219,13 @@ def _run_child(args: list[str]) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "fleetbrake.bench.solver", "--json-child", *args]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
-        raise RuntimeError(
+        raise BenchError(
             f"benchmark child {' '.join(args)} failed (exit {proc.returncode}):\n"
             + proc.stderr[-3000:]
         )
     lines = proc.stdout.strip().splitlines()
     if not lines:
-        raise RuntimeError(f"benchmark child {' '.join(args)} printed nothing")
+        raise BenchError(f"benchmark child {' '.join(args)} printed nothing")
     result: dict[str, Any] = json.loads(lines[-1])
     return result
 
@@ -253,20 +255,22 @@ def bench_solver(
 ) -> dict[str, Any]:
     """Run both engines (each in a child process, alternately, ``repeats`` times) and the
     bandwidth probe; the figures of each engine's fastest run (shared machines add noise,
-    never speed), with every run's total time beside them."""
+    never speed), with every run's total time beside them. Needs scikit-fem (the ``bench``
+    extra)."""
     if element not in ELEMENTS:
-        raise ValueError(f"element must be one of {ELEMENTS}, got {element!r}")
+        raise BenchConfigError(f"element must be one of {ELEMENTS}, got {element!r}")
     if cholesky not in CHOLESKY:
-        raise ValueError(f"cholesky must be one of {CHOLESKY}, got {cholesky!r}")
+        raise BenchConfigError(f"cholesky must be one of {CHOLESKY}, got {cholesky!r}")
     if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        raise BenchConfigError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
+        raise BenchConfigError(f"steps must be >= 1, got {steps}")
     if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
+        raise BenchConfigError(f"repeats must be >= 1, got {repeats}")
     if not (refinement > 0 and np.isfinite(refinement)):
-        raise ValueError(f"refinement must be a positive number, got {refinement}")
+        raise BenchConfigError(f"refinement must be a positive number, got {refinement}")
 
+    require_extra("bench solver", "skfem")
     load = os.getloadavg()[0]
     common = ["--steps", str(steps)]
     ours_args = [

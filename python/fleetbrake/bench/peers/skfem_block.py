@@ -107,7 +107,7 @@ VTK_TO_SKFEM_HEX8 = np.array([6, 2, 5, 7, 1, 3, 4, 0], dtype=np.int64)
 
 def _skfem_local_to_vtk(n_nodes: int) -> NDArray[np.int64]:
     """VTK local node index of each local degree of freedom of ElementHex1 / ElementHexS2."""
-    from skfem.refdom import RefHex  # type: ignore[import-untyped]
+    from skfem.refdom import RefHex
 
     if n_nodes == 8:
         return VTK_TO_SKFEM_HEX8.copy()
@@ -128,7 +128,7 @@ Solve = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 def _splu(permc_spec: str, symmetric: bool) -> Callable[[Any], Solve]:
     def factorise(a: Any) -> Solve:
-        from scipy.sparse.linalg import splu  # type: ignore[import-untyped]
+        from scipy.sparse.linalg import splu
 
         if symmetric:
             lu = splu(
@@ -227,9 +227,9 @@ class SkfemBlockModel:
         solver: str = DEFAULT_SOLVER,
     ) -> None:
         try:
-            import skfem  # type: ignore[import-untyped]
+            import skfem
             from skfem import BilinearForm, LinearForm, asm
-            from skfem.helpers import dot, grad  # type: ignore[import-untyped]
+            from skfem.helpers import dot, grad
         except ImportError as exc:
             raise ImportError(
                 "fleetbrake.bench.peers.skfem_block needs scikit-fem and scipy, optional dev "
@@ -438,7 +438,7 @@ class SkfemBlockModel:
         with that element's shape functions. Points on a shared face get either element:
         the field is continuous.
         """
-        from scipy.sparse import coo_matrix  # type: ignore[import-untyped]
+        from scipy.sparse import coo_matrix
 
         x = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
         mesh, mapping = self.mesh, self.mesh.mapping()

@@ -1,0 +1,135 @@
+"""``fleetbrake bench ...``: the benchmarks (``docs/benchmarks.md``). Their meters and peers
+come with the ``bench`` extra; a benchmark without them says what to install (exit 2)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from fleetbrake.cli.group import FleetbrakeGroup
+from fleetbrake.cli.options import global_options
+from fleetbrake.cli.threads import blas_single_thread
+
+__all__ = ["bench_app"]
+
+bench_app = typer.Typer(
+    cls=FleetbrakeGroup,
+    help="Benchmarks that print their figures (last line: one JSON object). Their meters and "
+    'peers: pip install "fleetbrake[bench]".',
+    no_args_is_help=True,
+)
+
+JsonFlag = Annotated[bool, typer.Option("--json", help="Last line: one JSON object.")]
+WorkdirOption = Annotated[
+    Path | None, typer.Option("--workdir", help="Where to make the temporary directory.")
+]
+BenchFleetOption = Annotated[
+    Path | None,
+    typer.Option("--fleet", help="Make the fleet here and keep it; reuse it if it exists."),
+]
+
+
+@bench_app.command("ingest")
+def bench_ingest_command(
+    json_out: JsonFlag = False,
+    rows: Annotated[
+        int, typer.Option("--rows", help="Samples in the synthetic gzip fleet.")
+    ] = 2_000_000,
+    workdir: WorkdirOption = None,
+    fleet_dir: BenchFleetOption = None,
+) -> None:
+    """Ingestion speed and peak memory on a synthetic gzip fleet (events excluded)."""
+    from fleetbrake.bench.ingest import bench_ingest
+
+    figures = bench_ingest(rows, workdir=workdir, fleet_dir=fleet_dir)
+    typer.echo(
+        f"ingested {figures['rows']:,} rows ({figures['files']} gzip files, "
+        f"{figures['gzip_mb']} MB) in {figures['seconds']} s: "
+        f"{figures['rows_per_s']:,} rows/s, peak RSS {figures['peak_rss_mb']} MB"
+    )
+    if json_out:
+        typer.echo(json.dumps(figures))
+
+
+@bench_app.command("solver")
+def bench_solver_command(
+    json_out: JsonFlag = False,
+    element: Annotated[str, typer.Option("--element", help="hex20 or hex8.")] = "hex20",
+    steps: Annotated[int, typer.Option("--steps", help="Time steps of 1 s.")] = 600,
+    refinement: Annotated[
+        float, typer.Option("--refinement", help="Mesh refinement (1.0: ~21,600 hex20 nodes).")
+    ] = 1.0,
+    cholesky: Annotated[
+        str, typer.Option("--cholesky", help="auto, simplicial or supernodal (ours).")
+    ] = "auto",
+    precision: Annotated[
+        str,
+        typer.Option(
+            "--precision",
+            help="Factor values in the solves: mixed (single, default) or double; "
+            "the other is timed too.",
+        ),
+    ] = "mixed",
+    repeats: Annotated[
+        int,
+        typer.Option(
+            "--repeats", help="Runs of each engine, alternately; the fastest of each is kept."
+        ),
+    ] = 3,
+) -> None:
+    """Our block model against scikit-fem on manoeuvre A: time, memory, traffic bound."""
+    from fleetbrake.bench.solver import bench_solver, print_table
+
+    figures = bench_solver(element, steps, refinement, cholesky, precision, repeats)
+    print_table(figures)
+    if json_out:
+        typer.echo(json.dumps(figures))
+
+
+@bench_app.command("rom")
+def bench_rom_command(
+    json_out: JsonFlag = False,
+    events: Annotated[int, typer.Option(help="Events in the reduced-model batch.")] = 20_000,
+    full_events: Annotated[int, typer.Option(help="Events also run by the full model.")] = 3,
+    refinement: Annotated[float, typer.Option(help="Mesh refinement (1.0: default).")] = 1.0,
+) -> None:
+    """Reduced model vs full model on 700-second event windows, in the same run."""
+    from fleetbrake.bench.rom import report, run_rom_benchmark
+
+    report(run_rom_benchmark(events, full_events, refinement), json_out)
+
+
+@bench_app.command("fleet")
+def bench_fleet_command(
+    ctx: typer.Context,
+    json_out: JsonFlag = False,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 100,
+    days: Annotated[int, typer.Option("--days", help="UTC days of operation.")] = 1,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 0,
+    workdir: WorkdirOption = None,
+    fleet_dir: BenchFleetOption = None,
+    refinement: Annotated[
+        float,
+        typer.Option("--refinement", help="Mesh refinement of the reduced model (1.0: default)."),
+    ] = 1.0,
+) -> None:
+    """A fleet-day from log files to flags: `fleetbrake run` timed end to end (and per
+    stage) on a generated fleet (generation not timed)."""
+    from fleetbrake.bench.fleet import bench_fleet, print_figures
+
+    with blas_single_thread():
+        figures = bench_fleet(
+            wagons,
+            days,
+            seed=seed,
+            workdir=workdir,
+            fleet_dir=fleet_dir,
+            refinement=refinement,
+            progress=global_options(ctx).progress,
+        )
+    print_figures(figures, typer.echo)
+    if json_out:
+        typer.echo(json.dumps(figures))

@@ -1,0 +1,83 @@
+"""What every command shares: the global options (``--log-format``, ``--quiet``,
+``--verbose``) as one typed object, the options several commands take, and the error for a
+command-line value that cannot be used."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from fleetbrake.cli.logs import LogFormat
+from fleetbrake.errors import ConfigError, FleetbrakeError
+
+__all__ = [
+    "DbOption",
+    "FleetDirArgument",
+    "GlobalOptions",
+    "OptionError",
+    "OutputDirError",
+    "WaitOption",
+    "global_options",
+    "option_values",
+]
+
+DEFAULT_DB = Path("warehouse/fleet.duckdb")
+"""``--db`` when not given (contract: ``shared/spec/interface.md``)."""
+
+
+class OptionError(ConfigError):
+    """A command-line value cannot be used (exit 2); the message names the option."""
+
+
+class OutputDirError(FleetbrakeError):
+    """An output directory given on the command line holds something already (exit 1, as
+    ``fleetbrake demo`` refuses one); the message names it."""
+
+
+@dataclass(frozen=True)
+class GlobalOptions:
+    """The options given before the command (``fleetbrake --quiet run ...``)."""
+
+    log_format: LogFormat = LogFormat.TEXT
+    log_level: int = logging.WARNING
+    quiet: bool = False
+    progress: bool = False
+    """Draw progress bars and spinners: stdout is a terminal and not ``--quiet``."""
+
+
+def global_options(ctx: typer.Context) -> GlobalOptions:
+    """The :class:`GlobalOptions` of the command run in ``ctx`` (the defaults when the
+    callback that sets them has not run)."""
+    obj = ctx.find_root().obj
+    return obj if isinstance(obj, GlobalOptions) else GlobalOptions()
+
+
+@contextlib.contextmanager
+def option_values(*options: str) -> Iterator[None]:
+    """Turn the ``ValueError`` of a value built from ``options`` (a configuration object's
+    check, a date's parsing) into an :class:`OptionError` naming them (no names: the
+    message names the setting already); the library's own expected failures pass through
+    as they are."""
+    try:
+        yield
+    except FleetbrakeError:
+        raise
+    except ValueError as error:
+        named = f"{', '.join(options)}: " if options else ""
+        raise OptionError(f"{named}{error}") from None
+
+
+DbOption = Annotated[Path, typer.Option("--db", help="DuckDB warehouse.")]
+WaitOption = Annotated[
+    float,
+    typer.Option("--wait", help="Seconds to wait for another process writing the database."),
+]
+FleetDirArgument = Annotated[
+    Path, typer.Argument(help="Fleet directory: fleet.toml and logs/.", metavar="FLEET_DIR")
+]
