@@ -8,7 +8,7 @@ STAMP := $(VENV)/.fleetbrake-installed
 DEMO_OUT ?= demo-out
 export CARGO_TERM_COLOR ?= never
 
-.PHONY: help setup build demo test test-all test-rust test-python lint format bench clean
+.PHONY: help setup build wheel demo test test-all test-rust test-python lint format bench clean
 
 help:  ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "} {printf "  %-12s %s\n", $$1, $$2}'
@@ -24,6 +24,13 @@ setup: $(STAMP)  ## create .venv and install fleetbrake with its dev tools
 build: setup  ## (re)build the Rust extension into .venv (release)
 	$(VENV)/bin/maturin develop --release -q
 
+# The wheel a user installs (release build, SQL and type stubs inside); the wheel test installs
+# it into a fresh virtualenv outside the checkout.
+WHEEL_DIR := dist
+wheel: setup  ## build the wheel into dist/ (what users install)
+	rm -f $(WHEEL_DIR)/fleetbrake-*.whl
+	$(VENV)/bin/maturin build --release -q --out $(WHEEL_DIR)
+
 demo: build  ## synthetic fleet through the whole pipeline into $(DEMO_OUT)/
 	$(VENV)/bin/fleetbrake demo --out $(DEMO_OUT)
 
@@ -37,17 +44,19 @@ TEST_ENV := RAYON_NUM_THREADS=1
 test-rust:  ## Rust unit and integration tests
 	$(TEST_ENV) cargo test --release --workspace --exclude fleetbrake_py
 
-test-python: build  ## Python tests, slow ones skipped
-	$(TEST_ENV) $(PY) -m pytest -m "not slow" -n 2 -q
+test-python: build wheel  ## Python tests, slow ones skipped (the wheel test included)
+	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(WHEEL_DIR)/fleetbrake-*.whl)" $(PY) -m pytest -m "not slow" -n 2 -q
 
-test-all: build test-rust  ## every test, slow ones included
-	$(TEST_ENV) $(PY) -m pytest -n 2 -q
+test-all: build wheel test-rust  ## every test, slow ones included
+	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(WHEEL_DIR)/fleetbrake-*.whl)" $(PY) -m pytest -n 2 -q
 
-lint: setup  ## rustfmt, clippy and ruff, as CI would want them
+lint: setup  ## rustfmt, clippy, ruff, mypy and the layer contract (import-linter), as CI runs them
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets --release -- -D warnings
 	$(VENV)/bin/ruff check python tests
 	$(VENV)/bin/ruff format --check python tests
+	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports
 
 format: setup  ## format Rust and Python in place
 	cargo fmt --all
@@ -59,4 +68,4 @@ bench: build  ## the solver benchmark against scikit-fem (see docs/benchmarks.md
 
 clean:  ## remove build products and the virtualenv
 	cargo clean
-	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(DEMO_OUT) $(WHEEL_DIR) .pytest_cache .ruff_cache .mypy_cache .import_linter_cache

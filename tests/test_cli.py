@@ -319,6 +319,36 @@ def test_close_loop_prints_its_summary_last(fleet: Fleet, cli: CliRunner, tmp_pa
 
 
 # --------------------------------------------------------------------------------------------
+# report
+
+
+def test_report_writes_markdown_and_plots_from_the_views(fleet: Fleet, tmp_path: Path) -> None:
+    out = tmp_path / "report"
+    result = CliRunner().invoke(app, ["report", "--db", str(fleet.db), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    text = (out / "report.md").read_text()
+    pictures = sorted(out.glob("*.png"))
+    assert pictures and all(p.stat().st_size > 0 for p in pictures)
+    for picture in pictures:  # every picture written is referenced from the Markdown
+        assert picture.name in text
+    assert WAGON in text
+
+
+@pytest.mark.parametrize("what", ["missing database", "bad close-loop report"])
+def test_report_on_unreadable_input_names_the_file(fleet: Fleet, tmp_path: Path, what: str) -> None:
+    args = ["report", "--out", str(tmp_path / "report")]
+    if what == "missing database":
+        bad = tmp_path / "nowhere.duckdb"
+        args += ["--db", str(bad)]
+    else:
+        bad = tmp_path / "close-loop.json"
+        bad.write_text("{not json")
+        args += ["--db", str(fleet.db), "--close-loop", str(bad)]
+    line = _one_line_failure(CliRunner().invoke(app, args), 1, "report")
+    assert str(bad) in line
+
+
+# --------------------------------------------------------------------------------------------
 # The benchmarks' meters and peers stay out of the runtime path
 
 BENCH_EXTRA = ("psutil", "skfem")

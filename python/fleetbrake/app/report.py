@@ -36,6 +36,8 @@ from typing import TYPE_CHECKING, Any
 
 import polars as pl
 
+from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
+
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
@@ -44,6 +46,7 @@ if TYPE_CHECKING:
 __all__ = [
     "FLAG_COLORS",
     "ReportData",
+    "ReportInputError",
     "ReportResult",
     "load_report_data",
     "plot_close_loop_error",
@@ -52,6 +55,15 @@ __all__ = [
     "plot_flag_timeline",
     "write_report",
 ]
+
+
+class ReportInputError(FleetbrakeError):
+    """The database (or a close-loop report given with it) cannot be read; names the file."""
+
+
+class ReportLockedError(ReportInputError, DatabaseLockedError):
+    """Another process is writing the database: DuckDB lets no other process open it."""
+
 
 FLAG_COLORS: dict[str, str] = {
     "dragging_brake": "#d62728",
@@ -139,7 +151,19 @@ def load_report_data(db_path: str | Path, per_wagon: int = 3) -> ReportData:
     import duckdb
 
     db_path = Path(db_path)
-    con = duckdb.connect(str(db_path), read_only=True)
+    if not db_path.is_file():
+        raise ReportInputError(f"{db_path}: no such database (run `fleetbrake run` first)")
+    try:
+        con = duckdb.connect(str(db_path), read_only=True)
+    except duckdb.IOException as error:
+        if "lock" in str(error).lower():
+            raise ReportLockedError(
+                f"{db_path}: cannot be read now: another process is writing to it; run again "
+                "when it has finished"
+            ) from None
+        raise ReportInputError(f"{db_path}: cannot be opened ({error})") from None
+    except duckdb.Error as error:
+        raise ReportInputError(f"{db_path}: cannot be opened ({error})") from None
     try:
         files = _query(con, "q_report_files")
         events = _query(con, "q_report_events")

@@ -385,6 +385,44 @@ def record_command(
         typer.echo(f"  note: {note}")
 
 
+@app.command("report")
+def report_command(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option("--out", help="Directory for report.md and its plots.")],
+    db: Annotated[
+        Path, typer.Option("--db", help="DuckDB warehouse (opened read-only).")
+    ] = DEFAULT_DB,
+    close_loop: Annotated[
+        Path | None,
+        typer.Option(
+            "--close-loop", help="A close-loop JSON report to include (what --json wrote)."
+        ),
+    ] = None,
+) -> None:
+    """Write the fleet report: Markdown with plots, from the database's public views only.
+
+    Files, events, predictions against measurements, flags on a timeline, model revisions and,
+    with --close-loop, the closed loop's error before and after. Exit 1 when the database or
+    the close-loop report cannot be read.
+    """
+    import json
+
+    from fleetbrake.app.progress import spinner
+    from fleetbrake.app.report import ReportInputError, write_report
+
+    loop: dict[str, object] | None = None
+    if close_loop is not None:
+        try:
+            loop = json.loads(close_loop.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as error:
+            raise ReportInputError(
+                f"{close_loop}: not a readable close-loop report ({error})"
+            ) from None
+    with spinner("writing the report", global_options(ctx).progress):
+        result = write_report(db, out, close_loop=loop)
+    typer.echo(f"wrote {result.path} with {len(result.pictures)} pictures")
+
+
 @app.command("demo")
 def demo_command(
     ctx: typer.Context,
