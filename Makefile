@@ -13,7 +13,9 @@ export CARGO_TERM_COLOR ?= never
 help:  ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "} {printf "  %-12s %s\n", $$1, $$2}'
 
+# The tests' MQTT broker is Debian's mosquitto (installed here when missing; CI runs as root).
 $(STAMP): pyproject.toml
+	command -v mosquitto >/dev/null || test -x /usr/sbin/mosquitto || (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends mosquitto)
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev]"

@@ -29,6 +29,7 @@ from typing import Annotated, Literal, cast
 
 import typer
 
+from fleetbrake.bridge.cli import register as register_bridge
 from fleetbrake.cli.bench import bench_app
 from fleetbrake.cli.group import FleetbrakeGroup
 from fleetbrake.cli.logs import LogFormat, configure_logging, level_for
@@ -65,6 +66,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 app.add_typer(bench_app, name="bench")
+register_bridge(app)
 
 SOLVERS = ("rom", "full")
 
