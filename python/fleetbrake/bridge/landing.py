@@ -57,6 +57,7 @@ from fleetbrake.fleet.logfile import (
     log_name,
     parse_log_name,
     to_csv_bytes,
+    write_log,
 )
 
 if TYPE_CHECKING:
@@ -98,29 +99,6 @@ class Written:
     """Samples dropped because a file that is not the bridge's holds their file name."""
 
 
-def _fsync_directory(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _make_directories(path: Path) -> None:
-    """``mkdir -p path``, each directory made flushed into its parent."""
-    missing: list[Path] = []
-    here = path
-    while not here.is_dir():
-        missing.append(here)
-        here = here.parent
-    for directory in reversed(missing):
-        try:
-            directory.mkdir()
-        except FileExistsError:
-            continue
-        _fsync_directory(directory.parent)
-
-
 def session_frame(rows: dict[int, Row], seconds: np.ndarray) -> pl.DataFrame:
     """The samples at ``seconds`` (sorted) as a frame of the log format's columns."""
     values = list(zip(*(rows[int(s)] for s in seconds), strict=True))
@@ -151,7 +129,7 @@ class LandingFolder:
             collections.OrderedDict()
         )
         self._cleaned: set[str] = set()
-        self._tmp_suffix = f".{client_id}.tmp"
+        self._tmp_suffix = f".{client_id}.tmp"  # what write_log names its temporary with our tag
 
     @classmethod
     def of(cls, config: BridgeConfig) -> LandingFolder:
@@ -235,18 +213,7 @@ class LandingFolder:
         return Written(path, len(fresh), duplicates, conflicts)
 
     def _write_durably(self, path: Path, data: bytes) -> None:
-        _make_directories(path.parent)
-        temporary = path.with_name(f".{path.name}{self._tmp_suffix}")
-        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view) :]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.rename(temporary, path)
-        _fsync_directory(path.parent)
+        write_log(path, data, gzip=False, durable=True, tag=self.client_id)
 
     # ------------------------------------------------------------------ what is held
 
