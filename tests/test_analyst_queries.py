@@ -90,7 +90,6 @@ def fleet_db(
     out = tmp_path_factory.mktemp("analyst")
     with pytest.MonkeyPatch.context() as mp:
         # every step (the flags' watch simulation too) uses the session's reduced model
-        mp.setenv("FLEETBRAKE_REFINEMENT", str(rom_refinement))
         mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
         config = SynthConfig(wagons=2, days=2, seed=3, anomalies=True)
         generate_fleet(out / "fleet", config, rom=reduced_model_for)

@@ -10,10 +10,10 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake.fleet import logfile as lf
 from fleetbrake.ingest import events as events_module
 from fleetbrake.ingest.events import EVENT_COLUMNS, EventConfig, detect_events
 from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.synth import corrupt
 from fleetgen import T0_UTC, Session, TrueEvent, make_session, write_registry, write_session
 
 WAGON = "SGG-0001"
@@ -118,18 +118,18 @@ def _imperfect(session: Session, rng: np.random.Generator) -> pl.DataFrame:
     # long gaps (30 s to 2 min) while cruising, from the end so that row numbers hold
     quiet = [q for q in session.quiet if q[1] - q[0] > 150]
     for a, _ in sorted(rng.choice(quiet, size=min(3, len(quiet)), replace=False).tolist())[::-1]:
-        frame = lf.drop_gap(frame, rng, int(rng.integers(30, 120)), start=a + 5)
+        frame = corrupt.drop_gap(frame, rng, int(rng.integers(30, 120)), start=a + 5)
     for _ in range(8):  # short gaps anywhere
-        frame = lf.drop_gap(frame, rng, int(rng.integers(2, 9)))
-    frame = lf.drop_rows(frame, rng, 0.02)
-    frame = lf.duplicate_rows(frame, rng, 0.01)
-    frame = lf.swap_neighbours(frame, rng, 0.01)
-    frame = lf.jump_speed(frame, rng, 10)
-    frame = lf.freeze_speed(frame, rng, 60)
-    frame = lf.pt1000_open_circuit(frame, rng, 120)
-    frame = lf.pt1000_frozen(frame, rng, 200)
-    frame = lf.blank_cells(frame, rng, 0.01)
-    return lf.garble_cells(frame, rng, 0.002, ("brake_pressure_bar", "speed_kmh"))
+        frame = corrupt.drop_gap(frame, rng, int(rng.integers(2, 9)))
+    frame = corrupt.drop_rows(frame, rng, 0.02)
+    frame = corrupt.duplicate_rows(frame, rng, 0.01)
+    frame = corrupt.swap_neighbours(frame, rng, 0.01)
+    frame = corrupt.jump_speed(frame, rng, 10)
+    frame = corrupt.freeze_speed(frame, rng, 60)
+    frame = corrupt.pt1000_open_circuit(frame, rng, 120)
+    frame = corrupt.pt1000_frozen(frame, rng, 200)
+    frame = corrupt.blank_cells(frame, rng, 0.01)
+    return corrupt.garble_cells(frame, rng, 0.002, ("brake_pressure_bar", "speed_kmh"))
 
 
 def test_generated_fleet_with_every_imperfection_end_to_end(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""Tests of fleetbrake.flags.detect: each detector on hand-made series, the configuration file, the
+"""Tests of fleetbrake.flags: each detector on hand-made series, the configuration file, the
 flags table, and end to end on generated fleets against the generator's truth."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake.flags.detect import (
+from fleetbrake.flags import (
     CONFIG_KEYS,
     EventStat,
     Finding,
@@ -23,7 +23,6 @@ from fleetbrake.flags.detect import (
     FlagConfig,
     FlagConfigError,
     Segment,
-    WagonSeries,
     event_stats,
     find_dragging,
     find_drift,
@@ -37,9 +36,10 @@ from fleetbrake.flags.detect import (
     load_flag_config,
     merge_sensor_faults,
     raise_flags,
-    segment_bounds,
     segment_stats,
 )
+from fleetbrake.simulation.chains import ChainParams, segment_bounds
+from fleetbrake.simulation.series import WagonSeries
 
 T0 = dt.datetime(2024, 3, 4, 8, 0, 0)
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "flags.md"
@@ -100,7 +100,7 @@ def segments_of(
     series: WagonSeries, predicted: np.ndarray, config: FlagConfig | None = None
 ) -> list[Segment]:
     config = config or FlagConfig()
-    bounds, kinds = segment_bounds(series, config)
+    bounds, kinds = segment_bounds(series, ChainParams())
     return segment_stats(series, predicted, bounds, kinds, config)
 
 
@@ -159,6 +159,37 @@ def test_load_flag_config_names_the_file_and_key(tmp_path: Path, text: str, mess
     path.write_text(text, encoding="utf-8")
     with pytest.raises(FlagConfigError, match=re.escape(str(path)) + ": .*" + message):
         load_flag_config(path)
+
+
+def test_keys_that_moved_to_the_simulation_say_where(tmp_path: Path) -> None:
+    path = tmp_path / "flags.toml"
+    path.write_text("after_release_s = 120\n", encoding="utf-8")
+    with pytest.raises(
+        FlagConfigError,
+        match=r"key after_release_s: no longer a flag threshold: .*ChainParams\.quiet_after_release_s",
+    ):
+        load_flag_config(path)
+
+
+def test_a_toml_override_of_a_named_threshold_changes_a_detector(tmp_path: Path) -> None:
+    """The thresholds that were literals in the detectors are keys like any other: here the
+    pairs of readings a frozen sensor's noise is judged from, and the speed above which a data
+    gap may hide brakings."""
+    n = 3000
+    measured = noisy(np.linspace(30.0, 25.0, n))
+    measured[1000:1400] = measured[1000]
+    series = make_series(measured)
+    assert len(find_frozen(series)) == 1
+    path = tmp_path / "flags.toml"
+    path.write_text("frozen_noise_min_pairs = 5000\n", encoding="utf-8")
+    assert find_frozen(series, load_flag_config(path)) == []
+    # a gap at 4 km/h: a standing wagon by default, a moving one below 3 km/h
+    from fleetbrake.flags import unsure_mask
+
+    slow = make_series(noisy(np.full(n, 20.0)), speed=4.0)
+    assert not unsure_mask(slow, [(999, 1100)]).any()
+    path.write_text("gap_moving_speed_kmh = 3.0\n", encoding="utf-8")
+    assert unsure_mask(slow, [(999, 1100)], load_flag_config(path))[999:2000].all()
 
 
 def test_load_flag_config_missing_file(tmp_path: Path) -> None:
@@ -288,7 +319,7 @@ def test_drift_is_a_steady_trend_no_heat_flow_explains() -> None:
     # flow the model has wrong, not a drift
     truth = 10.0 + 40.0 * np.exp(-np.arange(n) / 3000.0)
     cooling = make_series(noisy(truth), ambient=10.0)
-    bounds, _ = segment_bounds(cooling)
+    bounds, _ = segment_bounds(cooling, ChainParams())
     model = np.empty(n)  # re-anchored at each window, as the watch simulation does
     for a, b in itertools.pairwise(bounds):
         model[a:b] = 10.0 + (truth[a] - 10.0) * np.exp(-np.arange(b - a) / 5000.0)
@@ -552,10 +583,10 @@ def test_raise_flags_replaces_a_wagons_flags_with_stable_ids(tmp_path: Path) -> 
 
 
 def test_flag_ids_are_unique_for_flags_starting_together() -> None:
-    from fleetbrake.flags.detect import _flag_ids
+    from fleetbrake.flags import flag_ids
 
     same = Finding("sensor_fault", "info", at(0), at(10), "a.")
-    flags = _flag_ids("W-1", [same, dataclasses.replace(same, evidence="b.")])
+    flags = flag_ids("W-1", [same, dataclasses.replace(same, evidence="b.")])
     assert [f.flag_id for f in flags] == [
         "sensor_fault-W-1-20240304T080000",
         "sensor_fault-W-1-20240304T080000-2",
@@ -625,7 +656,7 @@ def run_fleet(
                 )
                 seconds["simulate"] = time.perf_counter() - began
                 began = time.perf_counter()
-                report = raise_flags(wh, registry, "declared", rom_for=reduced_model_for)
+                report = raise_flags(wh, registry, "declared")
                 seconds["flags"] = time.perf_counter() - began
                 stored = wh.con.execute("SELECT flag_id FROM v_flags ORDER BY 1").fetchall()
                 assert [r[0] for r in stored] == sorted(f.flag_id for f in report.flags)

@@ -1,2 +1,66 @@
-"""Predictions -> flags: detectors of sensor faults, weak, dragging and overheating brakes, their
-configuration, and the flags stored in the warehouse."""
+"""Predictions -> flags: detectors of sensor faults, weak, dragging and overheating brakes,
+their configuration, and the flags stored in the warehouse.
+
+The flags read what the simulation stored (the revision's timeline and predictions) and never
+simulate. One module per concern: :mod:`~fleetbrake.flags.config` (thresholds, the TOML file),
+:mod:`~fleetbrake.flags.series` (what is read of a wagon), :mod:`~fleetbrake.flags.stats`
+(what the detectors measure), the detector families :mod:`~fleetbrake.flags.sensor`,
+:mod:`~fleetbrake.flags.brakes` and :mod:`~fleetbrake.flags.overheating`, and
+:mod:`~fleetbrake.flags.judge` (a wagon judged, its flags stored: :func:`raise_flags`).
+"""
+
+from fleetbrake.flags.brakes import find_dragging, find_weak
+from fleetbrake.flags.config import (
+    CONFIG_KEYS,
+    FLAG_KINDS,
+    SEVERITIES,
+    FlagConfig,
+    FlagConfigError,
+    load_flag_config,
+)
+from fleetbrake.flags.judge import flag_ids, judge_wagon, raise_flags
+from fleetbrake.flags.overheating import find_overheating
+from fleetbrake.flags.records import Finding, Flag, FlagReport
+from fleetbrake.flags.sensor import (
+    find_drift,
+    find_dropouts,
+    find_frozen,
+    find_loose,
+    find_out_of_range,
+    heat_flow_corrected,
+    merge_sensor_faults,
+)
+from fleetbrake.flags.series import SpanTimeline, load_spans
+from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
+
+__all__ = [
+    "CONFIG_KEYS",
+    "FLAG_KINDS",
+    "SEVERITIES",
+    "EventStat",
+    "Finding",
+    "Flag",
+    "FlagConfig",
+    "FlagConfigError",
+    "FlagReport",
+    "Segment",
+    "SpanTimeline",
+    "event_stats",
+    "find_dragging",
+    "find_drift",
+    "find_dropouts",
+    "find_frozen",
+    "find_loose",
+    "find_out_of_range",
+    "find_overheating",
+    "find_weak",
+    "flag_ids",
+    "heat_flow_corrected",
+    "judge_wagon",
+    "load_flag_config",
+    "load_spans",
+    "merge_sensor_faults",
+    "raise_flags",
+    "segment_stats",
+    "unsure_mask",
+]

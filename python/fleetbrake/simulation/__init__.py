@@ -1,2 +1,6 @@
-"""Events -> predictions: the chains of data of each wagon, the block state carried and
-re-anchored through them, and the predicted sensor and contact temperatures stored per event."""
+"""Events -> predictions and timelines: each wagon's block simulated through its data by the one
+chain/re-anchor algorithm (:mod:`~fleetbrake.simulation.chains`, its numbers in ``ChainParams``),
+on the 1 Hz grid of :mod:`~fleetbrake.simulation.series`; the stage that stores, per wagon and
+revision, the event windows (``v_predictions``) and the timeline the flags judge
+(:mod:`~fleetbrake.simulation.predictions`), and how it is stored and read back
+(:mod:`~fleetbrake.simulation.store`)."""

@@ -33,12 +33,43 @@ CREATE TABLE IF NOT EXISTS predictions (
     flux_w_m2                DOUBLE    NOT NULL   -- the heat input the model used
 );
 
--- Which events were simulated with which revision (incremental runs; re-simulation when an
--- event's samples changed).
-CREATE TABLE IF NOT EXISTS simulated_events (
-    event_id       VARCHAR   NOT NULL,
+-- The block simulated through each wagon's whole data, per model revision, at every logged
+-- second: the timeline the flags judge (fleetbrake.simulation.chains). Re-anchored to the
+-- measurement at the start of every segment (timeline_segments), so measured - predicted
+-- starts at zero in each and shows what the model cannot explain.
+CREATE TABLE IF NOT EXISTS timeline (
+    wagon_id                 VARCHAR   NOT NULL,
+    model_revision           VARCHAR   NOT NULL,
+    time_utc                 TIMESTAMP NOT NULL,
+    predicted_sensor_c       DOUBLE    NOT NULL,
+    predicted_contact_mean_c DOUBLE    NOT NULL,  -- mean over the friction face
+    predicted_contact_max_c  DOUBLE    NOT NULL   -- maximum over the friction face
+);
+
+-- The chain state of each timeline: its segments (a braking, a quiet window, a data gap),
+-- each re-anchored at its start, within spans of data simulated from a uniform start.
+CREATE TABLE IF NOT EXISTS timeline_segments (
+    wagon_id       VARCHAR   NOT NULL,
     model_revision VARCHAR   NOT NULL,
-    detected_utc   TIMESTAMP NOT NULL,  -- events.detected_utc the simulation saw
+    span_start_utc TIMESTAMP NOT NULL,  -- first sample of the span (a longer gap before it)
+    span_end_utc   TIMESTAMP NOT NULL,  -- last sample of the span
+    start_utc      TIMESTAMP NOT NULL,  -- the segment: [start_utc, stop_utc)
+    stop_utc       TIMESTAMP NOT NULL,
+    kind           VARCHAR   NOT NULL CHECK (kind IN ('braking', 'quiet', 'gap')),
+    event_id       VARCHAR,             -- the event whose activation starts a braking segment
+    anchor         VARCHAR   NOT NULL CHECK (anchor IN ('start', 'before', 'after', 'none')),
+    shift_k        DOUBLE    NOT NULL,  -- uniform shift of the field at start_utc
+    reference_c    DOUBLE    NOT NULL   -- the field's reference temperature after it
+);
+
+-- Which wagons were simulated with which revision, and from what (incremental runs: a wagon
+-- is simulated again when its data or what it is simulated with changed).
+CREATE TABLE IF NOT EXISTS simulated_wagons (
+    wagon_id       VARCHAR   NOT NULL,
+    model_revision VARCHAR   NOT NULL,
+    data_key       VARCHAR   NOT NULL,  -- the wagon's files, samples and events as simulated
+    model_key      VARCHAR   NOT NULL,  -- its registry entry, the revision, the parameters
+    events         BIGINT    NOT NULL,  -- event windows stored in predictions
     simulated_utc  TIMESTAMP NOT NULL
 );
 

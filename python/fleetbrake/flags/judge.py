@@ -1,0 +1,334 @@
+"""Judging a wagon and storing its flags: :func:`raise_flags`.
+
+::
+
+    from fleetbrake.flags import FlagConfig, load_flag_config, raise_flags
+
+    config = load_flag_config("flags.toml")            # or FlagConfig() for the defaults
+    report = raise_flags(wh, registry, "declared", config)   # every wagon with samples
+    report = raise_flags(wh, registry, "declared", wagons=["SGG-0002"])
+    report.flags                                        # what was stored in ``flags``
+
+The flags read what the stages before stored: the samples and events, the revision's
+``timeline`` (the block re-anchored at every segment, ``fleetbrake.simulation``) and its
+``predictions`` of the brakings; they never simulate. How a wagon is judged (each step uses
+only readings the steps before found good):
+
+1. **Sensor, from the readings alone** (:mod:`fleetbrake.flags.sensor`): out of range,
+   frozen, dropping out.
+2. **Sensor, against the timeline**: loose, drifting (segments right after a data gap in
+   which the wagon may have braked, or after a braking over frozen GPS speed, are not judged
+   for ``settle_s``).
+3. **Brakes** (:mod:`fleetbrake.flags.brakes`), with the readings of steps 1 and 2 left out:
+   dragging (quiet windows heating while the model cools, brakings heating far more than
+   predicted), weak (brakings heating far less than predicted; consecutive ones are one flag).
+4. **Overheating** (:mod:`fleetbrake.flags.overheating`): the predicted contact maximum of a
+   braking over ``contact_limit_c``.
+
+A wagon without a registry entry, or whose timeline of the revision is missing or older than
+its data, is judged on its readings only (step 1; the report's notes say so). Flags are
+recomputed per wagon and the wagons' rows of ``flags`` replaced in one transaction;
+``flag_id`` is ``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>`` (``-2``, ... if taken), so the
+same data give the same ids, and a flag found again keeps its ``detected_utc``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from fleetbrake.flags.brakes import find_dragging, find_weak
+from fleetbrake.flags.config import DEFAULT_FLAG_CONFIG, FlagConfig
+from fleetbrake.flags.overheating import find_overheating
+from fleetbrake.flags.records import Finding, Flag, FlagReport
+from fleetbrake.flags.sensor import (
+    find_drift,
+    find_dropouts,
+    find_frozen,
+    find_loose,
+    find_out_of_range,
+    heat_flow_corrected,
+    merge_sensor_faults,
+)
+from fleetbrake.flags.series import SpanTimeline, load_spans
+from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
+from fleetbrake.fleet.registry import Registry, WagonConfig
+from fleetbrake.simulation.chains import constant_runs
+from fleetbrake.simulation.predictions import revision
+from fleetbrake.simulation.series import BoolArray, WagonSeries, runs
+from fleetbrake.simulation.store import data_keys, load_timeline, utc_now, wagon_events
+from fleetbrake.warehouse.connection import Warehouse, sql
+
+__all__ = ["flag_ids", "judge_wagon", "raise_flags"]
+
+logger = logging.getLogger(__name__)
+
+
+def _spans_utc(series: WagonSeries, mask: BoolArray) -> list[tuple[dt.datetime, dt.datetime]]:
+    return [(series.utc(a), series.utc(b)) for a, b in runs(mask)]
+
+
+def _mask_of(series: WagonSeries, findings: Iterable[Finding]) -> BoolArray:
+    mask = np.zeros(series.n, dtype=bool)
+    for f in findings:
+        a = max(int((f.start_utc - series.t0).total_seconds()), 0)
+        b = min(int((f.end_utc - series.t0).total_seconds()), series.n)
+        mask[a:b] = True
+    return mask
+
+
+@dataclass
+class _SpanVerdict:
+    series: WagonSeries
+    findings: list[Finding]
+    segments: list[Segment]
+    """Segments with every sensor fault left out (for the brakes)."""
+    faults: list[tuple[int, int]]
+    unsure: BoolArray
+
+
+def _readings_only(series: WagonSeries, config: FlagConfig) -> list[Finding]:
+    """Step 1 without a model: out of range, dropouts, frozen by the readings' scatter."""
+    found = find_out_of_range(series, config) + find_dropouts(series, config)
+    return merge_sensor_faults(found + find_frozen(series, config), config)
+
+
+def _judge_span(series: WagonSeries, timeline: SpanTimeline, config: FlagConfig) -> _SpanVerdict:
+    """Steps 1-2 of the module docstring on one span: the sensor faults, and the segments of
+    the timeline for the brakes."""
+    findings = find_out_of_range(series, config) + find_dropouts(series, config)
+    broken = _mask_of(series, findings)  # out of range or missing: no readings
+    frozen_runs = np.zeros(series.n, dtype=bool)
+    for a, b, _ in constant_runs(
+        series.measured_c, config.frozen_min_s, config.frozen_resolution_k
+    ):
+        frozen_runs[a:b] = True
+    predicted = timeline.predicted_c
+    findings += find_frozen(series, config, predicted)
+    unsure = unsure_mask(series, timeline.gaps, config)
+    # loose and drifting against the model, frozen readings included (a loose sensor may end
+    # up reading a constant air temperature: that is still reading the air)
+    segments = segment_stats(
+        series,
+        predicted,
+        timeline.bounds,
+        timeline.kinds,
+        config,
+        unsure=unsure,
+        invalid=broken,
+    )
+    loose = find_loose(series, segments, config, predicted)
+    loose_mask = _mask_of(series, loose)
+    rest = [s for s in segments if not loose_mask[s.start : s.stop].any()]
+    drift = find_drift(series, heat_flow_corrected(rest, config), config)
+    findings = merge_sensor_faults([*findings, *loose, *drift], config)
+    fault_mask = _mask_of(series, findings)
+    segments = segment_stats(
+        series,
+        predicted,
+        timeline.bounds,
+        timeline.kinds,
+        config,
+        unsure=unsure,
+        invalid=fault_mask | frozen_runs,
+    )
+    return _SpanVerdict(series, findings, segments, runs(fault_mask), unsure)
+
+
+def judge_wagon(
+    spans: Sequence[tuple[WagonSeries, SpanTimeline | None]],
+    *,
+    predictions: pl.DataFrame | None = None,
+    events: pl.DataFrame | None = None,
+    config: FlagConfig = DEFAULT_FLAG_CONFIG,
+) -> list[Finding]:
+    """Every finding of one wagon (the steps of the module docstring), from its spans of data
+    with their stored timelines (:func:`fleetbrake.flags.series.load_spans`), the revision's
+    ``predictions`` of its brakings and its ``events``. A span without a timeline is judged
+    on its readings only, and the brakings only when every span has one."""
+    if not spans:
+        return []
+    if any(timeline is None for _, timeline in spans):
+        return [f for series, _ in spans for f in _readings_only(series, config)]
+    verdicts = [
+        _judge_span(series, timeline, config) for series, timeline in spans if timeline is not None
+    ]
+    wagon_id = spans[0][0].wagon_id
+    findings = [f for v in verdicts for f in v.findings]
+    stats: list[EventStat] = []
+    if predictions is not None and events is not None and predictions.height:
+        excluded = [(v.series.utc(a), v.series.utc(b)) for v in verdicts for a, b in v.faults]
+        unsure = [span for v in verdicts for span in _spans_utc(v.series, v.unsure)]
+        stats = event_stats(predictions, events, config, excluded=excluded, unsure=unsure)
+    findings += find_weak(wagon_id, stats, config)
+    for v in verdicts:
+        t0, t1 = v.series.t0, v.series.utc(v.series.n)
+        own = [e for e in stats if t0 <= e.start_utc < t1]
+        findings += find_dragging(v.series, v.segments, own, config, excluded=v.faults)
+    findings += find_overheating(wagon_id, stats, config)
+    return findings
+
+
+def flag_ids(wagon_id: str, findings: Sequence[Finding]) -> list[Flag]:
+    """The findings as flags, with their stable ids (see the module docstring)."""
+    taken: set[str] = set()
+    flags = []
+    for f in sorted(findings, key=lambda f: (f.start_utc, f.kind, f.end_utc, f.evidence)):
+        base = f"{f.kind}-{wagon_id}-{f.start_utc:%Y%m%dT%H%M%S}"
+        flag_id, k = base, 1
+        while flag_id in taken:
+            k += 1
+            flag_id = f"{base}-{k}"
+        taken.add(flag_id)
+        flags.append(
+            Flag(
+                flag_id=flag_id,
+                wagon_id=wagon_id,
+                event_id=f.event_id,
+                kind=f.kind,
+                severity=f.severity,
+                start_utc=f.start_utc,
+                end_utc=f.end_utc,
+                evidence=f.evidence,
+                detail=f.detail,
+            )
+        )
+    return flags
+
+
+def raise_flags(
+    wh: Warehouse,
+    registry: Registry | Mapping[str, WagonConfig],
+    revision_name: str,
+    config: FlagConfig = DEFAULT_FLAG_CONFIG,
+    *,
+    wagons: Iterable[str] | None = None,
+) -> FlagReport:
+    """Recompute the flags of ``wagons`` (default: every wagon with samples) from their
+    samples, events and what the simulation stored for ``revision_name`` (its timeline and
+    predictions), and replace their rows of ``flags`` in one transaction. A wagon without a
+    registry entry, or without a current timeline of the revision, is judged on its readings
+    only (a note in the report names it). Raises
+    :class:`fleetbrake.simulation.predictions.UnknownRevisionError` for an unknown revision."""
+    revision(wh, revision_name)  # the revision must exist
+    if isinstance(registry, Registry):
+        wagons_by_id: Mapping[str, WagonConfig] = registry.wagons
+        default_ambient_c = float(registry.defaults["ambient_temp_c"])
+    else:  # the entries a run stored (simulation.predictions.stored_wagons)
+        wagons_by_id = registry
+        default_ambient_c = WagonConfig(wagon_id="-").ambient_temp_c
+    if wagons is None:
+        wanted = [str(r[0]) for r in wh.con.execute(sql("q_flags_wagons")).fetchall()]
+    else:
+        wanted = sorted(set(wagons))
+    report = FlagReport(wagons=wanted)
+    keys = data_keys(wh)
+    new: list[Flag] = []
+    for wagon_id in wanted:
+        wagon = wagons_by_id.get(wagon_id)
+        ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
+        stored = load_timeline(wh, wagon_id, revision_name) if wagon is not None else None
+        if wagon is None:
+            note = "no valid registry entry; only its readings were judged"
+        elif stored is None:
+            note = (
+                f"not simulated with revision {revision_name}; only its readings were judged "
+                "(the flags read the simulation's timeline: run the simulation first)"
+            )
+        elif stored.data_key != keys.get(wagon_id):
+            note = (
+                f"its data changed since it was simulated with revision {revision_name}; only "
+                "its readings were judged (run the simulation first)"
+            )
+            stored = None
+        else:
+            note = None
+        spans = load_spans(wh, wagon_id, ambient_default_c=ambient, stored=stored)
+        if not spans:
+            continue
+        if note is not None:
+            report.notes.append(f"wagon {wagon_id}: {note}")
+        predictions = events = None
+        if stored is not None:
+            predictions = wh.con.sql(
+                sql("q_flags_predictions"),
+                params={"wagon_id": wagon_id, "revision": revision_name},
+            ).pl()
+            events = wagon_events(wh, wagon_id)
+            if predictions.height == 0 and events.height:
+                report.notes.append(
+                    f"wagon {wagon_id}: no predictions of revision {revision_name}; brakings "
+                    "not judged for weak brakes, dragging in brakings or overheating"
+                )
+        findings = judge_wagon(spans, predictions=predictions, events=events, config=config)
+        new += flag_ids(wagon_id, findings)
+    _store(wh, report.wagons, new)
+    report.flags = new
+    logger.info("flags of %d wagons judged: %d flags", len(report.wagons), len(new))
+    return report
+
+
+_FLAG_SCHEMA = pl.Schema(
+    {
+        "flag_id": pl.String(),
+        "wagon_id": pl.String(),
+        "event_id": pl.String(),
+        "kind": pl.String(),
+        "severity": pl.String(),
+        "start_utc": pl.Datetime("us"),
+        "end_utc": pl.Datetime("us"),
+        "evidence": pl.String(),
+        "detected_utc": pl.Datetime("us"),
+    }
+)
+
+
+def _store(wh: Warehouse, wagons: Sequence[str], flags: Sequence[Flag]) -> None:
+    """Replace the flags of ``wagons`` in one transaction; a flag identical to a stored one
+    keeps its ``detected_utc``."""
+    now = utc_now()
+    wagon_ids = list(wagons)
+    with wh.transaction() as con:
+        old = con.execute(sql("q_flags_stored"), {"wagon_ids": wagon_ids}).fetchall()
+        kept = {tuple(r[:7]): r[7] for r in old}
+        con.execute(sql("q_flags_delete"), {"wagon_ids": wagon_ids})
+        if not flags:
+            return
+        rows = pl.DataFrame(
+            [
+                {
+                    "flag_id": f.flag_id,
+                    "wagon_id": f.wagon_id,
+                    "event_id": f.event_id,
+                    "kind": f.kind,
+                    "severity": f.severity,
+                    "start_utc": f.start_utc,
+                    "end_utc": f.end_utc,
+                    "evidence": f.evidence,
+                    "detected_utc": kept.get(
+                        (
+                            f.flag_id,
+                            f.event_id,
+                            f.kind,
+                            f.severity,
+                            f.start_utc,
+                            f.end_utc,
+                            f.evidence,
+                        ),
+                        now,
+                    ),
+                }
+                for f in flags
+            ],
+            schema=_FLAG_SCHEMA,
+        )
+        con.register("flag_batch", rows)
+        try:
+            con.execute(sql("q_flags_insert"))
+        finally:
+            con.unregister("flag_batch")

@@ -1,0 +1,89 @@
+"""What the flags read of one wagon: its samples on the 1 Hz grid of each span, and the
+timeline the simulation stage stored for the revision on the same grid (the flags never
+simulate).
+
+::
+
+    from fleetbrake.flags.series import load_spans
+
+    for series, timeline in load_spans(wh, "SGG-0001", ambient_default_c=10.0, stored=stored):
+        timeline.predicted_c, timeline.bounds, timeline.kinds   # None: readings only
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import polars as pl
+
+from fleetbrake.simulation.chains import ChainParams
+from fleetbrake.simulation.series import FloatArray, WagonSeries
+from fleetbrake.simulation.store import StoredTimeline, TimelineSpan, wagon_events, wagon_samples
+from fleetbrake.warehouse.connection import Warehouse
+
+__all__ = ["SpanTimeline", "load_spans", "span_timeline"]
+
+
+@dataclass(frozen=True)
+class SpanTimeline:
+    """The stored timeline of one span on its series' grid."""
+
+    predicted_c: FloatArray
+    """The predicted sensor temperature (NaN at seconds without a row)."""
+    bounds: list[int]
+    """Segment starts, then the end of the series."""
+    kinds: list[str]
+    """``braking``, ``quiet`` or ``gap``, per segment."""
+    gaps: list[tuple[int, int]]
+    """The last row before and the first row after each ``gap`` segment."""
+
+
+def span_timeline(series: WagonSeries, span: TimelineSpan) -> SpanTimeline:
+    """``span`` (stored for the same samples) on ``series``' grid."""
+    predicted = np.full(series.n, np.nan)
+    if span.values.height:
+        k = (span.values["time_utc"] - series.t0).dt.total_seconds().to_numpy().astype(np.int64)
+        inside = (k >= 0) & (k < series.n)
+        predicted[k[inside]] = span.values["predicted_sensor_c"].to_numpy()[inside]
+    starts = [series.index(t) for t in span.segments["start_utc"]]
+    stops = [series.index(t) for t in span.segments["stop_utc"]]
+    kinds = [str(kind) for kind in span.segments["kind"]]
+    gaps = [(a - 1, b) for a, b, kind in zip(starts, stops, kinds, strict=True) if kind == "gap"]
+    return SpanTimeline(predicted, [*starts, series.n], kinds, gaps)
+
+
+def load_spans(
+    wh: Warehouse,
+    wagon_id: str,
+    *,
+    ambient_default_c: float,
+    stored: StoredTimeline | None,
+) -> list[tuple[WagonSeries, SpanTimeline | None]]:
+    """The wagon's spans of samples, each with its stored timeline: the spans the simulation
+    cut when ``stored`` is given (it must be of the wagon's data as they are), else those of
+    the default :class:`ChainParams` with no timeline (the readings alone are judged)."""
+    samples = wagon_samples(wh, wagon_id)
+    if samples.height == 0:
+        return []
+    events = wagon_events(wh, wagon_id)
+    if stored is None or not stored.spans:
+        spans = WagonSeries.spans_from_frame(
+            wagon_id,
+            samples,
+            ambient_default_c=ambient_default_c,
+            bridge_max_s=ChainParams().bridge_max_s,
+            events=events,
+        )
+        return [(series, None) for series in spans]
+    out: list[tuple[WagonSeries, SpanTimeline | None]] = []
+    for span in stored.spans:
+        part = samples.filter(pl.col("time_utc").is_between(span.start_utc, span.end_utc))
+        if part.height == 0:
+            continue
+        own = events.filter(pl.col("start_utc").is_between(span.start_utc, span.end_utc))
+        series = WagonSeries.from_frame(
+            wagon_id, part, ambient_default_c=ambient_default_c, events=own
+        )
+        out.append((series, span_timeline(series, span)))
+    return out

@@ -1,0 +1,183 @@
+"""What the simulation stage stores per wagon and revision, and how the next stages read it.
+
+Tables (``warehouse/sql/schema_pipeline.sql``): ``predictions`` (the event windows, behind
+``v_predictions``), ``timeline`` (the block at every logged second) with ``timeline_segments``
+(where and how it was re-anchored), and ``simulated_wagons`` (what each wagon was simulated
+from). A wagon's rows of one revision are replaced together, in one transaction.
+
+::
+
+    from fleetbrake.simulation.store import load_timeline
+
+    stored = load_timeline(wh, "SGG-0001", "declared")   # None if never simulated
+    for span in stored.spans:
+        span.start_utc, span.end_utc, span.segments, span.values
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+
+import polars as pl
+
+from fleetbrake.warehouse.connection import Warehouse, sql
+
+__all__ = [
+    "SimulatedWagon",
+    "StoredTimeline",
+    "TimelineSpan",
+    "WagonRows",
+    "data_keys",
+    "forget_wagon",
+    "load_timeline",
+    "replace_wagon",
+    "simulated_wagons",
+    "utc_now",
+    "wagon_events",
+    "wagon_samples",
+]
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC).replace(tzinfo=None)
+
+
+@dataclass(frozen=True)
+class SimulatedWagon:
+    """A row of ``simulated_wagons``."""
+
+    wagon_id: str
+    data_key: str
+    model_key: str
+    events: int
+    simulated_utc: dt.datetime
+
+
+@dataclass
+class WagonRows:
+    """Everything one wagon's simulation with one revision stores (polars frames with the
+    columns of the tables)."""
+
+    predictions: pl.DataFrame
+    timeline: pl.DataFrame
+    segments: pl.DataFrame
+    events: int = 0
+
+
+@dataclass(frozen=True)
+class TimelineSpan:
+    """One span of a stored timeline: first and last sample, its segments (``start_utc``,
+    ``stop_utc``, ``kind``, ``event_id``, ``anchor``, ``shift_k``, ``reference_c``) and its
+    values (``time_utc``, ``predicted_sensor_c``, ``predicted_contact_mean_c``,
+    ``predicted_contact_max_c``)."""
+
+    start_utc: dt.datetime
+    end_utc: dt.datetime
+    segments: pl.DataFrame
+    values: pl.DataFrame
+
+
+@dataclass
+class StoredTimeline:
+    """A wagon's timeline as one revision's simulation stored it."""
+
+    wagon_id: str
+    revision: str
+    data_key: str
+    """The wagon's data as it was simulated (compare :func:`data_keys`)."""
+    spans: list[TimelineSpan] = field(default_factory=list)
+
+
+def data_keys(wh: Warehouse) -> dict[str, str]:
+    """Each wagon with samples: a key of its data (files, samples, events) as they are now."""
+    rows = wh.con.execute(sql("q_simulation_wagon_data")).fetchall()
+    return {str(wagon_id): str(key) for wagon_id, key in rows}
+
+
+def simulated_wagons(wh: Warehouse, revision: str) -> dict[str, SimulatedWagon]:
+    """The wagons simulated with ``revision``, and from what."""
+    rows = wh.con.execute(sql("q_simulation_simulated_wagons"), {"revision": revision}).fetchall()
+    return {str(r[0]): SimulatedWagon(str(r[0]), r[1], r[2], int(r[3]), r[4]) for r in rows}
+
+
+def wagon_samples(wh: Warehouse, wagon_id: str) -> pl.DataFrame:
+    """All samples of a wagon, by time (``q_simulation_wagon_samples.sql``)."""
+    return wh.con.sql(sql("q_simulation_wagon_samples"), params={"wagon_id": wagon_id}).pl()
+
+
+def wagon_events(wh: Warehouse, wagon_id: str) -> pl.DataFrame:
+    """The braking events of a wagon, by activation (``q_simulation_wagon_events.sql``)."""
+    return wh.con.sql(sql("q_simulation_wagon_events"), params={"wagon_id": wagon_id}).pl()
+
+
+def replace_wagon(
+    wh: Warehouse,
+    wagon_id: str,
+    revision: str,
+    rows: WagonRows,
+    *,
+    data_key: str,
+    model_key: str,
+) -> None:
+    """Replace the wagon's rows of ``revision`` in every table of the stage, in one
+    transaction, recording the keys it was simulated from."""
+    key = {"wagon_id": wagon_id, "revision": revision}
+    batches = (
+        ("prediction_batch", rows.predictions, "q_simulation_insert_predictions"),
+        ("timeline_batch", rows.timeline, "q_simulation_insert_timeline"),
+        ("segment_batch", rows.segments, "q_simulation_insert_timeline_segments"),
+    )
+    with wh.transaction() as con:
+        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
+            con.execute(sql(f"q_simulation_delete_{table}"), key)
+        for name, frame, statement in batches:
+            if frame.height:
+                con.register(name, frame)
+                try:
+                    con.execute(sql(statement))
+                finally:
+                    con.unregister(name)
+        con.execute(
+            sql("q_simulation_insert_simulated_wagon"),
+            {
+                **key,
+                "data_key": data_key,
+                "model_key": model_key,
+                "events": rows.events,
+                "simulated_utc": utc_now(),
+            },
+        )
+
+
+def forget_wagon(wh: Warehouse, wagon_id: str, revision: str) -> None:
+    """Remove every row the stage stored for the wagon and revision (its data are gone)."""
+    with wh.transaction() as con:
+        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
+            con.execute(
+                sql(f"q_simulation_delete_{table}"), {"wagon_id": wagon_id, "revision": revision}
+            )
+
+
+def load_timeline(wh: Warehouse, wagon_id: str, revision: str) -> StoredTimeline | None:
+    """The wagon's stored timeline of ``revision``, by span; None if it was never simulated
+    with it."""
+    done = simulated_wagons(wh, revision).get(wagon_id)
+    if done is None:
+        return None
+    params = {"wagon_id": wagon_id, "revision": revision}
+    segments = wh.con.sql(sql("q_simulation_timeline_segments"), params=params).pl()
+    values = wh.con.sql(sql("q_simulation_timeline"), params=params).pl()
+    stored = StoredTimeline(wagon_id, revision, done.data_key)
+    if segments.height == 0:
+        return stored
+    for (start, end), part in segments.group_by(
+        ["span_start_utc", "span_end_utc"], maintain_order=True
+    ):
+        assert isinstance(start, dt.datetime) and isinstance(end, dt.datetime)
+        inside = values.filter(pl.col("time_utc").is_between(start, end))
+        stored.spans.append(
+            TimelineSpan(start, end, part.drop("span_start_utc", "span_end_utc"), inside)
+        )
+    stored.spans.sort(key=lambda s: s.start_utc)
+    return stored

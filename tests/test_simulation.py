@@ -1,0 +1,386 @@
+"""Tests of fleetbrake.simulation: the one chain/re-anchor algorithm on hand-made series, and the
+simulation stage on a small generated fleet: what it stores, that it is incremental, that the
+flags read it without simulating, and that the close loop's candidates are simulated exactly
+as the stage stores predictions."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pytest
+
+from fleetbrake.errors import ConfigError, UnknownKeyError
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.effects import EffectSet, HeatPartition
+from fleetbrake.model.timeline import simulate_timeline
+from fleetbrake.simulation.chains import (
+    ChainParams,
+    ChainParamsError,
+    event_windows,
+    segment_bounds,
+    simulate_span,
+    trusted_readings,
+)
+from fleetbrake.simulation.series import WagonSeries
+
+T0 = dt.datetime(2024, 3, 4, 8, 0, 0)
+
+
+def make_series(
+    measured: np.ndarray,
+    *,
+    pressure: np.ndarray | float = 0.0,
+    speed: np.ndarray | float = 60.0,
+    events: list[tuple[str, int, int]] = (),  # type: ignore[assignment]
+    drop: np.ndarray | None = None,
+    fault: np.ndarray | None = None,
+) -> WagonSeries:
+    """A 1 Hz series from ``T0``; rows where ``drop`` is set are not written at all."""
+    n = measured.size
+    frame = pl.DataFrame(
+        {
+            "time_utc": pl.Series([T0 + dt.timedelta(seconds=k) for k in range(n)]),
+            "speed_kmh": np.broadcast_to(np.asarray(speed, dtype=float), n).copy(),
+            "brake_pressure_bar": np.broadcast_to(np.asarray(pressure, dtype=float), n).copy(),
+            "block_temp_c": measured,
+            "block_temp_fault": np.zeros(n, dtype=bool) if fault is None else fault,
+            "ambient_temp_c": np.full(n, 8.0),
+        }
+    ).with_columns(pl.col("block_temp_c").fill_nan(None))
+    if drop is not None:
+        frame = frame.filter(pl.Series(~drop))
+    event_frame = pl.DataFrame(
+        {
+            "event_id": [e[0] for e in events],
+            "start_utc": [T0 + dt.timedelta(seconds=e[1]) for e in events],
+            "end_utc": [T0 + dt.timedelta(seconds=e[2]) for e in events],
+        },
+        schema={
+            "event_id": pl.String,
+            "start_utc": pl.Datetime("us"),
+            "end_utc": pl.Datetime("us"),
+        },
+    )
+    return WagonSeries.from_frame("TEST-0001", frame, ambient_default_c=8.0, events=event_frame)
+
+
+# --------------------------------------------------------------------------------------------
+# The parameters
+
+
+def test_chain_params_name_a_bad_key() -> None:
+    with pytest.raises(ChainParamsError, match=r"ChainParams: anchor_s must be > 0") as caught:
+        ChainParams(anchor_s=0)
+    assert isinstance(caught.value, ConfigError) and caught.value.exit_code == 2
+    with pytest.raises(ChainParamsError, match="anchor_min_readings must not exceed anchor_s"):
+        ChainParams(anchor_s=4)
+    with pytest.raises(ChainParamsError, match="window_s must be an integer"):
+        ChainParams(window_s=600.5)  # type: ignore[arg-type]
+
+
+def test_the_gap_that_cuts_a_simulation_is_the_one_that_ends_an_event() -> None:
+    """One gap rule for events and simulation: a 12 s hole (too short to end an event) does
+    not cut an event's window, nor start a ``gap`` segment; a 20 s one does both."""
+    from fleetbrake.ingest.events import EventConfig
+
+    assert ChainParams().max_gap_s == EventConfig().max_gap_s
+    n = 1500
+    pressure = np.zeros(n)
+    pressure[100:160] = 1.0
+    for hole_s, cut in ((12, False), (20, True)):
+        drop = np.zeros(n, dtype=bool)
+        drop[300 : 300 + hole_s] = True
+        series = make_series(
+            np.full(n, 20.0), pressure=pressure, events=[("E1", 100, 160)], drop=drop
+        )
+        (window,) = event_windows(series, ChainParams())
+        assert window.stop == (299 if cut else 160 + 600), hole_s
+        _, kinds = segment_bounds(series, ChainParams())
+        assert ("gap" in kinds) == cut, hole_s
+
+
+def test_readings_a_broken_or_frozen_sensor_gave_never_anchor() -> None:
+    n = 3000
+    rng = np.random.default_rng(0)
+    measured = np.round(20.0 + rng.normal(0.0, 0.1, n), 2)
+    measured[1000:1200] = 21.37  # frozen for 200 s
+    fault = np.zeros(n, dtype=bool)
+    fault[2000:2010] = fault[2300:2310] = True  # an intermittent circuit
+    measured[fault] = np.nan
+    trusted = trusted_readings(make_series(measured, fault=fault), ChainParams())
+    assert np.isnan(trusted[1000:1200]).all() and np.isnan(trusted[2000:2310]).all()
+    assert np.isfinite(trusted[:1000]).all() and np.isfinite(trusted[2310:]).all()
+
+
+# --------------------------------------------------------------------------------------------
+# The algorithm
+
+
+@pytest.fixture(scope="module")
+def rom(reduced_model_for: Callable[..., Any]) -> Any:
+    return reduced_model_for(WagonConfig(wagon_id="TEST-0001"))
+
+
+def test_an_event_window_is_the_chain_carried_on_from_its_anchored_activation(rom: Any) -> None:
+    """The timeline and the event's window share the braking segment exactly; after it the
+    timeline is re-anchored at every quiet window, the window is not (it keeps the model's
+    error for the braking)."""
+    wagon = WagonConfig(wagon_id="TEST-0001")
+    n = 2400
+    pressure = np.zeros(n)
+    pressure[600:660] = 1.5
+    speed = np.clip(80.0 - np.clip(np.arange(n) - 600, 0, 60) * 1.0, 0.0, None)
+    # the data: a block heated more than the declared model says (a larger share of the heat)
+    truth = simulate_timeline(
+        rom,
+        wagon,
+        dt_s=1.0,
+        p_bar=pressure,
+        speed_kmh=speed,
+        ambient_c=8.0,
+        initial_c=30.0,
+        effects=EffectSet((HeatPartition(alpha=0.6),)),
+    )
+    noise = np.random.default_rng(1).normal(0.0, 0.05, n)  # noise-free readings look frozen
+    measured = np.round(truth.sensor_c + noise, 2)
+    series = make_series(measured, pressure=pressure, speed=speed, events=[("E1", 600, 660)])
+    chain = ChainParams()
+    result = simulate_span(series, wagon, rom, EffectSet(), chain)
+    (window,) = result.windows
+    assert (window.start, window.stop) == (600, 660 + chain.event_after_release_s)
+    assert window.sensor_c is not None
+    braking = next(s for s in result.segments if s.kind == "braking")
+    assert (braking.start, braking.stop, braking.event_id, braking.anchor) == (
+        600,
+        660 + chain.quiet_after_release_s,
+        "E1",
+        "before",
+    )
+    inside = slice(0, braking.stop - 600)  # [start, stop): the next segment starts at stop
+    np.testing.assert_allclose(
+        window.sensor_c[inside], result.sensor_c[600 : braking.stop], rtol=0, atol=1e-12
+    )
+    after = [s for s in result.segments if s.start >= braking.stop]
+    assert after and all(s.kind == "quiet" and s.anchor == "before" for s in after)
+    # the window misses the extra heat the whole way; the timeline is back on the data after
+    # each anchor
+    k = after[0].start + chain.anchor_s
+    window_error = truth.sensor_c[k] - window.sensor_c[k - 600]
+    timeline_error = truth.sensor_c[k] - result.sensor_c[k]
+    assert window_error > 1.0 and abs(timeline_error) < 0.2 * window_error
+
+
+# --------------------------------------------------------------------------------------------
+# The stage on a generated fleet
+
+
+@dataclasses.dataclass
+class Fleet:
+    path: Path
+    db: Path
+    registry: Any
+    config: Any
+
+
+@pytest.fixture(scope="module")
+def fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., Any],
+    rom_cache_dir: Path,
+) -> Iterator[Fleet]:
+    """Two wagons (plus the generator's unregistered one) x 1 day with anomalies, ingested and
+    events detected; the simulation stage not yet run."""
+    from conftest import TEST_REFINEMENT
+    from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        out = tmp_path_factory.mktemp("simfleet")
+        generate_fleet(out / "fleet", SynthConfig(wagons=2, days=1, seed=1), rom=reduced_model_for)
+        run_ingest(out / "fleet", out / "fleet.duckdb", progress=False)
+        yield Fleet(
+            out / "fleet",
+            out / "fleet.duckdb",
+            load_fleet_registry(out / "fleet"),
+            SimulationConfig(refinement=TEST_REFINEMENT),
+        )
+
+
+def _counts(wh: Any, revision: str = "declared") -> dict[str, int]:
+    return {
+        table: wh.con.execute(
+            f"SELECT count(*) FROM {table} WHERE model_revision = $r", {"r": revision}
+        ).fetchall()[0][0]
+        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons")
+    }
+
+
+def test_the_stage_stores_timeline_and_predictions_once(fleet: Fleet) -> None:
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        first = simulate_events(wh, fleet.registry, current_revision(wh), fleet.config)
+        registered = sorted(fleet.registry.wagons)
+        with_samples = [
+            w
+            for (w,) in wh.con.execute("SELECT DISTINCT wagon_id FROM samples").fetchall()
+            if w in fleet.registry.wagons
+        ]
+        assert sorted(first.wagons_simulated) == sorted(with_samples) and with_samples
+        assert first.events_simulated > 10 and first.timeline_rows > first.prediction_rows
+        assert any("has no valid registry entry" in s for s in first.skipped) or set(
+            with_samples
+        ) == set(registered)
+        counts = _counts(wh)
+        # one timeline row per logged second of every simulated wagon
+        ((logged,),) = wh.con.execute(
+            "SELECT count(DISTINCT (wagon_id, time_utc)) FROM samples "
+            "WHERE list_contains($w, wagon_id)",
+            {"w": with_samples},
+        ).fetchall()
+        assert counts["timeline"] == logged
+        # every event window starts at its braking segment, anchored there
+        ((unanchored,),) = wh.con.execute(
+            "SELECT count(*) FROM (SELECT event_id, min(time_utc) AS t0 FROM predictions "
+            "GROUP BY event_id) p LEFT JOIN timeline_segments s "
+            "ON s.event_id = p.event_id AND s.start_utc = p.t0 AND s.kind = 'braking' "
+            "WHERE s.event_id IS NULL"
+        ).fetchall()
+        assert unanchored == 0
+        # again: nothing to do, nothing changed
+        again = simulate_events(wh, fleet.registry, current_revision(wh), fleet.config)
+        assert (again.wagons_simulated, again.events_simulated) == ([], 0)
+        assert _counts(wh) == counts
+
+
+def test_a_wagon_whose_data_changed_is_simulated_again_alone(fleet: Fleet) -> None:
+    from fleetbrake.flags import raise_flags
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh)
+        simulate_events(wh, fleet.registry, rev, fleet.config)
+        first, second = sorted(fleet.registry.wagons)[:2]
+        ((last,),) = wh.con.execute(
+            "SELECT max(time_utc) FROM samples WHERE wagon_id = $w", {"w": second}
+        ).fetchall()
+        cut = last - dt.timedelta(hours=1)
+        wh.con.execute(
+            "DELETE FROM samples WHERE wagon_id = $w AND time_utc > $t", {"w": second, "t": cut}
+        )
+        # the flags see that its timeline is older than its data and do not use it
+        report = raise_flags(wh, fleet.registry, rev.name, wagons=[second])
+        assert any(f"wagon {second}: its data changed" in note for note in report.notes)
+        again = simulate_events(wh, fleet.registry, rev, fleet.config)
+        assert again.wagons_simulated == [second]
+        ((after,),) = wh.con.execute(
+            "SELECT max(time_utc) FROM timeline WHERE wagon_id = $w", {"w": second}
+        ).fetchall()
+        assert after <= cut
+        report = raise_flags(wh, fleet.registry, rev.name, wagons=[first, second])
+        assert not any("changed" in note or "simulated" in note for note in report.notes)
+
+
+def test_the_flags_read_the_timeline_and_never_simulate(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import fleetbrake.model.timeline
+    import fleetbrake.simulation.chains
+    from fleetbrake.flags import raise_flags
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh)
+        simulate_events(wh, fleet.registry, rev, fleet.config)
+        expected = raise_flags(wh, fleet.registry, rev.name)
+
+        def refuse(*args: object, **kwargs: object) -> None:
+            raise AssertionError("the flags simulated")
+
+        monkeypatch.setattr(fleetbrake.model.timeline, "simulate_timeline", refuse)
+        monkeypatch.setattr(fleetbrake.simulation.chains, "simulate_timeline", refuse)
+        report = raise_flags(wh, fleet.registry, rev.name)
+        assert [f.flag_id for f in report.flags] == [f.flag_id for f in expected.flags]
+        assert report.flags, "the fleet has anomalies: some flags expected"
+        assert not any("only its readings" in n for n in report.notes if "registry" not in n)
+        with pytest.raises(UnknownKeyError, match=r"no model revision 'nope'"):
+            raise_flags(wh, fleet.registry, "nope")
+
+
+def test_close_loop_candidates_are_simulated_as_the_stage_stores_predictions(
+    fleet: Fleet,
+) -> None:
+    """A candidate with the revision's own effects predicts what the stage stored, to 1e-9 K,
+    for any subset of events (each span simulated from its start, up to the last one)."""
+    from fleetbrake.simulation.predictions import (
+        current_revision,
+        load_wagon,
+        model_for,
+        predict_wagon,
+        simulate_events,
+    )
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh)
+        simulate_events(wh, fleet.registry, rev, fleet.config)
+        wagon = fleet.registry.wagons[sorted(fleet.registry.wagons)[0]]
+        stored = wh.con.sql(
+            "SELECT * FROM predictions WHERE wagon_id = $w AND model_revision = $r "
+            "ORDER BY event_id, time_utc",
+            params={"w": wagon.wagon_id, "r": rev.name},
+        ).pl()
+        ids = stored["event_id"].unique(maintain_order=True).to_list()
+        some = ids[1 : len(ids) // 2 : 3]
+        data = load_wagon(wh, wagon, fleet.config)
+        model = model_for(wagon, rev.solver, fleet.config.refinement)
+        got = predict_wagon(data, model, rev, fleet.config, event_ids=some, timeline=False)
+        assert got.timeline.height == 0 and sorted(set(got.predictions["event_id"])) == some
+        want = stored.filter(pl.col("event_id").is_in(some))
+        got_frame = got.predictions.sort("event_id", "time_utc")
+        assert got_frame["time_utc"].to_list() == want["time_utc"].to_list()
+        np.testing.assert_allclose(
+            got_frame["predicted_sensor_c"].to_numpy(),
+            want["predicted_sensor_c"].to_numpy(),
+            rtol=0,
+            atol=1e-9,
+        )
+
+
+def test_reflag_simulates_the_new_revision_then_judges_from_it(fleet: Fleet) -> None:
+    from fleetbrake.closeloop.loop import _reflag
+    from fleetbrake.simulation.predictions import (
+        Revision,
+        current_revision,
+        store_registry,
+        stored_wagons,
+    )
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        base = current_revision(wh)
+        store_registry(wh, fleet.registry)
+        effects = EffectSet((HeatPartition(alpha=0.8),))
+        wh.con.execute(
+            "INSERT INTO model_revisions VALUES ('r1-test', $p, 'heat_partition', $j, NULL, "
+            "NULL, 'rom', FALSE, $t)",
+            {"p": base.name, "j": f'{{"effects": {effects.to_json()}}}', "t": T0},
+        )
+        new = Revision("r1-test", effects, base.solver)
+        wh.con.execute("DELETE FROM flags")
+        _reflag(wh, stored_wagons(wh), new, fleet.config)
+        counts = _counts(wh, "r1-test")
+        assert counts["timeline"] > 0 and counts["predictions"] > 0
+        ((flags,),) = wh.con.execute("SELECT count(*) FROM flags").fetchall()
+        assert flags > 0
