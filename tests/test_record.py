@@ -14,12 +14,10 @@ from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
 from fleetbrake.cli.main import app
-from fleetbrake.viz.record import (
-    FIELD_EVERY_S,
-    TIMELINE,
-    RecordError,
-    record,
-)
+from fleetbrake.viz.block import FIELD_EVERY_S
+from fleetbrake.viz.data import RecordError
+from fleetbrake.viz.entities import TIMELINE
+from fleetbrake.viz.record import record
 from fleetbrake.warehouse.connection import open_warehouse
 
 WAGON = "TW-0001"
@@ -406,7 +404,7 @@ def test_registry_gives_the_block(fleet_db: dict[str, object], tmp_path: Path) -
 
 
 def test_flags_of_one_kind_overlapping_show_the_highest_severity() -> None:
-    from fleetbrake.viz.record import _flag_lane
+    from fleetbrake.viz.timeline import _flag_lane
 
     t = [dt.datetime(2024, 3, 1, 10, 0, s) for s in range(6)]
     lane = _flag_lane(
@@ -444,3 +442,37 @@ def test_block_of_the_registry_run_stored(fleet_db: dict[str, object], tmp_path:
     assert any("fleet/fleet.toml" in n for n in summary.notes)
     ((sensor,),) = _read(tmp_path / "s.rrd")["/block/sensor"]["values"]["Points3D:positions"]
     assert sensor[1] == pytest.approx(0.5 + 0.055)
+
+
+def test_event_flags_and_quarantined_wagons(fleet_db: dict[str, object], tmp_path: Path) -> None:
+    """An event's recording shows the flags tied to it even outside its window, and no other
+    flag from outside it; a wagon whose every file was quarantined is named with the reason."""
+    import shutil
+
+    db = tmp_path / "more.duckdb"
+    shutil.copy(fleet_db["db"], db)  # type: ignore[arg-type]
+    late = T1 + dt.timedelta(hours=3)
+    with open_warehouse(db) as wh:
+        wh.con.execute(
+            "INSERT INTO flags VALUES ('F3', $w, $e, 'dragging_brake', 'info', $a, $b, "
+            "'heating long after the stop', $a)",
+            {"w": WAGON, "e": E1, "a": late, "b": late + dt.timedelta(seconds=60)},
+        )
+        wh.con.execute(
+            "INSERT INTO files (file_id, path, wagon_id, sha256, size_bytes, mtime_ns, status, "
+            "reason, rows, ingested_utc) VALUES (9, 'logs/TW-0003_20240301T000000Z.csv', "
+            "'TW-0003', 'x', 10, 0, 'quarantined', 'TW-0003_20240301T000000Z.csv: no header', "
+            "0, $a)",
+            {"a": late},
+        )
+
+    def flag_texts(event_id: str) -> list[str]:
+        out = tmp_path / f"{event_id}.rrd"
+        record(db, WAGON, out, event_id=event_id)
+        flags = _read(out).get("/log/flags")
+        return [t[0] for t in flags["values"]["TextLog:text"]] if flags else []  # type: ignore[index]
+
+    assert any(t.startswith("dragging_brake [info] F3") for t in flag_texts(E1))
+    assert not any("F3" in t for t in flag_texts(E2))
+    with pytest.raises(RecordError, match="TW-0003 has no samples: all its files were quarantined"):
+        record(db, "TW-0003", tmp_path / "q.rrd")

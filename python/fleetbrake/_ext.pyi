@@ -1,4 +1,7 @@
-"""Type stubs of the Rust extension (crates/fleetbrake_py). Use fleetbrake.model.thermal instead."""
+"""Type stubs of the Rust extension (crates/fleetbrake_py: errors.rs, convert.rs, model.rs, rom.rs).
+
+Private to fleetbrake.model: use fleetbrake.model.thermal and fleetbrake.model.rom instead.
+"""
 
 from typing import Any
 

@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike
 from fleetbrake.model.thermal import Mesh
 
 if TYPE_CHECKING:
-    from fleetbrake.paper.reproduction import PaperReproduction
+    from fleetbrake.paper.results import PaperReproduction
 
 __all__ = ["write_field_series", "write_fields_vtu", "write_paper_fields"]
 

@@ -28,16 +28,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib import tri
+from matplotlib.axes import Axes
 from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
 from matplotlib.ticker import NullFormatter, ScalarFormatter
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # type: ignore[import-untyped]  # no py.typed
+from mpl_toolkits.mplot3d.axes3d import Axes3D  # type: ignore[import-untyped]  # no py.typed
 from numpy.typing import ArrayLike, NDArray
 
 from fleetbrake.fleet.block import BlockGeometry
 from fleetbrake.model.thermal import Mesh
 
 if TYPE_CHECKING:
-    from fleetbrake.paper.reproduction import Calibration, ManoeuvreResult, Study
+    from fleetbrake.paper.results import Calibration, ManoeuvreResult, Study
 
 __all__ = [
     "plot_block_field",
@@ -51,7 +54,7 @@ _QUAD8_OUTLINE = (0, 4, 1, 5, 2, 6, 3, 7)
 """Corners and mid-edge nodes of a VTK quadratic quad, in order around its outline."""
 
 
-def _save(fig: plt.Figure, path: str | Path) -> Path:
+def _save(fig: Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -76,7 +79,7 @@ def _boundary_polygons(mesh: Mesh) -> NDArray[np.int64]:
 
 
 def _surface_view(
-    ax: plt.Axes,
+    ax: Axes3D,
     xyz: NDArray[np.float64],
     polygons: NDArray[np.int64],
     field_c: NDArray[np.float64],
@@ -118,10 +121,11 @@ def plot_block_field(
     field = np.asarray(field_c, dtype=np.float64).reshape(-1)
     if field.size != mesh.n_nodes:
         raise ValueError(f"field has {field.size} values, the mesh {mesh.n_nodes} nodes")
-    norm = Normalize(
-        vmin=float(field.min()) if vmin is None else vmin,
-        vmax=float(field.max()) if vmax is None else vmax,
+    range_c = (
+        float(field.min()) if vmin is None else vmin,
+        float(field.max()) if vmax is None else vmax,
     )
+    norm = Normalize(vmin=range_c[0], vmax=range_c[1])
     rw = geometry.wheel_radius_m
     xyz = _block_frame(mesh.nodes, rw)
     polygons = _boundary_polygons(mesh)
@@ -140,7 +144,7 @@ def plot_block_field(
     )
 
     ax_cut = fig.add_subplot(grid[1, :2])
-    _section(ax_cut, mesh, field, geometry, norm, sensor_m)
+    _section(ax_cut, mesh, field, geometry, norm, range_c, sensor_m)
     mappable = plt.cm.ScalarMappable(norm=norm, cmap=CMAP)
     bar = fig.colorbar(mappable, cax=fig.add_subplot(grid[:, 2]))
     bar.set_label("temperature, °C")
@@ -150,11 +154,12 @@ def plot_block_field(
 
 
 def _section(
-    ax: plt.Axes,
+    ax: Axes,
     mesh: Mesh,
     field: NDArray[np.float64],
     geometry: BlockGeometry,
     norm: Normalize,
+    range_c: tuple[float, float],
     sensor_m: Sequence[float] | None,
 ) -> None:
     """The cut through the node layer nearest the sensor's z, unrolled: arc length along the
@@ -177,9 +182,10 @@ def _section(
     body_mm = geometry.body_thickness_m * 1e3
     outside = (centre_d > body_mm + 1e-6) & ((np.abs(centre_s) > lug_half_mm) | (not in_lug_z))
     triangulation.set_mask(outside)
-    levels = np.linspace(norm.vmin, norm.vmax, 41)
+    low_c, high_c = range_c
+    levels = np.linspace(low_c, high_c, 41)
     if levels[-1] - levels[0] <= 0:
-        levels = np.linspace(norm.vmin - 0.5, norm.vmin + 0.5, 41)
+        levels = np.linspace(low_c - 0.5, low_c + 0.5, 41)
     ax.tricontourf(triangulation, field[on], levels=levels, cmap=CMAP, norm=norm, extend="both")
     ax.tricontour(triangulation, field[on], levels=levels[::4], colors="k", linewidths=0.3)
     if sensor_m is not None:

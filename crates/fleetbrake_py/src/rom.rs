@@ -1,0 +1,128 @@
+//! The reduced model: modal stepping of many events, exact propagators, switched step systems
+//! (see `fleetbrake.model.rom`).
+
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3,
+};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+
+use thermal_core::rom::{exact_propagator, ModalStepper, Propagators};
+use thermal_core::ThermalError;
+
+use crate::convert::non_negative;
+use crate::errors::{call, call_detached, to_pyerr};
+
+/// Three arrays handed back to Python.
+type ArrayTriple<'py> = (
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+);
+
+/// Two vectors handed back to Python.
+type VectorPair<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
+
+/// Step a reduced model (modal form, nominal convection, exact in time) over many events:
+/// flux (E, S), drive (T_amb - T_ref) (E, S) or (E, 1), t_ref (E). Returns (probe
+/// (E (S+1), P), face mean (E, S+1), face max (E, S+1)).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+fn rom_simulate_batch<'py>(
+    py: Python<'py>,
+    lam: PyReadonlyArray1<'py, f64>,
+    b_q: PyReadonlyArray1<'py, f64>,
+    b_a: PyReadonlyArray1<'py, f64>,
+    c_out: PyReadonlyArray2<'py, f64>,
+    n_probes: usize,
+    dt_s: f64,
+    flux: PyReadonlyArray2<'py, f64>,
+    drive: PyReadonlyArray2<'py, f64>,
+    t_ref: PyReadonlyArray1<'py, f64>,
+) -> PyResult<ArrayTriple<'py>> {
+    let c: Vec<f64> = c_out.as_array().iter().copied().collect();
+    let (lam, b_q, b_a) = (lam.as_slice()?, b_q.as_slice()?, b_a.as_slice()?);
+    let stepper = call(|| ModalStepper::new(lam, b_q, b_a, c, n_probes, dt_s))?;
+    let shape = flux.as_array().shape().to_vec();
+    let (n_events, n_steps) = (shape[0], shape[1]);
+    // C-contiguous (the Python side makes them so): read in place, no copies
+    let (flux_s, drive_s, t_ref_s) = (flux.as_slice()?, drive.as_slice()?, t_ref.as_slice()?);
+    let out = call_detached(py, || {
+        stepper.simulate_batch(flux_s, drive_s, t_ref_s, n_steps)
+    })?;
+    let rows = n_steps + 1;
+    Ok((
+        out.probe_c
+            .into_pyarray(py)
+            .reshape([n_events * rows, n_probes])?,
+        out.face_mean_c.into_pyarray(py).reshape([n_events, rows])?,
+        out.face_max_c.into_pyarray(py).reshape([n_events, rows])?,
+    ))
+}
+
+/// The exact propagator (e, g) of modes with rates `lam` over a step of `dt_s`: e =
+/// exp(-lam dt), g = (1 - e) / lam.
+#[pyfunction]
+fn rom_exact_propagator<'py>(
+    py: Python<'py>,
+    lam: PyReadonlyArray1<'py, f64>,
+    dt_s: f64,
+) -> PyResult<VectorPair<'py>> {
+    if !(dt_s.is_finite() && dt_s > 0.0) {
+        return Err(to_pyerr(ThermalError::InvalidTimeStep(dt_s)));
+    }
+    let lam = lam.as_slice()?;
+    let (e, g) = call(|| Ok(exact_propagator(lam, dt_s)))?;
+    Ok((e.into_pyarray(py), g.into_pyarray(py)))
+}
+
+/// One run of a reduced model through switching step systems: propagators e, g (K, r),
+/// q (K, r, r), rotated (K); per step the propagator index and repeat count (S), the modal
+/// input u (S, r); xi0 (r); output rows c (n_out, r). Returns (C xi (S+1, n_out), final xi).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+#[allow(clippy::type_complexity)]
+fn rom_simulate_switched<'py>(
+    py: Python<'py>,
+    e: PyReadonlyArray2<'py, f64>,
+    g: PyReadonlyArray2<'py, f64>,
+    q: PyReadonlyArray3<'py, f64>,
+    rotated: Vec<bool>,
+    index: PyReadonlyArray1<'py, i64>,
+    repeats: PyReadonlyArray1<'py, i64>,
+    u: PyReadonlyArray2<'py, f64>,
+    xi0: PyReadonlyArray1<'py, f64>,
+    c: PyReadonlyArray2<'py, f64>,
+) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f64>>)> {
+    let order = xi0.len()?;
+    let (e, g, q) = (
+        e.as_slice()?.to_vec(),
+        g.as_slice()?.to_vec(),
+        q.as_slice()?.to_vec(),
+    );
+    let props = call(|| Propagators::new(order, e, g, q, rotated))?;
+    let index = non_negative(index.as_slice()?, "propagator index")?;
+    let repeats = non_negative(repeats.as_slice()?, "repeats")?
+        .into_iter()
+        .map(|v| {
+            u32::try_from(v).map_err(|_| PyValueError::new_err(format!("repeats too large: {v}")))
+        })
+        .collect::<PyResult<Vec<u32>>>()?;
+    let n_out = c.as_array().shape()[0];
+    let (u_s, xi_s, c_s) = (u.as_slice()?, xi0.as_slice()?, c.as_slice()?);
+    let (y, xi) = call_detached(py, || props.simulate(&index, &repeats, u_s, xi_s, c_s))?;
+    let steps = y.len() / n_out.max(1);
+    Ok((
+        y.into_pyarray(py).reshape([steps, n_out])?,
+        xi.into_pyarray(py),
+    ))
+}
+
+/// Add the reduced model's functions to the module.
+pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(rom_simulate_batch, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_simulate_switched, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_exact_propagator, m)?)?;
+    Ok(())
+}
