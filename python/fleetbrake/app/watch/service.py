@@ -1,0 +1,588 @@
+"""The watching service: files that land complete in ``<fleet>/logs`` go through ``run``.
+
+::
+
+    stop = threading.Event()            # set it (e.g. from a SIGTERM handler) to stop
+    report = watch_fleet("fleet", "warehouse/fleet.duckdb", WatchConfig(), stop, on_file=print)
+
+One loop, on the calling thread:
+
+* a watchdog observer on ``logs/`` (inotify; with ``poll_s`` the polling observer, for network
+  filesystems where inotify sees nothing) queues what happens to files; the
+  :class:`~fleetbrake.app.watch.landing.LandingTracker` decides which are complete;
+* a **rescan** at start and every ``rescan_s``: every file under ``logs/`` whose path, size or
+  modification time the ingestion ledger does not hold is a candidate (events are lost while
+  the service is down, or when the kernel's queue overflows);
+* a **unit** of work: once some files are complete and none is still being written, one
+  :func:`fleetbrake.app.run.run_fleet` over the fleet directory, exactly what ``fleetbrake run``
+  does (only new files are read; only the wagons they touch are simulated and flagged;
+  quarantine, late files, idempotence and the one-writer lock as there). The database is open
+  only during the unit, so that read-only connections of other processes (analysts' SQL) get
+  in between; when one holds the file, the unit is retried for up to ``wait_s`` seconds;
+* **stop** (the event set): the unit in progress finishes and commits, then the loop returns;
+* a **health line** every ``health_s`` (files processed, queue, last error), at info level;
+* for each file a unit processed, :class:`FileOutcome` to ``on_file``.
+
+An error in one unit is logged and the service goes on (the files stay queued and are tried
+again after a pause); :class:`WatchError` (exit 1) only when it cannot do its job at all: the
+fleet directory is gone, or the observer cannot watch.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import random
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from watchdog.events import (
+    DirDeletedEvent,
+    DirMovedEvent,
+    FileClosedEvent,
+    FileCreatedEvent,
+    FileDeletedEvent,
+    FileModifiedEvent,
+    FileMovedEvent,
+    FileSystemEvent,
+    FileSystemEventHandler,
+)
+
+from fleetbrake.app.watch.landing import LOGS_DIR, LandingTracker
+from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
+
+if TYPE_CHECKING:
+    from watchdog.observers.api import BaseObserver
+
+    from fleetbrake.app.run import RunReport
+    from fleetbrake.engine import Engine
+    from fleetbrake.simulation.predictions import SimulationConfig
+
+__all__ = ["FileOutcome", "WatchConfig", "WatchError", "WatchReport", "watch_fleet"]
+
+logger = logging.getLogger(__name__)
+
+
+class WatchError(FleetbrakeError):
+    """The service cannot do its job at all (exit 1): the message names the directory."""
+
+
+@dataclass(frozen=True)
+class WatchConfig:
+    """How the service watches; every duration in seconds."""
+
+    poll_s: float | None = None
+    """None: the platform's native observer (inotify); else poll the tree every ``poll_s``."""
+    settle_s: float = 5.0
+    """A file neither renamed into place nor seen closed is complete once its size and
+    modification time stayed the same this long."""
+    rescan_s: float = 300.0
+    """Full rescan of ``logs/`` against the ingestion ledger this often (and at start)."""
+    wait_s: float = 30.0
+    """A unit waits up to this long for the database (another writer, or readers holding it)
+    before it is given up and tried again later."""
+    retry_s: float = 5.0
+    """Pause after a failed unit before its files are tried again (doubling, up to
+    ``rescan_s``)."""
+    health_s: float = 60.0
+    """A health line in the log this often."""
+    tick_s: float = 0.25
+    """The loop's period: how often queued events and settling files are looked at."""
+    simulation: SimulationConfig | None = None
+    """As ``run``'s (None: its defaults)."""
+    flag_config_path: Path | None = None
+    """As ``run --flag-config``."""
+    workers: int | None = None
+    """Worker processes of the local engine, kept for the service's life (None: the cores;
+    1: in the service's own process)."""
+
+    def __post_init__(self) -> None:
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"workers must be >= 1, got {self.workers}")
+        if self.poll_s is not None and not self.poll_s > 0:
+            raise ValueError(f"poll_s must be > 0 s, got {self.poll_s}")
+        for name in ("rescan_s", "retry_s", "health_s", "tick_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0 s, got {getattr(self, name)}")
+        for name in ("settle_s", "wait_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0 s, got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
+class FileOutcome:
+    """What a unit did with one file (a ``--json`` line of ``fleetbrake watch``)."""
+
+    path: str
+    """Relative to the fleet directory, as ``v_files.path``."""
+    wagon: str | None
+    status: str
+    """``ingested`` or ``quarantined``."""
+    seconds: float
+    """From the service first seeing the file to the unit's commit."""
+    flags: dict[str, int]
+    """The wagon's flags after the unit, counted by kind."""
+    rows: int = 0
+    reason: str | None = None
+    """Why it was quarantined."""
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "path": self.path,
+            "wagon": self.wagon,
+            "status": self.status,
+            "seconds": round(self.seconds, 3),
+            "flags": self.flags,
+            "rows": self.rows,
+        }
+        if self.reason is not None:
+            out["reason"] = self.reason
+        return out
+
+
+@dataclass
+class WatchReport:
+    """What the service did until it stopped."""
+
+    files_ingested: int = 0
+    files_quarantined: int = 0
+    units: int = 0
+    units_failed: int = 0
+    last_error: str | None = None
+    seconds: float = 0.0
+
+    @property
+    def files_processed(self) -> int:
+        return self.files_ingested + self.files_quarantined
+
+    def line(self) -> str:
+        return (
+            f"{self.files_processed} files processed ({self.files_quarantined} quarantined) "
+            f"in {self.units} units, {self.units_failed} failed, "
+            f"last error: {self.last_error or 'none'}"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "command": "watch",
+            "files": {"ingested": self.files_ingested, "quarantined": self.files_quarantined},
+            "units": self.units,
+            "units_failed": self.units_failed,
+            "last_error": self.last_error,
+            "seconds": round(self.seconds, 3),
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# The observer
+
+
+class _Queued(FileSystemEventHandler):
+    """Puts the observer's file events on a queue for the service's loop."""
+
+    def __init__(self, events: queue.SimpleQueue[FileSystemEvent]) -> None:
+        self._events = events
+
+    def on_any_event(self, event: FileSystemEvent) -> None:
+        if isinstance(
+            event,
+            FileCreatedEvent
+            | FileModifiedEvent
+            | FileClosedEvent
+            | FileMovedEvent
+            | FileDeletedEvent
+            | DirDeletedEvent
+            | DirMovedEvent,
+        ):
+            self._events.put(event)
+
+
+def _observer(poll_s: float | None) -> BaseObserver:
+    if poll_s is not None:
+        from watchdog.observers.polling import PollingObserver
+
+        return PollingObserver(timeout=poll_s)
+    try:
+        from watchdog.observers.inotify import InotifyObserver
+    except ImportError:  # not Linux: the platform's own
+        from watchdog.observers import Observer
+
+        return Observer()
+    # full events: a file renamed in from outside the tree is a move, not a creation
+    return InotifyObserver(generate_full_events=True)
+
+
+def _path(value: bytes | str) -> str:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+def _apply(tracker: LandingTracker, event: FileSystemEvent) -> None:
+    src = _path(event.src_path)
+    if isinstance(event, FileMovedEvent | DirMovedEvent):
+        if isinstance(event, FileMovedEvent):
+            tracker.moved(src, _path(event.dest_path))
+        # a directory's moves come with one event per file in it (watchdog generates them)
+    elif isinstance(event, FileClosedEvent):
+        tracker.finished(src, "closed")
+    elif isinstance(event, FileCreatedEvent | FileModifiedEvent):
+        tracker.writing(src)
+    elif isinstance(event, FileDeletedEvent):
+        tracker.gone(src)
+
+
+# --------------------------------------------------------------------------------------------
+# The service
+
+
+def _ledger(
+    db_path: Path, wait_s: float, *, every_status: bool = False
+) -> dict[str, tuple[int, int]] | None:
+    """Path -> (size, mtime_ns) of the files the ingestion ledger holds for good (those
+    quarantined for a cause judged again at every run are left out, as every unit retries
+    them, unless ``every_status``); ``{}`` without a database, None when it could not be read
+    within ``wait_s``."""
+    if not db_path.exists():
+        return {}
+    rows = _query(db_path, wait_s, "q_ingest_known_files")
+    if rows is None:
+        return None
+    retried = set() if every_status else {"registry", "unreadable", "error"}
+    # columns: path, file_id, sha256, size_bytes, mtime_ns, status, quarantine_code, ...
+    return {row[0]: (int(row[3]), int(row[4])) for row in rows if row[6] not in retried}
+
+
+def _query(
+    db_path: Path, wait_s: float, name: str, params: dict[str, object] | None = None
+) -> list[tuple[Any, ...]] | None:
+    """The rows of the packaged query ``name`` on a read-only connection (held for the query
+    only), retried while the database is held; None when it stayed held ``wait_s``."""
+    from fleetbrake.warehouse.connection import open_warehouse, sql
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with open_warehouse(db_path, read_only=True) as wh:
+                return wh.con.execute(sql(name), params or {}).fetchall()
+        except DatabaseLockedError:
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(random.uniform(0.1, 0.5))
+
+
+class _Service:
+    def __init__(
+        self,
+        fleet_dir: Path,
+        db_path: Path,
+        config: WatchConfig,
+        stop: threading.Event,
+        on_file: Callable[[FileOutcome], None] | None,
+    ) -> None:
+        self.fleet_dir = fleet_dir
+        self.db_path = db_path
+        self.config = config
+        self.stop = stop
+        self.on_file = on_file
+        self.tracker = LandingTracker(fleet_dir, config.settle_s)
+        self.events: queue.SimpleQueue[FileSystemEvent] = queue.SimpleQueue()
+        self.report = WatchReport()
+        self.began = time.monotonic()
+        self.next_rescan = 0.0  # at once
+        self.next_health = self.began + config.health_s
+        self.next_unit = 0.0
+        self.pause_s = config.retry_s
+        self._engine: Engine | None = None
+        self.retaken: set[str] = set()
+        """Files a unit read while they were still being written (see :meth:`_unit`)."""
+
+    def engine(self) -> Engine:
+        """The engine every unit runs on, made at the first unit and kept (its workers
+        started once, not at every file)."""
+        from fleetbrake.engine import make_engine
+
+        if self._engine is None:
+            self._engine = make_engine("local", self.config.workers)
+        return self._engine
+
+    def _close_engine(self) -> None:
+        if self._engine is not None:
+            engine, self._engine = self._engine, None
+            engine.close()
+
+    # ---- the loop ------------------------------------------------------------------------
+
+    def run(self) -> WatchReport:
+        logs = self.fleet_dir / LOGS_DIR
+        try:
+            logs.mkdir(exist_ok=True)
+        except OSError as error:
+            raise WatchError(f"{logs}: cannot make the landing folder ({error})") from None
+        import fleetbrake.app.run  # noqa: F401  (the units' code, imported before the first file)
+
+        self.engine()
+        observer = _observer(self.config.poll_s)
+        observer.schedule(_Queued(self.events), str(logs), recursive=True)
+        try:
+            observer.start()
+        except OSError as error:
+            raise WatchError(
+                f"{logs}: cannot watch ({error}); raise fs.inotify.max_user_watches or use --poll"
+            ) from None
+        how = f"polling every {self.config.poll_s:g} s" if self.config.poll_s else "inotify"
+        logger.info("watching %s (%s), database %s", logs, how, self.db_path)
+        try:
+            while not self.stop.is_set():
+                self._step(observer)
+                self.stop.wait(self.config.tick_s)
+        finally:
+            observer.stop()
+            observer.join(timeout=5.0)
+            self._close_engine()
+            self.report.seconds = time.monotonic() - self.began
+        logger.info("watch stopped: %s", self.report.line())
+        return self.report
+
+    def _step(self, observer: BaseObserver) -> None:
+        if not self.fleet_dir.is_dir() or not (self.fleet_dir / LOGS_DIR).is_dir():
+            raise WatchError(f"{self.fleet_dir}: the fleet directory (or its logs/) is gone")
+        if not observer.is_alive():
+            raise WatchError(f"{self.fleet_dir / LOGS_DIR}: the observer stopped")
+        self._drain()
+        now = time.monotonic()
+        if now >= self.next_rescan:
+            self._rescan()
+        self.tracker.refresh()
+        ready, writing = self.tracker.complete(), self.tracker.incomplete()
+        if ready and not writing and now >= self.next_unit:
+            self._unit()
+        if time.monotonic() >= self.next_health:
+            self._health()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                _apply(self.tracker, self.events.get_nowait())
+            except queue.Empty:
+                return
+
+    def _changed_since_read(self, paths: list[str]) -> set[str]:
+        """Those of ``paths`` whose size or modification time is no longer what the ledger
+        recorded when the unit read them (still being written then)."""
+        if not paths:
+            return set()
+        try:
+            ledger = _ledger(self.db_path, self.config.wait_s, every_status=True) or {}
+        except FleetbrakeError as error:
+            logger.warning("cannot check what the unit read: %s", error)
+            return set()
+        changed: set[str] = set()
+        for path in paths:
+            try:
+                stat = (self.fleet_dir / path).stat()
+            except OSError:
+                continue  # gone: nothing to take again
+            if ledger.get(path, (stat.st_size, stat.st_mtime_ns)) != (
+                stat.st_size,
+                stat.st_mtime_ns,
+            ):
+                changed.add(path)
+        return changed
+
+    def _stored_outcome(self, relpath: str, seconds: float) -> None:
+        """The outcome of a file taken again whose bytes had been read whole already (the
+        unit found it unchanged), from what the warehouse holds of it."""
+        try:
+            rows = _query(
+                self.db_path, self.config.wait_s, "q_watch_stored_file", {"path": relpath}
+            )
+        except FleetbrakeError as error:
+            logger.warning("%s: cannot read its outcome: %s", relpath, error)
+            return
+        if not rows:
+            return
+        wagon, status, count, reason, flags = rows[0]
+        if status == "quarantined":
+            self.report.files_quarantined += 1
+        else:
+            self.report.files_ingested += 1
+        if self.on_file is not None:
+            self.on_file(
+                FileOutcome(
+                    path=relpath,
+                    wagon=wagon,
+                    status=status,
+                    seconds=seconds,
+                    flags={item["kind"]: int(item["n"]) for item in flags or []},
+                    rows=int(count or 0),
+                    reason=reason,
+                )
+            )
+
+    def _health(self) -> None:
+        ready, writing = self.tracker.complete(), self.tracker.incomplete()
+        logger.info(
+            "health: %d files processed (%d quarantined), %d units (%d failed), queue %d "
+            "(%d being written), last error: %s",
+            self.report.files_processed,
+            self.report.files_quarantined,
+            self.report.units,
+            self.report.units_failed,
+            len(ready) + len(writing),
+            len(writing),
+            self.report.last_error or "none",
+        )
+        self.next_health = time.monotonic() + self.config.health_s
+
+    def _rescan(self) -> None:
+        from fleetbrake.ingest.files import scan_logs
+
+        try:
+            ledger = _ledger(self.db_path, self.config.wait_s)
+        except FleetbrakeError as error:  # e.g. a database of a newer schema: the unit says so
+            logger.error("rescan: %s", error)
+            self.report.last_error = f"{type(error).__name__}: {error}"
+            ledger = None
+        if ledger is None:
+            logger.warning(
+                "rescan: %s not readable for %g s; trying again in %g s",
+                self.db_path,
+                self.config.wait_s,
+                self.config.retry_s,
+            )
+            self.next_rescan = time.monotonic() + self.config.retry_s
+            return
+        found = 0
+        for entry in scan_logs(self.fleet_dir):
+            if ledger.get(entry.relpath) != (entry.size_bytes, entry.mtime_ns):
+                if self.tracker.get(entry.relpath) is None:
+                    found += 1
+                self.tracker.found(entry.relpath)
+        logger.info("rescan: %d files not in the ledger", found)
+        self.next_rescan = time.monotonic() + self.config.rescan_s
+
+    # ---- a unit --------------------------------------------------------------------------
+
+    def _run_fleet(self) -> RunReport | None:
+        """One ``run_fleet``, retried while the database is held (for up to ``wait_s``);
+        None when stopped while waiting (nothing was written)."""
+        from fleetbrake.app.run import run_fleet
+
+        deadline = time.monotonic() + self.config.wait_s
+        while True:
+            try:
+                return run_fleet(
+                    self.fleet_dir,
+                    self.db_path,
+                    wait_s=max(0.0, deadline - time.monotonic()),
+                    simulation=self.config.simulation,
+                    flag_config_path=self.config.flag_config_path,
+                    progress=False,
+                    engine=self.engine(),
+                )
+            except DatabaseLockedError:
+                if time.monotonic() >= deadline:
+                    raise
+                logger.debug("%s is held by another process; trying again", self.db_path)
+            if self.stop.wait(random.uniform(0.1, 0.5)):
+                return None
+
+    def _unit(self) -> None:
+        began = time.monotonic()
+        taken = {e.relpath for e in self.tracker.complete()}
+        try:
+            report = self._run_fleet()
+        except Exception as error:  # one unit's failure never stops the service
+            if not self.fleet_dir.is_dir():
+                raise WatchError(f"{self.fleet_dir}: the fleet directory is gone") from None
+            self.report.units_failed += 1
+            self.report.last_error = f"{type(error).__name__}: {error}"
+            if isinstance(error, FleetbrakeError):
+                logger.error("unit failed (%s files queued): %s", len(taken), error)
+            else:
+                logger.exception("unit failed (%s files queued)", len(taken))
+                self._close_engine()  # a fresh one for the next unit
+            self.next_unit = time.monotonic() + self.pause_s
+            logger.info("trying again in %g s", self.pause_s)
+            self.pause_s = min(2 * self.pause_s, self.config.rescan_s)
+            return
+        if report is None:
+            return
+        committed = time.monotonic()
+        self.report.units += 1
+        self.pause_s = self.config.retry_s
+        self._drain()  # what happened during the unit, before its files are attributed
+        changed = self._changed_since_read([r.path for r in report.ingest.results])
+        flags = Counter(
+            (flag.wagon_id, flag.kind) for flag in (report.flags.flags if report.flags else [])
+        )
+        for result in report.ingest.results:
+            entry = self.tracker.get(result.path)
+            if result.path in changed or (entry is not None and not entry.complete):
+                # landed after the check and read by the unit's scan while being written:
+                # it stays queued, and the next unit reads it again (its new bytes replace
+                # what was stored of it)
+                logger.warning("%s: read while still being written; taken again", result.path)
+                self.tracker.writing(self.fleet_dir / result.path)
+                self.retaken.add(result.path)
+                continue
+            self.retaken.discard(result.path)
+            entry = self.tracker.pop(result.path)
+            seen = entry.seen_s if entry is not None else began
+            outcome = FileOutcome(
+                path=result.path,
+                wagon=result.wagon_id,
+                status=result.status,
+                seconds=committed - seen,
+                flags={k: n for (w, k), n in sorted(flags.items()) if w == result.wagon_id},
+                rows=result.rows,
+                reason=result.reason,
+            )
+            if result.status == "quarantined":
+                self.report.files_quarantined += 1
+                logger.warning("%s quarantined: %s", result.path, result.reason)
+            else:
+                self.report.files_ingested += 1
+            if self.on_file is not None:
+                self.on_file(outcome)
+        for relpath in sorted(taken):  # complete and in the ledger as they are: nothing to do
+            entry = self.tracker.get(relpath)
+            if entry is not None and entry.complete:
+                self.tracker.pop(relpath)
+                if relpath in self.retaken:  # its bytes were whole when read after all
+                    self.retaken.discard(relpath)
+                    self._stored_outcome(relpath, committed - entry.seen_s)
+        logger.info(
+            "unit: %d files in %.2f s (%s)",
+            len(report.ingest.results),
+            committed - began,
+            ", ".join(f"{k} {v:.2f} s" for k, v in report.stage_s.items()),
+        )
+
+
+def watch_fleet(
+    fleet_dir: str | Path,
+    db_path: str | Path,
+    config: WatchConfig | None = None,
+    stop: threading.Event | None = None,
+    *,
+    on_file: Callable[[FileOutcome], None] | None = None,
+) -> WatchReport:
+    """``fleetbrake watch``: process every file landing complete in ``<fleet_dir>/logs``
+    through ``run``'s code path until ``stop`` is set (see the module).
+
+    Raises before watching what :func:`fleetbrake.ingest.files.load_fleet_registry` raises for
+    an unusable fleet directory or registry, and :class:`WatchError` when it cannot go on.
+    """
+    from fleetbrake.ingest.files import load_fleet_registry
+
+    fleet_dir, db_path = Path(fleet_dir), Path(db_path)
+    load_fleet_registry(fleet_dir)  # an unusable fleet is refused before anything else
+    service = _Service(
+        fleet_dir, db_path, config or WatchConfig(), stop or threading.Event(), on_file
+    )
+    return service.run()
