@@ -17,7 +17,14 @@ import pytest
 
 from fleetbrake.errors import ConfigError, UnknownKeyError
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.effects import EffectSet, HeatPartition
+from fleetbrake.model.effects import (
+    AmbientOffset,
+    ConvectionSpeed,
+    EffectSet,
+    HeatPartition,
+    HolderConduction,
+    SensorLag,
+)
 from fleetbrake.model.timeline import simulate_timeline
 from fleetbrake.simulation.chains import (
     ChainParams,
@@ -384,3 +391,134 @@ def test_reflag_simulates_the_new_revision_then_judges_from_it(fleet: Fleet) -> 
         assert counts["timeline"] > 0 and counts["predictions"] > 0
         ((flags,),) = wh.con.execute("SELECT count(*) FROM flags").fetchall()
         assert flags > 0
+
+
+# --------------------------------------------------------------------------------------------
+# The batched path (one kernel call per span) against the per-segment reference
+
+
+@pytest.mark.parametrize(
+    "effects",
+    [
+        EffectSet(),
+        EffectSet((SensorLag(tau_s=40.0),)),
+        EffectSet(
+            (
+                HeatPartition(alpha=0.8),
+                ConvectionSpeed(gain=2.0, exponent=0.8),
+                HolderConduction(h_holder_extra_w_m2k=60.0),
+                AmbientOffset(offset_k=3.0),
+                SensorLag(tau_s=30.0),
+            )
+        ),
+    ],
+    ids=["declared", "sensor_lag", "five_effects"],
+)
+def test_the_batched_chain_predicts_what_the_per_segment_reference_does(
+    fleet: Fleet, effects: EffectSet
+) -> None:
+    """Every wagon of a generated fleet (gaps, faults, frozen readings and all): the event
+    windows, the timeline and the segments' anchoring of the one-call kernel equal the
+    segment-by-segment reference's to 1e-9 K, for any subset of events too."""
+    from fleetbrake.simulation.predictions import Revision, load_wagon, model_for, predict_wagon
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    rev = Revision("batched-test", effects)
+    numbers = [
+        "predicted_sensor_c",
+        "predicted_contact_mean_c",
+        "predicted_contact_max_c",
+        "flux_w_m2",
+    ]
+    compared = 0
+    with open_warehouse(fleet.db) as wh:
+        for wagon in fleet.registry.wagons.values():
+            data = load_wagon(wh, wagon, fleet.config)
+            if not data.spans:
+                continue
+            model = model_for(wagon, rev.solver, fleet.config.refinement)
+            ids = data.event_ids
+            for event_ids, timeline in ((None, True), (ids[1 : len(ids) // 2 : 3], False)):
+                got = predict_wagon(
+                    data, model, rev, fleet.config, event_ids=event_ids, timeline=timeline
+                )
+                want = predict_wagon(
+                    data,
+                    model,
+                    rev,
+                    fleet.config,
+                    event_ids=event_ids,
+                    timeline=timeline,
+                    reference=True,
+                )
+                assert got.skipped == want.skipped and got.events == want.events
+                assert got.predictions.drop(numbers).equals(want.predictions.drop(numbers))
+                for name in numbers:
+                    np.testing.assert_allclose(
+                        got.predictions[name].to_numpy(),
+                        want.predictions[name].to_numpy(),
+                        rtol=0,
+                        atol=1e-9,
+                        err_msg=f"{wagon.wagon_id} {name}",
+                    )
+                assert got.timeline["time_utc"].equals(want.timeline["time_utc"])
+                for name in numbers[:3]:
+                    np.testing.assert_allclose(
+                        got.timeline[name].to_numpy(),
+                        want.timeline[name].to_numpy(),
+                        rtol=0,
+                        atol=1e-9,
+                        err_msg=f"{wagon.wagon_id} timeline {name}",
+                    )
+                anchoring = ["shift_k", "reference_c"]
+                assert got.segments.drop(anchoring).equals(want.segments.drop(anchoring))
+                for name in anchoring:
+                    np.testing.assert_allclose(
+                        got.segments[name].to_numpy(),
+                        want.segments[name].to_numpy(),
+                        rtol=0,
+                        atol=1e-9,
+                    )
+                compared += got.events
+    assert compared > 20
+
+
+def test_the_stage_runs_its_wagons_on_an_engine_and_stores_the_reference_rows(
+    fleet: Fleet, rom_cache_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``simulate_events(engine=...)``: each wagon's pure function run in a worker process
+    (its partition read and its rows written by the parent), the rows those of the
+    reference path."""
+    from fleetbrake.engine import LocalEngine
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))  # the workers' model cache
+
+    def stored(wh: Any) -> pl.DataFrame:
+        return wh.con.sql(
+            "SELECT event_id, time_utc, predicted_sensor_c FROM predictions "
+            "WHERE model_revision = 'declared' ORDER BY event_id, time_utc"
+        ).pl()
+
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh)
+        wagons = sorted(fleet.registry.wagons)
+        want = simulate_events(
+            wh, fleet.registry, rev, fleet.config, wagons=wagons, reference=True, progress=False
+        )
+        reference = stored(wh)
+        with LocalEngine(1) as engine:
+            got = simulate_events(
+                wh, fleet.registry, rev, fleet.config, wagons=wagons, engine=engine, progress=False
+            )
+        batched = stored(wh)
+    assert got.wagons_simulated == want.wagons_simulated and got.events_simulated > 10
+    assert (got.prediction_rows, got.timeline_rows) == (want.prediction_rows, want.timeline_rows)
+    assert batched.drop("predicted_sensor_c").equals(reference.drop("predicted_sensor_c"))
+    np.testing.assert_allclose(
+        batched["predicted_sensor_c"].to_numpy(),
+        reference["predicted_sensor_c"].to_numpy(),
+        rtol=0,
+        atol=1e-9,
+    )

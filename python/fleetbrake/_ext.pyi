@@ -99,6 +99,35 @@ def rom_simulate_switched(
     xi0: NDArray[np.float64],
     c: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+def rom_simulate_chain(
+    e: NDArray[np.float64],
+    g: NDArray[np.float64],
+    q: NDArray[np.float64],
+    rotated: list[bool],
+    b_flux: NDArray[np.float64],
+    b_faces: NDArray[np.float64],
+    c_out: NDArray[np.float64],
+    n_probes: int,
+    step_flux: NDArray[np.float64],
+    step_ambient: NDArray[np.float64],
+    step_h: NDArray[np.float64],
+    step_prop: NDArray[np.int64],
+    piece_a: NDArray[np.int64],
+    piece_b: NDArray[np.int64],
+    piece_dt: NDArray[np.float64],
+    step_off: NDArray[np.int64],
+    at: NDArray[np.float64],
+    at_off: NDArray[np.int64],
+    seg_cont: NDArray[np.int64],
+    seg_window: NDArray[np.int64],
+    trusted: NDArray[np.float64],
+    ambient: NDArray[np.float64],
+    anchor_s: int,
+    anchor_min_readings: int,
+    window_s: int,
+    tolerance_k: float,
+    lag_tau_s: float | None,
+) -> tuple[list[NDArray[np.float64]], NDArray[np.uint8]]: ...
 def rom_exact_propagator(
     lam: NDArray[np.float64], dt_s: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...

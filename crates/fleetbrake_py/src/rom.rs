@@ -8,7 +8,9 @@ use numpy::{
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use thermal_core::rom::{exact_propagator, ModalStepper, Propagators};
+use thermal_core::rom::{
+    exact_propagator, AnchorRule, ChainModel, ChainSteps, ModalStepper, Propagators,
+};
 use thermal_core::ThermalError;
 
 use crate::convert::non_negative;
@@ -119,10 +121,123 @@ fn rom_simulate_switched<'py>(
     ))
 }
 
+/// Indices given as int64 (`-1`: none, as `usize::MAX`), each otherwise `>= 0`.
+fn optional_indices(values: &[i64], name: &str) -> PyResult<Vec<usize>> {
+    values
+        .iter()
+        .map(|&v| match v {
+            -1 => Ok(usize::MAX),
+            v if v >= 0 => Ok(v as usize),
+            v => Err(PyValueError::new_err(format!(
+                "{name} must be >= -1, got {v}"
+            ))),
+        })
+        .collect()
+}
+
+/// A span's chain (see `fleetbrake.simulation.batched`): propagators e, g (K, r), q (K, r,
+/// r), rotated (K); the model's b_flux (r), b_faces (F, r), c_out (n_out, r), n_probes;
+/// per step flux, ambient (T), h (T, F), propagator (T); per piece a, b, dt (P), step
+/// offsets (P+1), coarse grid positions `at` with offsets (P+1); per segment the window's
+/// continuation piece (-1: none) and window length (J); per sample trusted readings and
+/// ambient (n); the anchoring rule. Returns (sensor, contact mean, contact max (n), anchor
+/// codes (J), shifts (J), references (J), window sensor, mean, max (sum of lengths)).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+#[allow(clippy::type_complexity)]
+fn rom_simulate_chain<'py>(
+    py: Python<'py>,
+    e: PyReadonlyArray2<'py, f64>,
+    g: PyReadonlyArray2<'py, f64>,
+    q: PyReadonlyArray3<'py, f64>,
+    rotated: Vec<bool>,
+    b_flux: PyReadonlyArray1<'py, f64>,
+    b_faces: PyReadonlyArray2<'py, f64>,
+    c_out: PyReadonlyArray2<'py, f64>,
+    n_probes: usize,
+    step_flux: PyReadonlyArray1<'py, f64>,
+    step_ambient: PyReadonlyArray1<'py, f64>,
+    step_h: PyReadonlyArray2<'py, f64>,
+    step_prop: PyReadonlyArray1<'py, i64>,
+    piece_a: PyReadonlyArray1<'py, i64>,
+    piece_b: PyReadonlyArray1<'py, i64>,
+    piece_dt: PyReadonlyArray1<'py, f64>,
+    step_off: PyReadonlyArray1<'py, i64>,
+    at: PyReadonlyArray1<'py, f64>,
+    at_off: PyReadonlyArray1<'py, i64>,
+    seg_cont: PyReadonlyArray1<'py, i64>,
+    seg_window: PyReadonlyArray1<'py, i64>,
+    trusted: PyReadonlyArray1<'py, f64>,
+    ambient: PyReadonlyArray1<'py, f64>,
+    anchor_s: usize,
+    anchor_min_readings: usize,
+    window_s: usize,
+    tolerance_k: f64,
+    lag_tau_s: Option<f64>,
+) -> PyResult<(Vec<Bound<'py, PyArray1<f64>>>, Bound<'py, PyArray1<u8>>)> {
+    let order = b_flux.len()?;
+    let (e, g, q) = (
+        e.as_slice()?.to_vec(),
+        g.as_slice()?.to_vec(),
+        q.as_slice()?.to_vec(),
+    );
+    let props = call(|| Propagators::new(order, e, g, q, rotated))?;
+    let prop = non_negative(step_prop.as_slice()?, "propagator index")?;
+    let piece_a = non_negative(piece_a.as_slice()?, "piece start")?;
+    let piece_b = non_negative(piece_b.as_slice()?, "piece end")?;
+    let step_off = non_negative(step_off.as_slice()?, "step offsets")?;
+    let at_off = non_negative(at_off.as_slice()?, "grid offsets")?;
+    let seg_cont = optional_indices(seg_cont.as_slice()?, "window continuation")?;
+    let seg_window = non_negative(seg_window.as_slice()?, "window length")?;
+    let model = ChainModel {
+        b_flux: b_flux.as_slice()?,
+        b_faces: b_faces.as_slice()?,
+        c: c_out.as_slice()?,
+        n_probes,
+    };
+    let steps = ChainSteps {
+        flux: step_flux.as_slice()?,
+        ambient: step_ambient.as_slice()?,
+        h: step_h.as_slice()?,
+        prop: &prop,
+        piece_a: &piece_a,
+        piece_b: &piece_b,
+        piece_dt: piece_dt.as_slice()?,
+        step_off: &step_off,
+        at: at.as_slice()?,
+        at_off: &at_off,
+        seg_cont: &seg_cont,
+        seg_window: &seg_window,
+    };
+    let rule = AnchorRule {
+        anchor_s,
+        anchor_min_readings,
+        window_s,
+        tolerance_k,
+        lag_tau_s,
+    };
+    let (trusted, ambient) = (trusted.as_slice()?, ambient.as_slice()?);
+    let out = call_detached(py, || {
+        props.simulate_chain(&model, &steps, trusted, ambient, &rule)
+    })?;
+    let floats = vec![
+        out.sensor_c.into_pyarray(py),
+        out.contact_mean_c.into_pyarray(py),
+        out.contact_max_c.into_pyarray(py),
+        out.shift_k.into_pyarray(py),
+        out.reference_c.into_pyarray(py),
+        out.window_sensor_c.into_pyarray(py),
+        out.window_mean_c.into_pyarray(py),
+        out.window_max_c.into_pyarray(py),
+    ];
+    Ok((floats, out.anchor.into_pyarray(py)))
+}
+
 /// Add the reduced model's functions to the module.
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rom_simulate_batch, m)?)?;
     m.add_function(wrap_pyfunction!(rom_simulate_switched, m)?)?;
     m.add_function(wrap_pyfunction!(rom_exact_propagator, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_simulate_chain, m)?)?;
     Ok(())
 }

@@ -440,6 +440,437 @@ struct BlockInputs<'a> {
     drive_steps: usize,
 }
 
+/// The reduced model's modal input and output arrays, for [`Propagators::simulate_chain`].
+#[derive(Debug, Clone, Copy)]
+pub struct ChainModel<'a> {
+    /// Flux input vector (r).
+    pub b_flux: &'a [f64],
+    /// Face-set input vectors (F, r) row-major.
+    pub b_faces: &'a [f64],
+    /// Output rows (n_out, r) row-major: probes, face mean, face-max nodes.
+    pub c: &'a [f64],
+    pub n_probes: usize,
+}
+
+/// The steps and pieces of one span's chain, laid out by the caller (see
+/// `fleetbrake.simulation.batched`). A *piece* is samples `a ..= b` run from a carried state
+/// with one reference temperature: pieces `0 .. J` are the segments of the timeline, in
+/// order; the others continue an event's window past its braking segment, un-anchored.
+#[derive(Debug, Clone, Copy)]
+pub struct ChainSteps<'a> {
+    /// Per step (T): flux (W/m²), air temperature (°C), convection per face set (T, F),
+    /// propagator index.
+    pub flux: &'a [f64],
+    pub ambient: &'a [f64],
+    pub h: &'a [f64],
+    pub prop: &'a [usize],
+    /// Per piece (P): first and last sample, time step, steps `step_off[p] .. step_off[p+1]`
+    /// (P+1), and for a coarse piece (simulated on its own grid and interpolated to the
+    /// seconds) its grid positions `at[at_off[p] .. at_off[p+1]]` (none for a 1 s piece).
+    pub piece_a: &'a [usize],
+    pub piece_b: &'a [usize],
+    pub piece_dt: &'a [f64],
+    pub step_off: &'a [usize],
+    pub at: &'a [f64],
+    pub at_off: &'a [usize],
+    /// Per segment (J): the piece continuing its event window (or `usize::MAX`), and the
+    /// window's length in samples (0: no window starts there).
+    pub seg_cont: &'a [usize],
+    pub seg_window: &'a [usize],
+}
+
+/// The re-anchoring rule (`fleetbrake.simulation.chains.ChainParams`).
+#[derive(Debug, Clone, Copy)]
+pub struct AnchorRule {
+    pub anchor_s: usize,
+    pub anchor_min_readings: usize,
+    pub window_s: usize,
+    /// A shift found from a segment's own first seconds below this is not applied (K).
+    pub tolerance_k: f64,
+    /// Sensor lag time constant (s); `None`: no lag.
+    pub lag_tau_s: Option<f64>,
+}
+
+/// How a segment's field was set: none, uniform start, shifted by the readings before, by
+/// its own first readings.
+pub const ANCHOR_NONE: u8 = 0;
+pub const ANCHOR_START: u8 = 1;
+pub const ANCHOR_BEFORE: u8 = 2;
+pub const ANCHOR_AFTER: u8 = 3;
+
+/// A span's chain simulated: the timeline (n, NaN where not simulated), per segment the
+/// anchoring (code, shift, reference temperature), and the event windows concatenated in
+/// segment order.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct ChainOutputs {
+    pub sensor_c: Vec<f64>,
+    pub contact_mean_c: Vec<f64>,
+    pub contact_max_c: Vec<f64>,
+    pub anchor: Vec<u8>,
+    pub shift_k: Vec<f64>,
+    pub reference_c: Vec<f64>,
+    pub window_sensor_c: Vec<f64>,
+    pub window_mean_c: Vec<f64>,
+    pub window_max_c: Vec<f64>,
+}
+
+/// One piece run: outputs at its samples, the state and the lag's last value after it.
+#[derive(Debug, Default)]
+struct Piece {
+    sensor: Vec<f64>,
+    mean: Vec<f64>,
+    max: Vec<f64>,
+    xi: Vec<f64>,
+    lag_last: Option<f64>,
+}
+
+/// `first_order_lag` of `fleetbrake.model.rom`: exact for a signal linear between samples.
+fn lag_filter(x: &mut [f64], dt_s: f64, tau_s: f64, initial: Option<f64>) {
+    if tau_s <= 0.0 || x.is_empty() {
+        return;
+    }
+    let a = (-dt_s / tau_s).exp();
+    let c = tau_s / dt_s * (1.0 - a) - a;
+    let mut prev_x = x[0];
+    let mut prev_y = initial.unwrap_or(x[0]);
+    x[0] = prev_y;
+    for v in x.iter_mut().skip(1) {
+        let xk = *v;
+        let y = a * prev_y + (1.0 - a) * xk - (xk - prev_x) * c;
+        prev_x = xk;
+        prev_y = y;
+        *v = y;
+    }
+}
+
+/// `numpy.interp(x, xp, fp)` for `x` inside `[xp[0], xp[-1]]`, `xp` increasing.
+fn interp_into(x0: usize, count: usize, xp: &[f64], fp: &[f64], out: &mut Vec<f64>) {
+    out.clear();
+    let last = xp.len() - 1;
+    let mut j = 0;
+    for i in 0..count {
+        let x = (x0 + i) as f64;
+        while j < last && xp[j + 1] <= x {
+            j += 1;
+        }
+        out.push(if j == last || xp[j] == x {
+            fp[j]
+        } else {
+            let slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j]);
+            slope * (x - xp[j]) + fp[j]
+        });
+    }
+}
+
+/// Mean of `trusted - predicted` over `lo .. hi` where both are finite, if at least
+/// `min_count` are.
+fn mean_difference(trusted: &[f64], predicted: &[f64], min_count: usize) -> Option<f64> {
+    let (mut sum, mut count) = (0.0, 0usize);
+    for (t, p) in trusted.iter().zip(predicted) {
+        let d = t - p;
+        if d.is_finite() {
+            sum += d;
+            count += 1;
+        }
+    }
+    (count >= min_count && count > 0).then(|| sum / count as f64)
+}
+
+impl Propagators {
+    /// Run piece `p` from `xi0` at reference `t_ref` (see [`ChainSteps`]).
+    #[allow(clippy::too_many_arguments)]
+    fn run_piece(
+        &self,
+        model: &ChainModel,
+        steps: &ChainSteps,
+        p: usize,
+        t_ref: f64,
+        xi0: &[f64],
+        lag_last: Option<f64>,
+        rule: &AnchorRule,
+        t_first: f64,
+        out: &mut Piece,
+    ) {
+        let r = self.order;
+        let n_faces = model.b_faces.len() / r;
+        let n_out = model.c.len() / r;
+        let np = model.n_probes;
+        let (s0, s1) = (steps.step_off[p], steps.step_off[p + 1]);
+        let rows = s1 - s0 + 1;
+        let mut xi = xi0.to_vec();
+        let (mut w, mut v, mut u) = (vec![0.0; r], vec![0.0; r], vec![0.0; r]);
+        let mut sensor = Vec::with_capacity(rows);
+        let mut mean = Vec::with_capacity(rows);
+        let mut max = Vec::with_capacity(rows);
+        // C transposed (r, n_out): y accumulated mode by mode, the loop over outputs vectorises
+        let mut ct = vec![0.0; r * n_out];
+        for (o, row) in model.c.chunks_exact(r).enumerate() {
+            for (i, &v) in row.iter().enumerate() {
+                ct[i * n_out + o] = v;
+            }
+        }
+        let mut y = vec![0.0; n_out];
+        let mut emit = |xi: &[f64]| {
+            y.fill(0.0);
+            for (col, &x) in ct.chunks_exact(n_out).zip(xi) {
+                for (yo, &c) in y.iter_mut().zip(col) {
+                    *yo += c * x;
+                }
+            }
+            let top = y[np + 1..].iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v));
+            sensor.push(y[0] + t_ref);
+            mean.push(y[np] + t_ref);
+            max.push(top + t_ref);
+        };
+        emit(&xi);
+        for s in s0..s1 {
+            let q = steps.flux[s];
+            let air = steps.ambient[s] - t_ref;
+            for (ui, &b) in u.iter_mut().zip(model.b_flux) {
+                *ui = q * b;
+            }
+            for f in 0..n_faces {
+                let d = steps.h[s * n_faces + f] * air;
+                for (ui, &b) in u.iter_mut().zip(&model.b_faces[f * r..(f + 1) * r]) {
+                    *ui += d * b;
+                }
+            }
+            self.apply(steps.prop[s], &mut xi, &u, &mut w, &mut v);
+            emit(&xi);
+        }
+        let mut new_lag = None;
+        if let Some(tau) = rule.lag_tau_s {
+            // the lag acts on the block's temperature, the anchoring shifts on the reading
+            let shift = t_ref - t_first;
+            for x in sensor.iter_mut() {
+                *x -= shift;
+            }
+            lag_filter(&mut sensor, steps.piece_dt[p], tau, lag_last);
+            new_lag = sensor.last().copied();
+            for x in sensor.iter_mut() {
+                *x += shift;
+            }
+        }
+        let (a0, a1) = (steps.at_off[p], steps.at_off[p + 1]);
+        if a1 > a0 {
+            let at = &steps.at[a0..a1];
+            let count = steps.piece_b[p] - steps.piece_a[p] + 1;
+            interp_into(steps.piece_a[p], count, at, &sensor, &mut out.sensor);
+            interp_into(steps.piece_a[p], count, at, &mean, &mut out.mean);
+            interp_into(steps.piece_a[p], count, at, &max, &mut out.max);
+        } else {
+            out.sensor = sensor;
+            out.mean = mean;
+            out.max = max;
+        }
+        out.xi = xi;
+        out.lag_last = new_lag;
+    }
+
+    /// One span's chain: every segment run from the state the one before left, its field
+    /// shifted first by the mean of `trusted - predicted` over the `anchor_s` samples before
+    /// it (or, with too few readings there, over its own first ones), and the windows of the
+    /// events continued un-anchored from their braking segments (the module docs of
+    /// `fleetbrake.simulation.chains`). `trusted` and `ambient`: per sample (n).
+    pub fn simulate_chain(
+        &self,
+        model: &ChainModel,
+        steps: &ChainSteps,
+        trusted: &[f64],
+        ambient: &[f64],
+        rule: &AnchorRule,
+    ) -> Result<ChainOutputs> {
+        let r = self.order;
+        let n = trusted.len();
+        let n_seg = steps.seg_cont.len();
+        let n_piece = steps.piece_a.len();
+        let t = steps.prop.len();
+        let mismatch = |name: &str, expected: usize, got: usize| {
+            Err(ThermalError::LengthMismatch {
+                name: name.into(),
+                expected,
+                got,
+            })
+        };
+        for (name, len, expected) in [
+            ("flux input", model.b_flux.len(), r),
+            ("step flux", steps.flux.len(), t),
+            ("step ambient", steps.ambient.len(), t),
+            ("piece_b", steps.piece_b.len(), n_piece),
+            ("piece_dt", steps.piece_dt.len(), n_piece),
+            ("step offsets", steps.step_off.len(), n_piece + 1),
+            ("grid offsets", steps.at_off.len(), n_piece + 1),
+            ("segment windows", steps.seg_window.len(), n_seg),
+            ("ambient", ambient.len(), n),
+        ] {
+            if len != expected {
+                return mismatch(name, expected, len);
+            }
+        }
+        if model.b_faces.len() % r != 0 || steps.h.len() != t * (model.b_faces.len() / r) {
+            return mismatch(
+                "step convection",
+                t * (model.b_faces.len() / r),
+                steps.h.len(),
+            );
+        }
+        if model.c.len() % r != 0 || model.c.len() / r < model.n_probes + 2 || model.n_probes == 0 {
+            return mismatch("output rows", (model.n_probes + 2) * r, model.c.len());
+        }
+        if n_seg > n_piece {
+            return mismatch("pieces", n_seg, n_piece);
+        }
+        if let Some(&bad) = steps.prop.iter().find(|&&k| k >= self.len()) {
+            return Err(ThermalError::InvalidParameter {
+                name: "propagator index".into(),
+                value: bad as f64,
+                reason: format!("only {} propagators", self.len()),
+            });
+        }
+        for p in 0..n_piece {
+            let (a, b) = (steps.piece_a[p], steps.piece_b[p]);
+            let (s0, s1) = (steps.step_off[p], steps.step_off[p + 1]);
+            let (a0, a1) = (steps.at_off[p], steps.at_off[p + 1]);
+            let grid = if a1 > a0 {
+                a1 - a0 - 1
+            } else {
+                b.wrapping_sub(a)
+            };
+            let bad = b <= a
+                || b >= n
+                || s1 < s0
+                || s1 > t
+                || a1 < a0
+                || a1 > steps.at.len()
+                || s1 - s0 != grid
+                || (a1 > a0 && (steps.at[a0] != a as f64 || steps.at[a1 - 1] != b as f64))
+                || !(steps.piece_dt[p] > 0.0);
+            if bad {
+                return Err(ThermalError::InvalidParameter {
+                    name: "chain piece".into(),
+                    value: p as f64,
+                    reason: format!("piece [{a}, {b}] does not fit its steps or the span"),
+                });
+            }
+        }
+        for j in 0..n_seg {
+            let c = steps.seg_cont[j];
+            if c != usize::MAX
+                && (c < n_seg || c >= n_piece || steps.piece_a[c] != steps.piece_b[j])
+            {
+                return Err(ThermalError::InvalidParameter {
+                    name: "window continuation".into(),
+                    value: j as f64,
+                    reason: "must be a piece starting where its segment ends".into(),
+                });
+            }
+        }
+        let nan = f64::NAN;
+        let mut out = ChainOutputs {
+            sensor_c: vec![nan; n],
+            contact_mean_c: vec![nan; n],
+            contact_max_c: vec![nan; n],
+            anchor: vec![ANCHOR_NONE; n_seg],
+            shift_k: vec![0.0; n_seg],
+            reference_c: vec![nan; n_seg],
+            ..Default::default()
+        };
+        let mut t_ref: Option<f64> = None;
+        let mut t_first = 0.0;
+        let mut xi = vec![0.0; r];
+        let mut lag_last: Option<f64> = None;
+        let mut piece = Piece::default();
+        let mut more = Piece::default();
+        for j in 0..n_seg {
+            let (a, b) = (steps.piece_a[j], steps.piece_b[j]);
+            let mut anchor = ANCHOR_NONE;
+            let mut shift = 0.0;
+            let mut reference = match t_ref {
+                Some(v) => v,
+                None => {
+                    let ahead = &trusted[a..(a + rule.window_s).min(n)];
+                    let first = ahead.iter().copied().find(|v| v.is_finite());
+                    let v = first.unwrap_or(ambient[a]);
+                    t_first = v;
+                    xi.fill(0.0);
+                    anchor = ANCHOR_START;
+                    v
+                }
+            };
+            let lo = a.saturating_sub(rule.anchor_s);
+            let back = mean_difference(
+                &trusted[lo..a],
+                &out.sensor_c[lo..a],
+                rule.anchor_min_readings,
+            );
+            if let Some(m) = back {
+                shift = m;
+                reference += shift;
+                anchor = ANCHOR_BEFORE;
+                self.run_piece(
+                    model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                );
+            } else {
+                self.run_piece(
+                    model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                );
+                let length = rule.anchor_s.min(piece.sensor.len());
+                let own = mean_difference(
+                    &trusted[a..a + length],
+                    &piece.sensor[..length],
+                    rule.anchor_min_readings,
+                );
+                if let Some(m) = own.filter(|m| m.abs() > rule.tolerance_k) {
+                    shift = m;
+                    reference += shift;
+                    if anchor == ANCHOR_NONE {
+                        anchor = ANCHOR_AFTER;
+                    }
+                    self.run_piece(
+                        model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                    );
+                }
+            }
+            t_ref = Some(reference);
+            out.anchor[j] = anchor;
+            out.shift_k[j] = shift;
+            out.reference_c[j] = reference;
+            let size = steps.seg_window[j];
+            if size > 0 {
+                let own = size.min(piece.sensor.len());
+                out.window_sensor_c.extend_from_slice(&piece.sensor[..own]);
+                out.window_mean_c.extend_from_slice(&piece.mean[..own]);
+                out.window_max_c.extend_from_slice(&piece.max[..own]);
+                let c = steps.seg_cont[j];
+                if own < size && c != usize::MAX {
+                    self.run_piece(
+                        model,
+                        steps,
+                        c,
+                        reference,
+                        &piece.xi,
+                        piece.lag_last,
+                        rule,
+                        t_first,
+                        &mut more,
+                    );
+                    let rest = (size - own).min(more.sensor.len() - 1);
+                    out.window_sensor_c
+                        .extend_from_slice(&more.sensor[1..=rest]);
+                    out.window_mean_c.extend_from_slice(&more.mean[1..=rest]);
+                    out.window_max_c.extend_from_slice(&more.max[1..=rest]);
+                }
+            }
+            std::mem::swap(&mut xi, &mut piece.xi);
+            lag_last = piece.lag_last;
+            out.sensor_c[a..=b].copy_from_slice(&piece.sensor);
+            out.contact_mean_c[a..=b].copy_from_slice(&piece.mean);
+            out.contact_max_c[a..=b].copy_from_slice(&piece.max);
+        }
+        Ok(out)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -550,5 +981,92 @@ mod tests {
         assert!(s.simulate_batch(&[1.0; 5], &[0.0; 4], &[0.0], 5).is_err());
         assert!(ModalStepper::new(&[1.0], &[1.0], &[1.0], vec![1.0], 1, 1.0).is_err());
         assert!(ModalStepper::new(&[1.0], &[1.0], &[1.0], vec![1.0; 3], 1, 0.0).is_err());
+    }
+
+    #[test]
+    fn a_chain_without_readings_is_one_run_and_anchors_to_the_readings_before() {
+        // two modes, one face set; outputs: probe, mean, two face nodes
+        let (c30, s30) = (3f64.sqrt() / 2.0, 0.5);
+        let lam = [0.02, 0.3];
+        let (e, g) = exact_propagator(&lam, 1.0);
+        let props = Propagators::new(2, e, g, vec![c30, -s30, s30, c30], vec![false]).unwrap();
+        let model = ChainModel {
+            b_flux: &[1e-3, 2e-3],
+            b_faces: &[0.01, -0.02],
+            c: &[1.0, 0.5, 0.8, 0.1, 1.0, -0.2, 0.3, 0.9],
+            n_probes: 1,
+        };
+        let n = 40;
+        let flux: Vec<f64> = (0..n - 1).map(|k| if k < 10 { 5e3 } else { 0.0 }).collect();
+        let ambient = vec![5.0; n - 1];
+        let h = vec![10.0; n - 1];
+        let prop = vec![0usize; n - 1];
+        let steps = ChainSteps {
+            flux: &flux,
+            ambient: &ambient,
+            h: &h,
+            prop: &prop,
+            piece_a: &[0, 20],
+            piece_b: &[20, n - 1],
+            piece_dt: &[1.0, 1.0],
+            step_off: &[0, 20, n - 1],
+            at: &[],
+            at_off: &[0, 0, 0],
+            seg_cont: &[usize::MAX, usize::MAX],
+            seg_window: &[0, 0],
+        };
+        let rule = AnchorRule {
+            anchor_s: 5,
+            anchor_min_readings: 3,
+            window_s: 10,
+            tolerance_k: 1e-3,
+            lag_tau_s: None,
+        };
+        let none = vec![f64::NAN; n];
+        let air = vec![7.0; n];
+        let out = props
+            .simulate_chain(&model, &steps, &none, &air, &rule)
+            .unwrap();
+        // no readings: uniform at the ambient, never shifted, the same as one run of both
+        assert_eq!(out.anchor, vec![ANCHOR_START, ANCHOR_NONE]);
+        assert_eq!(out.reference_c, vec![7.0, 7.0]);
+        let u: Vec<f64> = (0..n - 1)
+            .flat_map(|k| {
+                let d = h[k] * (ambient[k] - 7.0);
+                [
+                    flux[k] * model.b_flux[0] + d * model.b_faces[0],
+                    flux[k] * model.b_flux[1] + d * model.b_faces[1],
+                ]
+            })
+            .collect();
+        let (y, _) = props
+            .simulate(&prop, &vec![1; n - 1], &u, &[0.0, 0.0], model.c)
+            .unwrap();
+        for k in 0..n {
+            assert!((out.sensor_c[k] - (y[4 * k] + 7.0)).abs() < 1e-12);
+            assert!((out.contact_mean_c[k] - (y[4 * k + 1] + 7.0)).abs() < 1e-12);
+            let top = y[4 * k + 2].max(y[4 * k + 3]) + 7.0;
+            assert!((out.contact_max_c[k] - top).abs() < 1e-12);
+        }
+        // readings 1 K above the prediction before the second segment: shifted by 1 K there
+        let mut trusted = vec![f64::NAN; n];
+        for (t, p) in trusted.iter_mut().zip(&out.sensor_c).skip(15).take(5) {
+            *t = p + 1.0;
+        }
+        trusted[0] = 7.0;
+        let shifted = props
+            .simulate_chain(&model, &steps, &trusted, &air, &rule)
+            .unwrap();
+        assert_eq!(shifted.anchor, vec![ANCHOR_START, ANCHOR_BEFORE]);
+        assert!((shifted.shift_k[1] - 1.0).abs() < 1e-12);
+        assert!((shifted.sensor_c[20] - out.sensor_c[20] - 1.0).abs() < 1e-12);
+        // a piece that does not fit its steps is an error, not a panic
+        let bad = ChainSteps {
+            step_off: &[0, 19, n - 1],
+            ..steps
+        };
+        assert!(props
+            .simulate_chain(&model, &bad, &none, &air, &rule)
+            .is_err());
     }
 }

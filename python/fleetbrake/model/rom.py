@@ -65,8 +65,12 @@ from fleetbrake.model.thermal import (
 
 __all__ = [
     "CACHE_DIR_ENV",
+    "CHAIN_ANCHORS",
     "DEFAULT_REFINEMENT",
     "ROM_VERSION",
+    "ChainPieces",
+    "ChainRule",
+    "ChainRun",
     "FullModelRunner",
     "ReducedModel",
     "RomBatch",
@@ -138,6 +142,72 @@ class RomBatch:
     probe_c: NDArray[np.float64]
     face_mean_c: NDArray[np.float64]
     face_max_c: NDArray[np.float64]
+
+
+CHAIN_ANCHORS: tuple[str, ...] = ("none", "start", "before", "after")
+"""How a segment of a chain was anchored, by the code :meth:`ReducedModel.simulate_chain`
+returns."""
+
+
+@dataclass(frozen=True)
+class ChainPieces:
+    """The pieces of one span's chain, for :meth:`ReducedModel.simulate_chain`.
+
+    A piece is samples ``a .. b`` (inclusive) run from a carried state at one reference
+    temperature. Pieces ``0 .. J-1`` are the timeline's segments, in order; the others
+    continue event windows past their braking segments (un-anchored). Piece ``p``'s steps
+    are ``step_offsets[p] .. step_offsets[p+1]`` of the step arrays (T); a 1 s piece has
+    ``b - a`` of them, a coarse piece (a long gap, on a grid of its own) has its grid
+    positions in ``at[at_offsets[p] : at_offsets[p+1]]`` (from ``a`` to ``b``), its outputs
+    interpolated to the seconds.
+    """
+
+    a: NDArray[np.int64]
+    b: NDArray[np.int64]
+    dt_s: NDArray[np.float64]
+    """(P) each piece's time step."""
+    step_offsets: NDArray[np.int64]
+    at: NDArray[np.float64]
+    at_offsets: NDArray[np.int64]
+    flux_w_m2: NDArray[np.float64]
+    """(T) flux of each step (effects applied)."""
+    ambient_c: NDArray[np.float64]
+    """(T) air temperature of each step."""
+    h_w_m2k: NDArray[np.float64]
+    """(T, F) convection of each step, per face set in ``face_names`` order."""
+    window_continuation: NDArray[np.int64]
+    """(J) the piece continuing the window that starts at segment j, -1 if none."""
+    window_length: NDArray[np.int64]
+    """(J) samples of the window starting at segment j, 0 if none."""
+
+
+@dataclass(frozen=True)
+class ChainRule:
+    """The re-anchoring rule (``fleetbrake.simulation.chains.ChainParams``)."""
+
+    anchor_s: int
+    anchor_min_readings: int
+    window_s: int
+    tolerance_k: float
+    lag_tau_s: float | None
+    """A sensor lag's time constant (acting on the block, not on the shifts); None: none."""
+
+
+@dataclass(frozen=True)
+class ChainRun:
+    """A span's chain simulated: the timeline (n, NaN where not simulated), the segments'
+    anchoring (code into :data:`CHAIN_ANCHORS`, shift, reference temperature), and the event
+    windows concatenated in segment order."""
+
+    sensor_c: NDArray[np.float64]
+    contact_mean_c: NDArray[np.float64]
+    contact_max_c: NDArray[np.float64]
+    anchor: NDArray[np.uint8]
+    shift_k: NDArray[np.float64]
+    reference_c: NDArray[np.float64]
+    window_sensor_c: NDArray[np.float64]
+    window_mean_c: NDArray[np.float64]
+    window_max_c: NDArray[np.float64]
 
 
 def training_loading(n_steps: int = 900) -> dict[str, NDArray[np.float64]]:
@@ -542,6 +612,75 @@ class ReducedModel:
             face_mean_c=mean,
             face_max_c=fmax,
         )
+
+    def simulate_chain(
+        self,
+        pieces: ChainPieces,
+        *,
+        trusted_c: NDArray[np.float64],
+        ambient_c: NDArray[np.float64],
+        rule: ChainRule,
+    ) -> ChainRun:
+        """One span's whole chain in one call of the Rust kernel: every segment from the
+        state the one before left, re-anchored at its start to ``trusted_c`` (n, NaN where
+        no trusted reading) as :func:`fleetbrake.simulation.chains.simulate_span` does, the
+        event windows continued un-anchored. Exactly what :meth:`simulate` gives piece by
+        piece (the same propagators: one per distinct convection and time step)."""
+        steps = pieces.flux_w_m2.size
+        faces = len(self.face_names)
+        h = np.ascontiguousarray(pieces.h_w_m2k, dtype=np.float64).reshape(steps, faces)
+        step_dt = np.repeat(pieces.dt_s, np.diff(pieces.step_offsets))
+        dh = np.round(h - self._h_nominal_by_face(), 12)
+        index = np.zeros(steps, dtype=np.int64)
+        props: list[
+            tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]
+        ] = []
+        for dt_s in np.unique(pieces.dt_s):
+            at = np.flatnonzero(step_dt == dt_s)
+            if at.size == 0:
+                continue
+            if not dh[at].any():
+                keys, inverse = np.zeros((1, faces)), np.zeros(at.size, dtype=np.int64)
+            else:
+                keys, inverse = np.unique(dh[at], axis=0, return_inverse=True)
+            index[at] = len(props) + inverse.reshape(-1)
+            props += [self._cached_propagator(key, float(dt_s), "exact") for key in keys]
+        r = self.order
+        if not props:  # no steps at all: one unused propagator keeps the table well formed
+            props = [self._cached_propagator(np.zeros(faces), 1.0, "exact")]
+        rotated = [q is not None for _, _, q in props]
+        q_all = np.stack([np.eye(r) if q is None else q for _, _, q in props])
+        floats, anchor = _ext.rom_simulate_chain(
+            np.ascontiguousarray(np.stack([e for e, _, _ in props])),
+            np.ascontiguousarray(np.stack([g for _, g, _ in props])),
+            np.ascontiguousarray(q_all),
+            rotated,
+            np.ascontiguousarray(self.b_flux),
+            np.ascontiguousarray(self.b_faces),
+            np.ascontiguousarray(self.c_out),
+            self.n_probes,
+            np.ascontiguousarray(pieces.flux_w_m2, dtype=np.float64),
+            np.ascontiguousarray(pieces.ambient_c, dtype=np.float64),
+            h,
+            index,
+            np.ascontiguousarray(pieces.a, dtype=np.int64),
+            np.ascontiguousarray(pieces.b, dtype=np.int64),
+            np.ascontiguousarray(pieces.dt_s, dtype=np.float64),
+            np.ascontiguousarray(pieces.step_offsets, dtype=np.int64),
+            np.ascontiguousarray(pieces.at, dtype=np.float64),
+            np.ascontiguousarray(pieces.at_offsets, dtype=np.int64),
+            np.ascontiguousarray(pieces.window_continuation, dtype=np.int64),
+            np.ascontiguousarray(pieces.window_length, dtype=np.int64),
+            np.ascontiguousarray(trusted_c, dtype=np.float64),
+            np.ascontiguousarray(ambient_c, dtype=np.float64),
+            rule.anchor_s,
+            rule.anchor_min_readings,
+            rule.window_s,
+            float(rule.tolerance_k),
+            None if rule.lag_tau_s is None else float(rule.lag_tau_s),
+        )
+        sensor, mean, top, shift, reference, w_sensor, w_mean, w_top = floats
+        return ChainRun(sensor, mean, top, anchor, shift, reference, w_sensor, w_mean, w_top)
 
     def _h_nominal_by_face(self) -> NDArray[np.float64]:
         """The nominal convection coefficient of each face set, in ``face_names`` order."""

@@ -60,6 +60,7 @@ __all__ = [
     "H_QUANTUM_W_M2K",
     "FixedPointError",
     "TimelineResult",
+    "drive_inputs",
     "simulate_timeline",
 ]
 
@@ -178,36 +179,18 @@ def simulate_timeline(
     ambient = _samples("ambient_c", ambient_c, n)
     _check_finite("ambient_c", ambient)
 
-    # 1. force, 2. heat input at the samples (physics.py's operations, in its order)
-    force = np.asarray(block_force_n(wagon, pressure), dtype=np.float64)
-    efficiency = np.asarray(brake_efficiency, dtype=np.float64)
-    if efficiency.ndim or float(efficiency) != 1.0:
-        efficiency = _samples("brake_efficiency", efficiency, n)
-        if np.any(~np.isfinite(efficiency) | (efficiency < 0)):
-            raise ValueError("brake_efficiency must be finite and >= 0")
-        force = force * efficiency
-    if drag_force_n is not None:
-        drag = _samples("drag_force_n", drag_force_n, n)
-        if np.any(~np.isfinite(drag) | (drag < 0)):
-            raise ValueError("drag_force_n must be finite and >= 0")
-        force = force + drag
-    alpha = heat_partition_alpha(wagon)
-    power_w = wagon.friction_coefficient * force * speed * KMH_TO_M_S
-    flux = np.asarray(
-        block_flux_w_m2(wagon, frictional_flux_w_m2(wagon, power_w), alpha=alpha),
-        dtype=np.float64,
-    )
-    base_h = dict(rom.h_nominal if h_w_m2k is None else h_w_m2k)
-    h = {face: _samples(f"h_w_m2k[{face!r}]", value, n) for face, value in base_h.items()}
-    base = DriveInputs(
-        dt_s=float(dt_s),
+    base = drive_inputs(
+        rom,
+        wagon,
+        dt_s=dt_s,
+        p_bar=pressure,
         speed_kmh=speed,
-        block_force_n=force,
-        flux_w_m2=flux,
-        alpha=alpha,
         ambient_c=ambient,
-        h_w_m2k=h,
+        drag_force_n=drag_force_n,
+        brake_efficiency=brake_efficiency,
+        h_w_m2k=h_w_m2k,
     )
+    force = base.block_force_n
 
     contact: FloatArray | None = None
     previous: FloatArray | None = None
@@ -244,6 +227,57 @@ def simulate_timeline(
         iterations=iterations,
         contact_area_m2=wagon.geometry.contact_area_m2,
     )
+
+
+def drive_inputs(
+    rom: ReducedModel,
+    wagon: WagonConfig,
+    *,
+    dt_s: float,
+    p_bar: FloatArray,
+    speed_kmh: FloatArray,
+    ambient_c: FloatArray,
+    drag_force_n: float | ArrayLike | None = None,
+    brake_efficiency: float | ArrayLike = 1.0,
+    h_w_m2k: Mapping[str, float | ArrayLike] | None = None,
+) -> DriveInputs:
+    """Steps 1 and 2 of the module docstring: the declared loading at the N samples, before
+    the effects (``p_bar``, ``speed_kmh`` and ``ambient_c`` checked N-long series), as
+    :func:`simulate_timeline` builds it; pointwise in the samples, so a run's inputs are
+    those of any stretch of it."""
+    pressure, speed, ambient = p_bar, speed_kmh, ambient_c
+    n = pressure.size
+    # 1. force, 2. heat input at the samples (physics.py's operations, in its order)
+    force = np.asarray(block_force_n(wagon, pressure), dtype=np.float64)
+    efficiency = np.asarray(brake_efficiency, dtype=np.float64)
+    if efficiency.ndim or float(efficiency) != 1.0:
+        efficiency = _samples("brake_efficiency", efficiency, n)
+        if np.any(~np.isfinite(efficiency) | (efficiency < 0)):
+            raise ValueError("brake_efficiency must be finite and >= 0")
+        force = force * efficiency
+    if drag_force_n is not None:
+        drag = _samples("drag_force_n", drag_force_n, n)
+        if np.any(~np.isfinite(drag) | (drag < 0)):
+            raise ValueError("drag_force_n must be finite and >= 0")
+        force = force + drag
+    alpha = heat_partition_alpha(wagon)
+    power_w = wagon.friction_coefficient * force * speed * KMH_TO_M_S
+    flux = np.asarray(
+        block_flux_w_m2(wagon, frictional_flux_w_m2(wagon, power_w), alpha=alpha),
+        dtype=np.float64,
+    )
+    base_h = dict(rom.h_nominal if h_w_m2k is None else h_w_m2k)
+    h = {face: _samples(f"h_w_m2k[{face!r}]", value, n) for face, value in base_h.items()}
+    base = DriveInputs(
+        dt_s=float(dt_s),
+        speed_kmh=speed,
+        block_force_n=force,
+        flux_w_m2=flux,
+        alpha=alpha,
+        ambient_c=ambient,
+        h_w_m2k=h,
+    )
+    return base
 
 
 def _integrate(

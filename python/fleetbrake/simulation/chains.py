@@ -34,6 +34,10 @@ How (``ChainParams`` names every number; each field's docstring says why its val
    ``event_after_release_s`` after its release, the next activation or a data gap, *not*
    re-anchored inside: the error it accumulates is the model's error for that braking.
 
+:func:`simulate_span` runs this segment by segment in Python: it is the reference. The
+pipeline runs the same algorithm with a span in one call of the reduced model's Rust kernel
+(:func:`fleetbrake.simulation.batched.simulate_span_batched`, equal to it to 1e-9 K, tested).
+
 ``uniform_windows`` is the paper's initialisation instead: each event from a uniform block at
 the reading at activation (no chain; the close loop screens candidates this way).
 """
@@ -283,12 +287,14 @@ def constant_runs(
         return []
     v = values[idx]
     same = np.abs(np.diff(v)) < resolution_k
-    out = []
-    for a, b in runs(same):  # same[a:b]: readings idx[a] .. idx[b] equal their neighbours
-        first, last = int(idx[a]), int(idx[b])
-        if last - first + 1 >= min_s:
-            out.append((first, last + 1, float(v[a])))
-    return out
+    # runs of ``same``: same[a:b] means readings idx[a] .. idx[b] equal their neighbours
+    edges = np.flatnonzero(np.diff(np.r_[0, same.astype(np.int8), 0]))
+    a, b = edges[::2], edges[1::2]
+    long = idx[b] - idx[a] + 1 >= min_s
+    return [
+        (int(first), int(last) + 1, float(value))
+        for first, last, value in zip(idx[a[long]], idx[b[long]], v[a[long]], strict=True)
+    ]
 
 
 def trusted_readings(series: WagonSeries, chain: ChainParams) -> FloatArray:

@@ -26,6 +26,12 @@ numbers in :class:`~fleetbrake.simulation.chains.ChainParams`):
 
 The close loop re-simulates candidates with the same functions (:func:`load_wagon`,
 :func:`predict_wagon`), so its fits and the stored predictions agree.
+
+The wagon is the unit of work: the parent reads a wagon's samples and events as Arrow
+(:func:`wagon_task`), :func:`simulate_wagon` (pure, picklable, no database) turns them into the
+rows' columns, each span in one call of the reduced model's chain kernel, and the parent writes
+them in bulk, one transaction per wagon; ``simulate_events(engine=...)`` runs the partitions on
+an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
 """
 
 from __future__ import annotations
@@ -35,17 +41,19 @@ import hashlib
 import json
 import logging
 import os
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Literal
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import polars as pl
+import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.errors import UnknownKeyError
 from fleetbrake.fleet.registry import Registry, WagonConfig
 from fleetbrake.model.effects import EffectSet
 from fleetbrake.model.rom import DEFAULT_REFINEMENT, FullModelRunner, ReducedModel
+from fleetbrake.simulation.batched import simulate_span_batched
 from fleetbrake.simulation.chains import (
     ChainParams,
     EventWindow,
@@ -70,12 +78,15 @@ from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
     "DECLARED",
+    "Mapper",
     "Revision",
     "SimulationConfig",
     "SimulationReport",
     "UnknownRevisionError",
     "WagonData",
     "WagonPrediction",
+    "WagonResult",
+    "WagonTask",
     "current_revision",
     "ensure_declared",
     "load_wagon",
@@ -83,8 +94,10 @@ __all__ = [
     "predict_wagon",
     "revision",
     "simulate_events",
+    "simulate_wagon",
     "store_registry",
     "stored_wagons",
+    "wagon_task",
 ]
 
 logger = logging.getLogger(__name__)
@@ -199,6 +212,23 @@ def model_for(wagon: WagonConfig, solver: str, refinement: float = DEFAULT_REFIN
     return ReducedModel.for_wagon(wagon, refinement=refinement)
 
 
+_MODELS: dict[tuple[object, ...], Model] = {}
+"""The models this process made for :func:`simulate_wagon` (a worker simulates many wagons
+of few block types)."""
+
+_MODELS_KEPT = 16
+
+
+def _process_model(wagon: WagonConfig, solver: str, refinement: float) -> Model:
+    key = (wagon.geometry, wagon.block, wagon.sensor_point_m, solver, refinement)
+    model = _MODELS.get(key)
+    if model is None:
+        if len(_MODELS) >= _MODELS_KEPT:
+            _MODELS.clear()
+        model = _MODELS[key] = model_for(wagon, solver, refinement)
+    return model
+
+
 # --------------------------------------------------------------------------------------------
 # One wagon
 
@@ -253,12 +283,17 @@ def predict_wagon(
     *,
     event_ids: Collection[str] | None = None,
     timeline: bool = True,
+    reference: bool = False,
 ) -> WagonPrediction:
     """Simulate the wagon with the revision's effects: the windows of ``event_ids`` (None:
     every event) and, with ``timeline``, the timeline of every span. Without ``timeline`` only
     the spans holding wanted events are simulated, each up to its last wanted window (what a
-    close loop's candidate needs)."""
+    close loop's candidate needs). Each span is one call of the reduced model's chain kernel
+    (:mod:`~fleetbrake.simulation.batched`); ``reference``: segment by segment in Python
+    instead (:func:`~fleetbrake.simulation.chains.simulate_span`, the same result to
+    rounding: the reference the batched path is tested against)."""
     chain = config.chain
+    span = simulate_span if reference else simulate_span_batched
     wanted = None if event_ids is None else set(event_ids)
     windows: list[tuple[WagonSeries, EventWindow, FloatArray]] = []
     spans: list[tuple[WagonSeries, SpanResult]] = []
@@ -267,10 +302,10 @@ def predict_wagon(
         mine = [w for w in event_windows(series, chain) if wanted is None or w.event_id in wanted]
         if not timeline and not mine:
             continue
-        speed = running_median(series.speed_kmh, chain.speed_median_samples)
+        speed: FloatArray | None = None
         if timeline or config.initial_state == "carried":
             until = None if timeline else max(w.stop for w in mine)
-            result = simulate_span(
+            result = span(
                 series, data.wagon, model, rev.effects, chain, event_ids=wanted, until=until
             )
             if timeline:
@@ -279,6 +314,8 @@ def predict_wagon(
             if config.initial_state == "carried":
                 windows += [(series, w, speed) for w in result.windows]
         if config.initial_state == "uniform":
+            if speed is None:
+                speed = running_median(series.speed_kmh, chain.speed_median_samples)
             done, missed = uniform_windows(
                 series, data.wagon, model, rev.effects, chain, event_ids=wanted
             )
@@ -462,6 +499,118 @@ def _model_key(wagon: WagonConfig, rev: Revision, config: SimulationConfig) -> s
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+@dataclass(frozen=True)
+class WagonTask:
+    """One wagon's partition of the simulation stage: everything :func:`simulate_wagon`
+    reads, as the parent read it from the warehouse (picklable: an engine ships it to a
+    worker process)."""
+
+    wagon: WagonConfig
+    samples: pa.Table
+    """The wagon's samples (``q_simulation_wagon_samples.sql``)."""
+    events: pa.Table
+    """Its braking events (``q_simulation_wagon_events.sql``)."""
+    rev: Revision
+    config: SimulationConfig
+    data_key: str
+    model_key: str
+    reference: bool = False
+    """Simulate segment by segment in Python (the reference) instead of one kernel call per
+    span."""
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        return f"wagon {self.wagon.wagon_id}"
+
+
+@dataclass(frozen=True)
+class WagonResult:
+    """What :func:`simulate_wagon` hands back for the parent to write: the rows of
+    ``predictions``, ``timeline`` and ``timeline_segments`` as Arrow tables, and the keys the
+    wagon was simulated from."""
+
+    wagon_id: str
+    revision: str
+    data_key: str
+    model_key: str
+    predictions: pa.Table
+    timeline: pa.Table
+    segments: pa.Table
+    events: int
+    skipped: list[str]
+
+    def rows(self) -> WagonRows:
+        return WagonRows(
+            _frame(self.predictions), _frame(self.timeline), _frame(self.segments), self.events
+        )
+
+
+def _frame(table: pa.Table) -> pl.DataFrame:
+    frame = pl.from_arrow(table)
+    assert isinstance(frame, pl.DataFrame)
+    return frame
+
+
+def wagon_task(
+    wh: Warehouse,
+    wagon: WagonConfig,
+    rev: Revision,
+    config: SimulationConfig,
+    *,
+    data_key: str,
+    model_key: str,
+    reference: bool = False,
+) -> WagonTask:
+    """The wagon's partition, read from the warehouse (by the parent: workers never open
+    it)."""
+    params = {"wagon_id": wagon.wagon_id}
+    return WagonTask(
+        wagon=wagon,
+        samples=wh.con.sql(sql("q_simulation_wagon_samples"), params=params).to_arrow_table(),
+        events=wh.con.sql(sql("q_simulation_wagon_events"), params=params).to_arrow_table(),
+        rev=rev,
+        config=config,
+        data_key=data_key,
+        model_key=model_key,
+        reference=reference,
+    )
+
+
+def simulate_wagon(task: WagonTask) -> WagonResult:
+    """One wagon simulated from its partition's arrays, no database: a pure function of the
+    task (the model is made, or read from the reduced-model cache, once per process), so an
+    engine can run it in a worker process."""
+    wagon, config = task.wagon, task.config
+    spans = WagonSeries.spans_from_frame(
+        wagon.wagon_id,
+        _frame(task.samples),
+        ambient_default_c=float(wagon.ambient_temp_c),
+        bridge_max_s=config.chain.bridge_max_s,
+        events=_frame(task.events),
+    )
+    model = _process_model(wagon, task.rev.solver, config.refinement)
+    result = predict_wagon(
+        WagonData(wagon, spans), model, task.rev, config, reference=task.reference
+    )
+    return WagonResult(
+        wagon_id=wagon.wagon_id,
+        revision=task.rev.name,
+        data_key=task.data_key,
+        model_key=task.model_key,
+        predictions=result.predictions.to_arrow(),
+        timeline=result.timeline.to_arrow(),
+        segments=result.segments.to_arrow(),
+        events=result.events,
+        skipped=result.skipped,
+    )
+
+
+class Mapper(Protocol):
+    """What runs the stage's partitions: an object with ``map(fn, items)`` yielding
+    ``fn(item)`` in the order of ``items`` (a :class:`fleetbrake.engine.Engine`)."""
+
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], /) -> Iterator[Any]: ...
+
+
 def simulate_events(
     wh: Warehouse,
     registry: Registry | Mapping[str, WagonConfig],
@@ -471,10 +620,18 @@ def simulate_events(
     event_ids: Iterable[str] | None = None,
     wagons: Iterable[str] | None = None,
     progress: bool | None = None,
+    engine: Mapper | None = None,
+    reference: bool = False,
 ) -> SimulationReport:
     """Simulate with ``rev`` every wagon whose data, registry entry or simulation parameters
     changed since it was last simulated with it (or, forced, the wagons of ``event_ids`` and
-    ``wagons``), storing its event windows and timeline; each wagon in one transaction."""
+    ``wagons``), storing its event windows and timeline; each wagon in one transaction.
+
+    Each wagon is a partition: the parent reads it (:func:`wagon_task`), ``engine.map`` runs
+    :func:`simulate_wagon` on it (default: the builtin ``map``, in this process; an engine's
+    workers otherwise), and the parent writes the result in bulk as it comes back, one
+    transaction per wagon. ``reference``: the segment-by-segment simulation instead of one
+    kernel call per span (the same rows, to rounding)."""
     config = config or SimulationConfig()
     wagons_by_id = registry.wagons if isinstance(registry, Registry) else registry
     report = SimulationReport()
@@ -517,29 +674,36 @@ def simulate_events(
     show = progress if progress is not None else os.isatty(1)
     from rich.progress import Progress
 
-    models: dict[tuple[object, ...], Model] = {}
+    tasks = (
+        wagon_task(
+            wh, wagon, rev, config, data_key=data_key, model_key=model_key, reference=reference
+        )
+        for wagon, data_key, model_key in todo
+    )
+    results = map(simulate_wagon, tasks) if engine is None else engine.map(simulate_wagon, tasks)
     with Progress(disable=not show, transient=True) as bar:
         task = bar.add_task("simulating wagons", total=len(todo))
-        for wagon, data_key, model_key in todo:
-            key = (wagon.geometry, wagon.block, wagon.sensor_point_m, rev.solver)
-            if key not in models:
-                models[key] = model_for(wagon, rev.solver, config.refinement)
-            data = load_wagon(wh, wagon, config)
-            result = predict_wagon(data, models[key], rev, config)
+        for result in results:
+            written = result.rows()
             replace_wagon(
-                wh, wagon.wagon_id, rev.name, result.rows(), data_key=data_key, model_key=model_key
+                wh,
+                result.wagon_id,
+                result.revision,
+                written,
+                data_key=result.data_key,
+                model_key=result.model_key,
             )
             logger.info(
                 "wagon %s: %d events and %d timeline seconds simulated with revision %s",
-                wagon.wagon_id,
+                result.wagon_id,
                 result.events,
-                result.timeline.height,
-                rev.name,
+                written.timeline.height,
+                result.revision,
             )
-            report.wagons_simulated.append(wagon.wagon_id)
+            report.wagons_simulated.append(result.wagon_id)
             report.events_simulated += result.events
-            report.prediction_rows += result.predictions.height
-            report.timeline_rows += result.timeline.height
+            report.prediction_rows += written.predictions.height
+            report.timeline_rows += written.timeline.height
             report.skipped += result.skipped
             bar.advance(task)
     return report
