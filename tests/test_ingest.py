@@ -34,6 +34,7 @@ from fleetbrake.ingest.files import (
     run_ingest,
 )
 from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.synth import corrupt
 from fleetbrake.warehouse.connection import open_warehouse
 from fleetgen import (
     T0_UTC,
@@ -224,20 +225,20 @@ def _rows_outside_session(frame: pl.DataFrame, rng: np.random.Generator) -> pl.D
 
 
 CASES: dict[str, Case] = {
-    "drop rows": Case(lambda f, r: lf.drop_rows(f, r, 0.05)),
-    "gap": Case(lambda f, r: lf.drop_gap(f, r, 240)),
-    "duplicates": Case(lambda f, r: lf.duplicate_rows(f, r, 0.03), {"rows_duplicate": 27}),
+    "drop rows": Case(lambda f, r: corrupt.drop_rows(f, r, 0.05)),
+    "gap": Case(lambda f, r: corrupt.drop_gap(f, r, 240)),
+    "duplicates": Case(lambda f, r: corrupt.duplicate_rows(f, r, 0.03), {"rows_duplicate": 27}),
     "out of order": Case(
-        lambda f, r: lf.swap_neighbours(f, r, 0.03), {"rows_out_of_order": (10, 27)}
+        lambda f, r: corrupt.swap_neighbours(f, r, 0.03), {"rows_out_of_order": (10, 27)}
     ),
-    "blank cells": Case(lambda f, r: lf.blank_cells(f, r, 0.02), {"rows_no_time": 18}),
+    "blank cells": Case(lambda f, r: corrupt.blank_cells(f, r, 0.02), {"rows_no_time": 18}),
     "garbled numbers": Case(
-        lambda f, r: lf.garble_cells(f, r, 0.01, ("speed_kmh", "block_temp_c"), text="ERR"),
+        lambda f, r: corrupt.garble_cells(f, r, 0.01, ("speed_kmh", "block_temp_c"), text="ERR"),
         {"cells_unparsable": 18},
         note="not a finite number",
     ),
     "garbled times": Case(
-        lambda f, r: lf.garble_cells(f, r, 0.01, ("time_utc",), text="2024-13-45T99:00:00Z"),
+        lambda f, r: corrupt.garble_cells(f, r, 0.01, ("time_utc",), text="2024-13-45T99:00:00Z"),
         {"rows_no_time": 9},
         note="not a time",
     ),
@@ -245,21 +246,21 @@ CASES: dict[str, Case] = {
     "physically impossible numbers": Case(
         _impossible, {"cells_unparsable": 5}, note="outside the range the channel can take"
     ),
-    "gps speed frozen": Case(lambda f, r: lf.freeze_speed(f, r, 200)),
-    "gps speed jumps": Case(lambda f, r: lf.jump_speed(f, r, 6)),
-    "pt1000 frozen": Case(lambda f, r: lf.pt1000_frozen(f, r, 300)),
-    "pt1000 drifting": Case(lambda f, r: lf.pt1000_drift_to_ambient(f, r)),
+    "gps speed frozen": Case(lambda f, r: corrupt.freeze_speed(f, r, 200)),
+    "gps speed jumps": Case(lambda f, r: corrupt.jump_speed(f, r, 6)),
+    "pt1000 frozen": Case(lambda f, r: corrupt.pt1000_frozen(f, r, 300)),
+    "pt1000 drifting": Case(lambda f, r: corrupt.pt1000_drift_to_ambient(f, r)),
     "pt1000 open circuit": Case(
-        lambda f, r: lf.pt1000_open_circuit(f, r, 60), {"block_temp_faults": 60}
+        lambda f, r: corrupt.pt1000_open_circuit(f, r, 60), {"block_temp_faults": 60}
     ),
     "truncated mid-row": Case(
-        lambda f, r: lf.truncate_mid_row(lf.to_csv_bytes(f), r),
+        lambda f, r: corrupt.truncate_mid_row(lf.to_csv_bytes(f), r),
         {"partial_row_dropped": True},
         gzip=False,
         note="cut short",
     ),
     "truncated mid-row, then gzipped": Case(
-        lambda f, r: lf.truncate_mid_row(lf.to_csv_bytes(f), r),
+        lambda f, r: corrupt.truncate_mid_row(lf.to_csv_bytes(f), r),
         {"partial_row_dropped": True},
         gzip=True,
     ),
@@ -320,8 +321,10 @@ def test_repairable_file_keeps_every_good_row(name: str, fleet: Path, db: Path) 
 
 def test_open_circuit_readings_are_faults_not_temperatures(fleet: Path, db: Path) -> None:
     original = simple_session(rows=ROWS)
-    broken = lf.pt1000_open_circuit(original, np.random.default_rng(0), 50, start=100)
-    broken = lf.pt1000_open_circuit(broken, np.random.default_rng(1), 5, start=400, reading_c=-61)
+    broken = corrupt.pt1000_open_circuit(original, np.random.default_rng(0), 50, start=100)
+    broken = corrupt.pt1000_open_circuit(
+        broken, np.random.default_rng(1), 5, start=400, reading_c=-61
+    )
     write_session(fleet, WAGON, broken, T0_UTC)
     ingest(fleet, db)
     samples = stored(db, relpath_of(WAGON, T0_UTC))
@@ -423,7 +426,7 @@ QUARANTINE: dict[str, tuple[str, Callable[[Path], None], str]] = {
     "truncated gzip": (
         relpath_of(WAGON, T0_UTC),
         lambda p: p.write_bytes(
-            lf.truncate_gzip(
+            corrupt.truncate_gzip(
                 lf.gzip_bytes(lf.to_csv_bytes(simple_session(rows=ROWS))),
                 np.random.default_rng(0),
             )
@@ -437,17 +440,19 @@ QUARANTINE: dict[str, tuple[str, Callable[[Path], None], str]] = {
     ),
     "garbage binary": (
         relpath_of(WAGON, T0_UTC),
-        lambda p: p.write_bytes(lf.garbage_bytes(np.random.default_rng(3), 5000)),
+        lambda p: p.write_bytes(corrupt.garbage_bytes(np.random.default_rng(3), 5000)),
         "not a CSV log",
     ),
     "garbage text": (
         relpath_of(WAGON, T0_UTC, gzip=False),
-        lambda p: p.write_bytes(lf.garbage_bytes(np.random.default_rng(3), 5000, kind="text")),
+        lambda p: p.write_bytes(corrupt.garbage_bytes(np.random.default_rng(3), 5000, kind="text")),
         "is not a log header",
     ),
     "zeros": (
         relpath_of(WAGON, T0_UTC, gzip=False),
-        lambda p: p.write_bytes(lf.garbage_bytes(np.random.default_rng(3), 5000, kind="zeros")),
+        lambda p: p.write_bytes(
+            corrupt.garbage_bytes(np.random.default_rng(3), 5000, kind="zeros")
+        ),
         "no complete first line",
     ),
     "empty": (relpath_of(WAGON, T0_UTC), lambda p: p.write_bytes(b""), "empty file"),
@@ -563,7 +568,7 @@ def _messy_fleet(fleet: Path, rng: np.random.Generator) -> tuple[int, set[str]]:
                 )
             gz = bool(rng.integers(0, 2))
             if k == 7:  # a unit that lost power: plain CSV cut mid-row
-                data = lf.truncate_mid_row(lf.to_csv_bytes(frame), rng)
+                data = corrupt.truncate_mid_row(lf.to_csv_bytes(frame), rng)
                 write_session(fleet, wagon, data, start, gzip=False)
                 expected_rows += _rows_of_bytes(data, start)
             else:
@@ -626,7 +631,7 @@ def _three_wagons(fleet: Path) -> list[str]:
     for w, wagon in enumerate([WAGON, "SGG-0002", "SGG_0003"]):
         for k in range(3):
             start = T0_UTC + dt.timedelta(days=1, hours=3 * k)
-            frame = lf.duplicate_rows(
+            frame = corrupt.duplicate_rows(
                 simple_session(start, rows=700, seed=w + k), np.random.default_rng(k), 0.01
             )
             paths.append(write_session(fleet, wagon, frame, start).relative_to(fleet).as_posix())

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import fleetbrake
-from fleetbrake.fleet import logfile as lf
 from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.synth import corrupt
 from fleetgen import T0_UTC, make_session, snapshot, write_registry, write_session
 
 WALL_CLOCK = ("ingested_utc", "detected_utc", "applied_utc")
@@ -77,7 +77,9 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Path:
         for k in range(20):
             start = T0_UTC + dt.timedelta(hours=3 * k + w)
             session = make_session(rng, start, n_events=4, noise=True)
-            frame = lf.swap_neighbours(lf.duplicate_rows(session.frame, rng, 0.01), rng, 0.01)
+            frame = corrupt.swap_neighbours(
+                corrupt.duplicate_rows(session.frame, rng, 0.01), rng, 0.01
+            )
             write_session(root, wagon, frame, start, gzip=bool(k % 2))
     (root / "logs" / "SGG-0001" / "SGG-0001_20250101T000000Z.csv.gz").write_bytes(b"junk")
     (root / "logs" / "SGG-0404").mkdir()

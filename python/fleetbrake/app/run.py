@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from fleetbrake.engine import Engine, make_engine
 from fleetbrake.simulation.predictions import (
     SimulationConfig,
     SimulationReport,
@@ -22,12 +23,18 @@ from fleetbrake.simulation.predictions import (
 )
 
 if TYPE_CHECKING:
-    from fleetbrake.flags import FlagReport
+    from fleetbrake.flags import FlagConfig, FlagReport
+    from fleetbrake.fleet.registry import Registry
     from fleetbrake.ingest.files import IngestReport
+    from fleetbrake.warehouse.connection import Warehouse
 
 __all__ = ["RunReport", "default_db_path", "run_fleet"]
 
 logger = logging.getLogger(__name__)
+
+
+_STAGE_MODULES = ("fleetbrake.ingest.files", "fleetbrake.simulation.predictions")
+"""What the engine's workers run: imported as they start."""
 
 
 def default_db_path() -> Path:
@@ -43,7 +50,11 @@ class RunReport:
     revision: str
     flags: FlagReport | None = None
     stage_s: dict[str, float] = field(default_factory=dict)
-    """Wall-clock seconds of each stage: ``ingest``, ``events``, ``simulate``, ``flags``."""
+    """Wall-clock seconds of each stage: ``ingest`` (reading and parsing the files, as the
+    writer waits for them), ``write`` (the ingestion's transactions), ``events``,
+    ``simulate``, ``flags``; disjoint."""
+    engine: str = ""
+    """The engine the stages ran on (``LocalEngine(workers=2)``)."""
 
 
 @contextlib.contextmanager
@@ -65,37 +76,82 @@ def run_fleet(
     simulation: SimulationConfig | None = None,
     flag_config_path: str | Path | None = None,
     progress: bool | None = None,
+    engine: Engine | str = "local",
+    workers: int | None = None,
 ) -> RunReport:
     """``fleetbrake run``: ingest the files not yet ingested, detect events, simulate every
     new event with the current model revision, raise flags; one writer at a time.
 
     Raises (before anything is written) what :func:`fleetbrake.ingest.files.run_ingest` raises for
-    an unusable fleet directory, registry or database. ``progress``: show progress bars
-    (None: when stdout is a terminal).
-    """
-    import duckdb
+    an unusable fleet directory, registry or database, and
+    :class:`~fleetbrake.engine.EngineConfigError` for an unknown ``engine`` name (``ray``
+    until issue 15) or ``workers < 1``. ``progress``: show progress bars (None: when stdout
+    is a terminal).
 
-    from fleetbrake.flags import FlagConfig, load_flag_config, raise_flags
-    from fleetbrake.ingest.events import update_events
-    from fleetbrake.ingest.files import ingest_fleet, load_fleet_registry
-    from fleetbrake.warehouse.connection import WarehouseError, open_warehouse
+    ``engine``: an engine's name (:func:`fleetbrake.engine.make_engine`, with ``workers``;
+    made once here, handed to every stage, closed at the end) or an engine the caller made
+    and closes. The tables are the same with any engine.
+    """
+    from fleetbrake.flags import FlagConfig, load_flag_config
+    from fleetbrake.ingest.files import load_fleet_registry
+    from fleetbrake.warehouse.connection import open_warehouse
 
     progress = sys.stdout.isatty() if progress is None else progress
-    registry = load_fleet_registry(fleet_dir)
-    flag_config = load_flag_config(flag_config_path) if flag_config_path else FlagConfig()
+    with contextlib.ExitStack() as owned:
+        if isinstance(engine, str):  # a bad name or count: refused before anything is read
+            engine = owned.enter_context(make_engine(engine, workers, preload=_STAGE_MODULES))
+            engine.start()  # the workers import the stages while the files are scanned
+        registry = load_fleet_registry(fleet_dir)
+        flag_config = load_flag_config(flag_config_path) if flag_config_path else FlagConfig()
+        logger.info("engine: %r", engine)
+        with open_warehouse(db_path, wait_s=wait_s) as wh:
+            return _stages(
+                wh, db_path, fleet_dir, registry, simulation, flag_config, progress, engine
+            )
+    raise AssertionError("unreachable")  # ExitStack may swallow exceptions, for mypy
+
+
+def _stages(
+    wh: Warehouse,
+    db_path: str | Path,
+    fleet_dir: str | Path,
+    registry: Registry,
+    simulation: SimulationConfig | None,
+    flag_config: FlagConfig,
+    progress: bool,
+    engine: Engine,
+) -> RunReport:
+    """The stages of :func:`run_fleet` on an open warehouse, each on ``engine``."""
+    import duckdb
+
+    from fleetbrake.flags import raise_flags
+    from fleetbrake.ingest.events import update_events
+    from fleetbrake.ingest.files import ingest_fleet
+    from fleetbrake.warehouse.connection import WarehouseError
+
     stage_s: dict[str, float] = {}
-    with open_warehouse(db_path, wait_s=wait_s) as wh:
-        try:
-            with _clock(stage_s, "ingest"):
-                ingest = ingest_fleet(fleet_dir, wh, registry=registry, progress=progress)
-            with _clock(stage_s, "events"):
-                ingest.events = update_events(wh)
-            with _clock(stage_s, "simulate"):
-                store_registry(wh, registry)
-                rev = current_revision(wh, (simulation or SimulationConfig()).solver)
-                sim = simulate_events(wh, registry, rev, simulation, progress=progress)
-            with _clock(stage_s, "flags"):
-                flags = raise_flags(wh, registry, rev.name, flag_config)
-        except duckdb.Error as error:
-            raise WarehouseError(f"{db_path}: {error}") from error
-    return RunReport(ingest=ingest, simulation=sim, revision=rev.name, flags=flags, stage_s=stage_s)
+    try:
+        with _clock(stage_s, "ingest"):
+            ingest = ingest_fleet(
+                fleet_dir, wh, registry=registry, progress=progress, engine=engine
+            )
+        stage_s["ingest"] -= ingest.write_s  # the writer's share, apart
+        stage_s["write"] = ingest.write_s
+        with _clock(stage_s, "events"):
+            ingest.events = update_events(wh, engine=engine)
+        with _clock(stage_s, "simulate"):
+            store_registry(wh, registry)
+            rev = current_revision(wh, (simulation or SimulationConfig()).solver)
+            sim = simulate_events(wh, registry, rev, simulation, progress=progress, engine=engine)
+        with _clock(stage_s, "flags"):
+            flags = raise_flags(wh, registry, rev.name, flag_config)
+    except duckdb.Error as error:
+        raise WarehouseError(f"{db_path}: {error}") from error
+    return RunReport(
+        ingest=ingest,
+        simulation=sim,
+        revision=rev.name,
+        flags=flags,
+        stage_s=stage_s,
+        engine=repr(engine),
+    )

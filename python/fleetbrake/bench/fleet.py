@@ -10,14 +10,24 @@ rest of the total is opening the database.
 
 The reduced thermal model is loaded (or built and cached) before the clock starts, as a
 fleet server would have it; the refinement (``--refinement``) is 1.0, the default mesh,
-unless given; the generator and the run use the same model. The figures carry the machine's CPU count and load average: other processes
-on the machine slow them down.
+unless given; the generator and the run use the same model. The run uses the local engine
+of ``--workers`` processes (default: the cores; 1: everything in this process).
+
+Memory: ``peak_rss_mb`` is the peak resident set of this process (the writer) during the
+run: the generation runs first in this process, so its peak is reset before the clock starts
+(``/proc/self/clear_refs``, then ``VmHWM``; where Linux does not allow it,
+``getrusage(RUSAGE_SELF)``, generation included: ``peak_rss_self_source`` says which).
+``peak_rss_workers_mb`` is the largest of the engine's worker processes
+(``getrusage(RUSAGE_CHILDREN)``: the workers are joined when the run ends; 0 with one
+worker, which runs inline). The figures carry the machine's CPU count and load average:
+other processes on the machine slow them down.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import os
+import resource
 import shutil
 import sys
 import tempfile
@@ -30,6 +40,30 @@ from fleetbrake.app.progress import generation_bar
 from fleetbrake.bench import BenchConfigError, require_extra
 
 __all__ = ["bench_fleet", "print_figures"]
+
+
+def _reset_peak_rss() -> bool:
+    """Reset this process's peak resident set (Linux >= 4.0); False where not allowed."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def _peak_rss_self_mb(reset: bool) -> float:
+    """This process's peak RSS since :func:`_reset_peak_rss` (``reset``), else since it began."""
+    if reset:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (1 << 20) if sys.platform == "darwin" else peak / 1024
+
+
+def _peak_rss_children_mb() -> float:
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return peak / (1 << 20) if sys.platform == "darwin" else peak / 1024
 
 
 def _generate(
@@ -60,6 +94,7 @@ def bench_fleet(
     fleet_dir: str | Path | None = None,
     progress: bool | None = None,
     refinement: float = 1.0,
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """Generate the fleet (or reuse ``fleet_dir`` if it holds the same one), then time
     ``run_fleet`` on it into a fresh database; return the figures. Everything but a given
@@ -92,12 +127,19 @@ def bench_fleet(
         generate_s = time.perf_counter() - began
 
         db = tmp / "fleet.duckdb"
+        reset = _reset_peak_rss()
         load = os.getloadavg()[0]
         began = time.perf_counter()
         report = run_fleet(
-            fleet, db, simulation=SimulationConfig(refinement=refinement), progress=show
+            fleet,
+            db,
+            simulation=SimulationConfig(refinement=refinement),
+            progress=show,
+            workers=workers,
         )
         seconds = time.perf_counter() - began
+        peak_self_mb = _peak_rss_self_mb(reset)
+        peak_workers_mb = _peak_rss_children_mb()
         stages = report.stage_s
         ingest: Any = report.ingest
         sim = report.simulation
@@ -107,6 +149,7 @@ def bench_fleet(
             "benchmark": "fleet",
             "wagons": wagons,
             "days": days,
+            "wagon_days": wagons * days,
             "wagons_with_logs": len(truth.wagons),
             "files": ingest.files_seen,
             "files_quarantined": len(ingest.quarantined),
@@ -119,6 +162,7 @@ def bench_fleet(
             "events_per_s": round(sim.events_simulated / seconds, 1) if seconds else None,
             "rows_per_s": round(ingest.rows / seconds) if seconds else None,
             "stages_s": {k: round(v, 2) for k, v in stages.items()},
+            "engine": report.engine,
             "other_s": round(seconds - sum(stages.values()), 2),
             "generate_s": round(generate_s, 1),
             "model_s": round(model_s, 1),
@@ -126,6 +170,9 @@ def bench_fleet(
             "cpus": os.cpu_count(),
             "load_avg_1min_at_start": round(load, 2),
             "rss_end_mb": round(psutil.Process().memory_info().rss / 2**20),
+            "peak_rss_mb": round(peak_self_mb),
+            "peak_rss_workers_mb": round(peak_workers_mb),
+            "peak_rss_self_source": "VmHWM after reset" if reset else "ru_maxrss",
             "date_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         }
         return figures
@@ -147,9 +194,11 @@ def print_figures(figures: dict[str, Any], echo: Callable[[str], None] = print) 
         f"{figures['flags']} flags, in {figures['seconds']} s: "
         f"{figures['events_per_s']} events/s, {figures['rows_per_s']:,} rows/s"
     )
-    echo(f"stages: {stages}, other {figures['other_s']:.1f} s")
+    echo(f"stages: {stages}, other {figures['other_s']:.1f} s; engine {figures['engine']}")
     echo(
         f"reduced model at refinement {figures['refinement']:g} (ready in "
         f"{figures['model_s']} s before timing); {figures['cpus']} CPUs, load average "
-        f"{figures['load_avg_1min_at_start']} at start; RSS {figures['rss_end_mb']} MB at the end"
+        f"{figures['load_avg_1min_at_start']} at start; RSS {figures['rss_end_mb']} MB at the end, "
+        f"peak {figures['peak_rss_mb']} MB (writer), {figures['peak_rss_workers_mb']} MB "
+        "(largest worker)"
     )

@@ -115,6 +115,12 @@ def bench_fleet_command(
         float,
         typer.Option("--refinement", help="Mesh refinement of the reduced model (1.0: default)."),
     ] = 1.0,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            "--workers", help="Worker processes of the local engine (default: the cores)."
+        ),
+    ] = None,
 ) -> None:
     """A fleet-day from log files to flags: `fleetbrake run` timed end to end (and per
     stage) on a generated fleet (generation not timed)."""
@@ -129,6 +135,7 @@ def bench_fleet_command(
             fleet_dir=fleet_dir,
             refinement=refinement,
             progress=global_options(ctx).progress,
+            workers=workers,
         )
     print_figures(figures, typer.echo)
     if json_out:

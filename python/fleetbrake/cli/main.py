@@ -29,6 +29,7 @@ from typing import Annotated, Literal, cast
 
 import typer
 
+from fleetbrake.app.watch.cli import register as register_watch
 from fleetbrake.bridge.cli import register as register_bridge
 from fleetbrake.cli.bench import bench_app
 from fleetbrake.cli.group import FleetbrakeGroup
@@ -67,6 +68,7 @@ app = typer.Typer(
 )
 app.add_typer(bench_app, name="bench")
 register_bridge(app)
+register_watch(app)
 
 SOLVERS = ("rom", "full")
 
@@ -143,13 +145,27 @@ def run_command(
     json_summary: Annotated[
         bool, typer.Option("--json", help="Last line of stdout: one JSON summary.")
     ] = False,
+    engine: Annotated[
+        str,
+        typer.Option(
+            "--engine",
+            help="Where partitions run: local (worker processes on this machine, default); "
+            "ray (not yet available).",
+        ),
+    ] = "local",
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            "--workers", help="Worker processes of the local engine (default: the cores)."
+        ),
+    ] = None,
 ) -> None:
     """Ingest new files, detect events, simulate every new event, raise flags.
 
     Idempotent and incremental: a second run over the same directory adds nothing. Bad files
     are quarantined and reported (exit 0); exit 1 when the fleet directory, its registry or
-    the database cannot be used, 2 for a bad --flag-config or --solver, 75 when another
-    process is writing the database.
+    the database cannot be used, 2 for a bad --flag-config, --solver, --engine or --workers,
+    75 when another process is writing the database.
     """
     from fleetbrake.app.run import run_fleet
     from fleetbrake.ingest.files import print_report
@@ -166,6 +182,8 @@ def run_command(
         flag_config_path=flag_config,
         simulation=simulation,
         progress=global_options(ctx).progress,
+        engine=engine,
+        workers=workers,
     )
     print_report(report.ingest)
     print_run(report)

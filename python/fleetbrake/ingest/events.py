@@ -48,7 +48,9 @@ and the events table is brought in line in one transaction per wagon: events tha
 same are left alone (their ``detected_utc`` unchanged), changed or vanished ones are replaced
 or deleted, new ones inserted, and the wagon's dirty ranges removed. A run killed half-way
 leaves the dirty ranges in place, so the next run does the work again. Samples are loaded a
-few whole chains (at most about 500,000 rows, unless one chain is longer) at a time.
+few whole chains (at most about 500,000 rows, unless one chain is longer) at a time: a
+partition, detected by an engine's worker when ``update_events`` is given an engine
+(:mod:`fleetbrake.engine`), while this process, the single writer, commits the wagons.
 """
 
 from __future__ import annotations
@@ -57,7 +59,9 @@ import bisect
 import datetime as dt
 import itertools
 import math
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 import polars as pl
@@ -469,8 +473,15 @@ def _overlaps(
     return i > 0 and merged[i - 1][1] >= from_utc
 
 
-def update_events(wh: Warehouse, config: EventConfig | None = None) -> EventUpdate:
-    """Detect the events of every chain of files touched since the last update (see module)."""
+def update_events(
+    wh: Warehouse, config: EventConfig | None = None, *, engine: Mapper | None = None
+) -> EventUpdate:
+    """Detect the events of every chain of files touched since the last update (see module).
+
+    This process reads each wagon's touched chains (a few at a time, at most about
+    ``_LOAD_ROWS`` samples: a partition), ``engine.map`` runs the detection on them (default:
+    the builtin ``map``, here; an engine's workers otherwise), and this process brings each
+    wagon's events in line in one transaction as its partitions come back."""
     config = config or EventConfig()
     con = wh.con
     update = EventUpdate()
@@ -478,29 +489,113 @@ def update_events(wh: Warehouse, config: EventConfig | None = None) -> EventUpda
     by_wagon: dict[str, list[tuple[dt.datetime, dt.datetime]]] = {}
     for wagon_id, from_utc, to_utc in dirty:
         by_wagon.setdefault(wagon_id, []).append((from_utc, to_utc))
-    for wagon_id in sorted(by_wagon):
-        _update_wagon(wh, wagon_id, by_wagon[wagon_id], config, update)
-        update.wagons += 1
+    affected_by_wagon: dict[str, list[_Chain]] = {}
+    tasks = _detect_tasks(wh, by_wagon, config, affected_by_wagon)
+    results = map(_detect_task, tasks) if engine is None else engine.map(_detect_task, tasks)
+    found: list[pl.DataFrame] = []
+    for task_wagon, events, last in results:
+        found.append(events)
+        if last:
+            new = pl.concat(found)
+            found = []
+            _update_wagon(
+                wh, task_wagon, by_wagon[task_wagon], affected_by_wagon.pop(task_wagon), new, update
+            )
+            update.wagons += 1
     row = con.execute(sql("q_events_count")).fetchone()
     update.total = int(row[0]) if row is not None else 0
     return update
+
+
+class Mapper(Protocol):
+    """What runs the detection's partitions: ``map(fn, items)`` yielding ``fn(item)`` in the
+    order of ``items`` (a :class:`fleetbrake.engine.Engine`)."""
+
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], /) -> Iterator[Any]: ...
+
+
+@dataclass(frozen=True)
+class _DetectTask:
+    """A partition of the detection: some touched chains of one wagon, their samples each."""
+
+    wagon_id: str
+    chains: tuple[pl.DataFrame, ...]
+    config: EventConfig
+    last: bool
+    """The wagon's last partition: its events can be brought in line once it is back."""
+
+    def __str__(self) -> str:
+        return f"wagon {self.wagon_id} ({len(self.chains)} stretches of samples)"
+
+
+def _detect_task(task: _DetectTask) -> tuple[str, pl.DataFrame, bool]:
+    """The events of a partition's chains (pure: runs in an engine's worker)."""
+    found = [pl.DataFrame(schema=EVENT_COLUMNS)]
+    found += [detect_events(samples, task.wagon_id, task.config) for samples in task.chains]
+    return task.wagon_id, pl.concat(found), task.last
+
+
+def _detect_tasks(
+    wh: Warehouse,
+    by_wagon: dict[str, list[tuple[dt.datetime, dt.datetime]]],
+    config: EventConfig,
+    affected_by_wagon: dict[str, list[_Chain]],
+) -> Iterator[_DetectTask]:
+    """Each dirty wagon's touched chains, read a few at a time (at most about ``_LOAD_ROWS``
+    samples, unless one chain is longer), in wagon order; records each wagon's touched
+    chains in ``affected_by_wagon``. Read lazily, between the wagons' transactions."""
+    con = wh.con
+    for wagon_id in sorted(by_wagon):
+        files = con.execute(sql("q_events_wagon_files"), {"wagon_id": wagon_id}).fetchall()
+        chains = _chains(files, config.max_gap_s)
+        touched = _merged(by_wagon[wagon_id], dt.timedelta(seconds=config.max_gap_s))
+        affected = [c for c in chains if _overlaps(touched, c.from_utc, c.to_utc)]
+        affected_by_wagon[wagon_id] = affected
+        groups = _load_groups(chains, affected)
+        if not groups:
+            yield _DetectTask(wagon_id, (), config, last=True)
+        for i, group in enumerate(groups):
+            samples = _samples(wh, wagon_id, group[0].from_utc, group[-1].to_utc)
+            times = samples["time_utc"]
+            slices = []
+            for member in group:
+                lo = times.search_sorted(member.from_utc, side="left")
+                hi = times.search_sorted(member.to_utc, side="right")
+                slices.append(samples.slice(lo, hi - lo))
+            yield _DetectTask(wagon_id, tuple(slices), config, last=i == len(groups) - 1)
+
+
+def _load_groups(chains: list[_Chain], affected: list[_Chain]) -> list[list[_Chain]]:
+    """The ``affected`` chains in groups read by one query: consecutive ones spanning at
+    most ``_LOAD_ROWS`` samples (the chains between them included), or one longer chain."""
+    position = {chain: i for i, chain in enumerate(chains)}
+    rows_before = list(itertools.accumulate((c.rows for c in chains), initial=0))
+    groups: list[list[_Chain]] = []
+    group: list[_Chain] = []
+    for chain in [*affected, None]:
+        if group and (
+            chain is None
+            or rows_before[position[chain] + 1] - rows_before[position[group[0]]] > _LOAD_ROWS
+        ):
+            groups.append(group)
+            group = []
+        if chain is not None:
+            group.append(chain)
+    return groups
 
 
 def _update_wagon(
     wh: Warehouse,
     wagon_id: str,
     dirty: list[tuple[dt.datetime, dt.datetime]],
-    config: EventConfig,
+    affected: list[_Chain],
+    new: pl.DataFrame,
     update: EventUpdate,
 ) -> None:
-    """One wagon, one transaction: detect its touched chains again, bring its events in line."""
+    """One wagon, one transaction: its touched chains' events ``new`` (detected again),
+    brought in line with the stored ones; its dirty ranges removed."""
     con = wh.con
     with wh.transaction():
-        files = con.execute(sql("q_events_wagon_files"), {"wagon_id": wagon_id}).fetchall()
-        chains = _chains(files, config.max_gap_s)
-        touched = _merged(dirty, dt.timedelta(seconds=config.max_gap_s))
-        affected = [c for c in chains if _overlaps(touched, c.from_utc, c.to_utc)]
-        new = _detect_chains(wh, wagon_id, chains, affected, config)
         windows = _merged([(c.from_utc, c.to_utc) for c in affected] + dirty, dt.timedelta(0))
         old = _events_in(wh, wagon_id, windows)
         new_rows = {row["event_id"]: row for row in new.iter_rows(named=True)}
@@ -524,35 +619,6 @@ def _update_wagon(
     update.removed += len(gone)
     update.unchanged += len(new_rows) - len(fresh)
     update.changed_ids.extend(sorted(fresh))
-
-
-def _detect_chains(
-    wh: Warehouse,
-    wagon_id: str,
-    chains: list[_Chain],
-    affected: list[_Chain],
-    config: EventConfig,
-) -> pl.DataFrame:
-    """Events of the ``affected`` chains, their samples loaded a few chains at a time."""
-    found = [pl.DataFrame(schema=EVENT_COLUMNS)]
-    position = {chain: i for i, chain in enumerate(chains)}
-    rows_before = list(itertools.accumulate((c.rows for c in chains), initial=0))
-    group: list[_Chain] = []
-    for chain in [*affected, None]:
-        if group and (
-            chain is None
-            or rows_before[position[chain] + 1] - rows_before[position[group[0]]] > _LOAD_ROWS
-        ):
-            samples = _samples(wh, wagon_id, group[0].from_utc, group[-1].to_utc)
-            times = samples["time_utc"]
-            for member in group:
-                lo = times.search_sorted(member.from_utc, side="left")
-                hi = times.search_sorted(member.to_utc, side="right")
-                found.append(detect_events(samples.slice(lo, hi - lo), wagon_id, config))
-            group = []
-        if chain is not None:
-            group.append(chain)
-    return pl.concat(found)
 
 
 def _samples(

@@ -17,8 +17,9 @@ ignored: they are temporary files of copies in progress):
   reads it anyway); one with other bytes replaces its earlier row and samples. A re-run adds
   nothing; a late file (older than files already ingested) is taken when it comes.
 * **Atomicity.** A file's ``files`` row, its samples and the time range whose events must be
-  recomputed (``event_dirty``) are always in the same transaction; whole files are grouped
-  into transactions of about ``batch_rows`` rows (for DuckDB's direct writes). A run killed
+  recomputed (``event_dirty``) are always in the same transaction; whole partitions (a wagon
+  directory's new files, at most ``partition_files``) are grouped into transactions of about
+  ``batch_rows`` rows (for DuckDB's direct writes). A run killed
   at any point leaves whole files or nothing of them; the next run completes the work with
   the same result.
 * **Quarantine** (``status = 'quarantined'``, ``rows = 0``, ``reason`` naming the file): a path
@@ -41,25 +42,31 @@ ignored: they are temporary files of copies in progress):
   line with fewer cells than the header has empty trailing cells, one with more has its extra
   cells ignored.
 
-Speed: files are read, hashed, decompressed and parsed by ``workers`` threads (zlib, hashlib
-and polars release the GIL) while the main thread writes batches to DuckDB; at most
-``in_flight_files`` files and one batch are held in memory, and DuckDB's buffer pool is
-bounded (``warehouse.DEFAULT_MEMORY_LIMIT``), so memory does not grow with the fleet.
+Speed: the new files are cut into partitions (a wagon directory's files, at most
+``partition_files`` of them), which an engine (:mod:`fleetbrake.engine`) reads, hashes,
+decompresses and parses: in worker processes (:class:`~fleetbrake.engine.LocalEngine`), or
+in this process on ``workers`` threads (the default inline engine; zlib, hashlib and polars
+release the GIL). This process alone writes, one partition at a time in path order, so the
+file ids and every table are the same with any engine. A few partitions (the engine's
+``in_flight``) and one batch are held in memory, and DuckDB's buffer pool is bounded
+(``memory_limit``), so memory does not grow with the fleet.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
+import functools
 import hashlib
+import itertools
 import os
 import sys
 import time
 import zlib
-from collections import deque
 from collections.abc import Iterator, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import duckdb
 import numpy as np
@@ -74,6 +81,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from fleetbrake.engine import Engine, InlineEngine
 from fleetbrake.errors import FleetbrakeError
 from fleetbrake.fleet.logfile import (
     BLOCK_TEMP_VALID_C,
@@ -123,16 +131,21 @@ class IngestConfig:
     """Knobs of the ingestion."""
 
     workers: int = 2
-    """Threads reading, hashing, decompressing and parsing files while the main thread writes."""
+    """Threads reading, hashing, decompressing and parsing partitions of files ahead of the
+    writer when the ingestion runs in this process (no engine, or an engine of one worker);
+    with an engine of more workers, its processes do."""
     in_flight_files: int = 16
-    """Most files read but not yet handed to the writer, held in memory at once (enough for
-    the workers to go on while a batch is written)."""
+    """Unused since the files are read by partitions (``partition_files``, and the engine's
+    ``in_flight`` partitions); kept so that configurations naming it still load."""
     max_session_s: int = 48 * 3600
     """A row timed more than this after the file name's time is not of this session."""
     max_file_bytes: int = 1 << 30
     """A larger file is quarantined unread (a session at 1 Hz is a few MB)."""
+    partition_files: int = 8
+    """A wagon's new files are read in partitions of at most this many files (a worker's unit
+    of work, committed by the writer at once: see :func:`ingest_fleet`)."""
     batch_rows: int = 250_000
-    """Whole files are committed together until they hold this many rows (see _Batch)."""
+    """Whole partitions are committed together until they hold this many rows (see _Batch)."""
     batch_files: int = 500
     """... or this many files."""
     verify_hashes: bool = False
@@ -146,6 +159,16 @@ class IngestConfig:
     """Closed range of each numeric channel: a cell outside is cleared and counted as
     unparsable, except ``block_temp_c``, whose readings outside are Pt1000 faults."""
 
+    def __reduce__(self) -> tuple[object, ...]:
+        """Picklable (it goes to an engine's workers): the ranges as a plain dict."""
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        values["plausible_ranges"] = dict(self.plausible_ranges)
+        return (_ingest_config, (values,))
+
+
+def _ingest_config(values: dict[str, Any]) -> IngestConfig:
+    return IngestConfig(**values)
+
 
 class Quarantine(Exception):
     """A file that cannot be ingested: ``code`` says what kind of problem, the message which."""
@@ -154,6 +177,9 @@ class Quarantine(Exception):
         super().__init__(reason)
         self.code = code
         self.reason = reason
+
+    def __reduce__(self) -> tuple[object, ...]:  # crosses from a worker process intact
+        return (Quarantine, (self.code, self.reason))
 
 
 @dataclass
@@ -221,6 +247,8 @@ class IngestReport:
     results: list[FileResult] = field(default_factory=list)
     registry_problems: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    write_s: float = 0.0
+    """Of ``seconds``, those spent writing to the warehouse (the transactions, the checkpoint)."""
     events: EventUpdate | None = None
     """What the event detection that followed changed (None if it did not run)."""
 
@@ -683,10 +711,24 @@ def _path_wagon(relpath: str) -> str | None:
     return parts[1] if len(parts) == 3 else None
 
 
-def _prepare(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prepared | None:
-    """Read, hash and judge one file (runs in a worker thread); None if it vanished."""
+def _registry_problem(registry: Registry, wagon_id: str) -> str | None:
+    """Why ``wagon_id``'s files cannot be ingested with this registry, None if they can."""
+    if wagon_id in registry.wagons:
+        return None
     try:
-        return _judge(entry, registry, config)
+        registry.wagon(wagon_id)
+        return f"wagon {wagon_id} is not in the registry"
+    except RegistryError as error:  # UnknownWagonError: its message says why
+        return str(error)
+
+
+def _prepare(
+    entry: LogEntry, problems: Mapping[str, str | None], config: IngestConfig
+) -> _Prepared | None:
+    """Read, hash and judge one file (runs in a worker); None if it vanished. ``problems``:
+    :func:`_registry_problem` of the wagon of each file name."""
+    try:
+        return _judge(entry, problems, config)
     except FileNotFoundError:
         return None
     except OSError as error:
@@ -696,7 +738,7 @@ def _prepare(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prep
         )
 
 
-def _judge(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prepared:
+def _judge(entry: LogEntry, problems: Mapping[str, str | None], config: IngestConfig) -> _Prepared:
     try:
         name = parse_log_path(entry.relpath)
     except LogNameError as error:
@@ -716,12 +758,8 @@ def _judge(entry: LogEntry, registry: Registry, config: IngestConfig) -> _Prepar
         )
     data = entry.path.read_bytes()
     sha256 = hashlib.sha256(data).hexdigest()
-    if name.wagon_id not in registry.wagons:
-        try:
-            registry.wagon(name.wagon_id)
-            message = f"wagon {name.wagon_id} is not in the registry"
-        except RegistryError as error:  # UnknownWagonError: its message says why
-            message = str(error)
+    message = problems[name.wagon_id]
+    if message is not None:
         return _Prepared(
             entry,
             sha256,
@@ -811,17 +849,20 @@ def _file_row(prepared: _Prepared, file_id: int) -> dict[str, object]:
 
 
 class _Batch:
-    """Files written together, in one transaction, when they hold ``batch_rows`` rows.
+    """Partitions of files written together, in one transaction, once they hold
+    ``batch_rows`` rows (or ``batch_files`` files).
 
-    A file is never split: its ``files`` row, its samples and its dirty time range (and the
-    removal of what its path held before) are in the same transaction, with the other files
-    of its batch. Few large inserts are much faster in DuckDB than many small ones (full row
+    A partition, and so a file, is never split: a file's ``files`` row, its samples and its
+    dirty time range (and the removal of what its path held before) are in the same
+    transaction, with the other files of its partition and batch. Few large inserts are much faster in DuckDB than many small ones (full row
     groups are written straight to the database file, in parallel).
     """
 
     def __init__(self, wh: Warehouse, config: IngestConfig) -> None:
         self._wh = wh
         self._config = config
+        self.write_s = 0.0
+        """Seconds spent writing (the transactions), of the whole ingestion."""
         self._clear()
 
     def _clear(self) -> None:
@@ -832,7 +873,7 @@ class _Batch:
         self._rows = 0
 
     def add(self, prepared: _Prepared, known: _Known | None, file_id: int) -> FileResult:
-        """Queue one file (replacing what its path held); flush when the batch is full."""
+        """Queue one file (replacing what its path held); see :meth:`end_partition`."""
         row = _file_row(prepared, file_id)
         if known is not None:
             self._replaced.append(known.file_id)
@@ -853,8 +894,6 @@ class _Batch:
                 _dirty_row(prepared.wagon_id, parsed.first_utc, parsed.last_utc, file_id)
             )
             self._rows += parsed.frame.height
-        if self._rows >= self._config.batch_rows or len(self._files) >= self._config.batch_files:
-            self.flush()
         return FileResult(
             path=prepared.entry.relpath,
             wagon_id=prepared.wagon_id,
@@ -865,10 +904,18 @@ class _Batch:
             replaced=known is not None,
         )
 
+    def end_partition(self) -> None:
+        """A partition's files are queued: flush when the batch is full. A partition is never
+        split between transactions; small ones share one (few large inserts are much faster
+        in DuckDB than many small ones)."""
+        if self._rows >= self._config.batch_rows or len(self._files) >= self._config.batch_files:
+            self.flush()
+
     def flush(self) -> None:
         """Write the queued files in one transaction."""
         if not self._files:
             return
+        began = time.perf_counter()
         con = self._wh.con
         files = pl.DataFrame(self._files, schema=_FILES_SCHEMA, orient="row")
         dirty = pl.DataFrame(self._dirty, schema=_DIRTY_SCHEMA, orient="row")
@@ -884,6 +931,7 @@ class _Batch:
             if dirty.height:
                 _insert(con, "dirty_batch", dirty, sql("q_insert_event_dirty"))
         self._clear()
+        self.write_s += time.perf_counter() - began
 
     def __enter__(self) -> _Batch:
         return self
@@ -924,23 +972,42 @@ def _unchanged(prepared: _Prepared, known: _Known | None) -> bool:
     )
 
 
-def _prepared_in_order(
+@dataclass(frozen=True)
+class _FilePartition:
+    """A worker's unit of work: some new files of one wagon directory, in path order, with
+    what the registry says about the wagons their names give (judged by the parent, so the
+    registry is not shipped to every worker)."""
+
+    entries: tuple[LogEntry, ...]
+    problems: Mapping[str, str | None]
+
+    def __str__(self) -> str:
+        first = self.entries[0].relpath
+        return f"{first.rsplit('/', 1)[0]} ({len(self.entries)} files from {first})"
+
+
+def _partitions(
     entries: list[LogEntry], registry: Registry, config: IngestConfig
-) -> Iterator[_Prepared | None]:
-    """Prepare files on worker threads, yielding them in order, a bounded number ahead."""
-    with ThreadPoolExecutor(max_workers=max(1, config.workers)) as pool:
-        pending: deque[Future[_Prepared | None]] = deque()
-        queue = iter(entries)
-        for entry in queue:
-            pending.append(pool.submit(_prepare, entry, registry, config))
-            if len(pending) >= max(1, config.in_flight_files):
-                break
-        while pending:
-            prepared = pending.popleft().result()
-            next_entry = next(queue, None)
-            if next_entry is not None:
-                pending.append(pool.submit(_prepare, next_entry, registry, config))
-            yield prepared
+) -> Iterator[_FilePartition]:
+    """``entries`` (sorted by path) cut into runs of one directory of at most
+    ``partition_files`` files: the order of the files is kept across partitions."""
+    for _, group in itertools.groupby(entries, key=lambda e: e.relpath.rsplit("/", 1)[0]):
+        files = list(group)
+        for start in range(0, len(files), max(1, config.partition_files)):
+            chunk = tuple(files[start : start + max(1, config.partition_files)])
+            wagons = set()
+            for entry in chunk:
+                try:
+                    wagons.add(parse_log_path(entry.relpath).wagon_id)
+                except LogNameError:
+                    pass
+            yield _FilePartition(chunk, {w: _registry_problem(registry, w) for w in wagons})
+
+
+def _prepare_partition(partition: _FilePartition, config: IngestConfig) -> list[_Prepared | None]:
+    """Read, hash, judge and parse a partition's files, in order (a pure function of the
+    files: runs in an engine's worker, or on a thread of this process)."""
+    return [_prepare(entry, partition.problems, config) for entry in partition.entries]
 
 
 def _show_progress(progress: bool | None) -> bool:
@@ -963,14 +1030,24 @@ def ingest_fleet(
     registry: Registry | None = None,
     config: IngestConfig | None = None,
     progress: bool | None = None,
+    engine: Engine | None = None,
 ) -> IngestReport:
     """Ingest every file of ``fleet_dir`` that the warehouse does not hold yet.
 
     ``registry`` defaults to the fleet's ``fleet.toml`` (see :func:`load_fleet_registry` for
     what raises); bad files never raise (they are quarantined). ``progress=None`` shows a
     progress bar when stderr is a terminal.
+
+    The new files are cut into partitions (a wagon directory's files, at most
+    ``config.partition_files`` of them) that ``engine``'s workers read, hash, judge and parse
+    (with no engine, or one of a single worker: ``config.workers`` threads of this process,
+    an :class:`~fleetbrake.engine.InlineEngine`); this process, the single writer, takes their results in path order and
+    commits each partition's files in one transaction (with the partitions before it, until
+    they hold ``batch_rows`` rows). The tables are the same with any engine.
     """
     config = config or IngestConfig()
+    if engine is None or engine.workers == 1:  # in this process: threads, ahead of the writer
+        engine = InlineEngine(threads=config.workers)
     fleet_dir = Path(fleet_dir)
     started = time.perf_counter()
     if registry is None:
@@ -999,20 +1076,28 @@ def ingest_fleet(
             _Progress(len(todo), enabled=_show_progress(progress)) as bar,
             _Batch(wh, config) as batch,
         ):
-            for prepared in _prepared_in_order(todo, registry, config):
-                if prepared is None:  # removed since the scan
-                    report.files_seen -= 1
-                    bar.advance(0)
-                    continue
-                before = known.get(prepared.entry.relpath)
-                if _unchanged(prepared, before):
-                    report.files_unchanged += 1
-                else:
-                    report.results.append(batch.add(prepared, before, next_id))
-                    next_id += 1
-                bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
+            for partition in engine.map(
+                functools.partial(_prepare_partition, config=config),
+                _partitions(todo, registry, config),
+            ):
+                for prepared in partition:
+                    if prepared is None:  # removed since the scan
+                        report.files_seen -= 1
+                        bar.advance(0)
+                        continue
+                    before = known.get(prepared.entry.relpath)
+                    if _unchanged(prepared, before):
+                        report.files_unchanged += 1
+                    else:
+                        report.results.append(batch.add(prepared, before, next_id))
+                        next_id += 1
+                    bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
+                batch.end_partition()
+        report.write_s = batch.write_s
         if report.results:
+            began = time.perf_counter()
             wh.con.execute("CHECKPOINT")  # while the memory is bounded, not at close
+            report.write_s += time.perf_counter() - began
     report.seconds = time.perf_counter() - started
     return report
 
@@ -1058,6 +1143,7 @@ def run_ingest(
     config: IngestConfig | None = None,
     event_config: EventConfig | None = None,
     progress: bool | None = None,
+    engine: Engine | None = None,
 ) -> IngestReport:
     """``fleetbrake ingest``: check the fleet directory and its registry, open the warehouse
     (waiting up to ``wait_s`` for another writer), ingest, detect events, close.
@@ -1070,9 +1156,9 @@ def run_ingest(
     with open_warehouse(db_path, wait_s=wait_s) as wh:
         try:
             report = ingest_fleet(
-                fleet_dir, wh, registry=registry, config=config, progress=progress
+                fleet_dir, wh, registry=registry, config=config, progress=progress, engine=engine
             )
-            report.events = update_events(wh, event_config)
+            report.events = update_events(wh, event_config, engine=engine)
         except duckdb.Error as error:
             raise WarehouseError(f"{db_path}: {error}") from error
     return report

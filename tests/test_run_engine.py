@@ -1,0 +1,119 @@
+"""``fleetbrake run`` through the local engine's worker processes gives the tables of a run
+in one process; a second run adds nothing; a late file changes only its wagon."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from fleetbrake.app.run import run_fleet
+from fleetbrake.engine import InlineEngine, LocalEngine
+from fleetbrake.simulation.predictions import SimulationConfig
+from fleetgen import snapshot
+
+WALL_CLOCK = (
+    "ingested_utc",
+    "detected_utc",
+    "applied_utc",
+    "created_utc",
+    "simulated_utc",
+    "updated_utc",
+    "data_key",
+)
+"""Columns that say when a row was written (``simulated_wagons.data_key`` hashes the events'
+``detected_utc``): the only ones allowed to differ between two runs."""
+
+
+@pytest.fixture(scope="module")
+def fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., object],
+    rom_cache_dir: Path,
+) -> Iterator[Path]:
+    """3 wagons x 1 day with the anomalies; the session's reduced models, in the workers
+    too (they inherit ``FLEETBRAKE_CACHE_DIR``)."""
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
+
+    root = tmp_path_factory.mktemp("run-engine") / "fleet"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        generate_fleet(root, SynthConfig(wagons=3, days=1, seed=4), rom=reduced_model_for)
+        yield root
+
+
+def _run(fleet: Path, db: Path, engine: object, refinement: float, cache: Path) -> object:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(cache))
+        return run_fleet(
+            fleet,
+            db,
+            simulation=SimulationConfig(refinement=refinement),
+            progress=False,
+            engine=engine,  # type: ignore[arg-type]
+        )
+
+
+def test_local_engine_run_equals_inline_run_and_a_second_run_adds_nothing(
+    fleet: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
+) -> None:
+    inline_db, local_db = tmp_path / "inline.duckdb", tmp_path / "local.duckdb"
+    _run(fleet, inline_db, InlineEngine(), rom_refinement, rom_cache_dir)
+    with LocalEngine(2) as engine:
+        report = _run(fleet, local_db, engine, rom_refinement, rom_cache_dir)
+        assert report.simulation.events_simulated > 0  # type: ignore[attr-defined]
+        tables = snapshot(local_db, ignore=WALL_CLOCK)
+        assert tables == snapshot(inline_db, ignore=WALL_CLOCK)
+        before = snapshot(local_db, ignore=("updated_utc",))  # the registry, stored every run
+        again = _run(fleet, local_db, engine, rom_refinement, rom_cache_dir)
+    assert again.ingest.results == []  # type: ignore[attr-defined]
+    assert again.simulation.events_simulated == 0  # type: ignore[attr-defined]
+    assert snapshot(local_db, ignore=("updated_utc",)) == before
+
+
+def test_a_late_file_through_the_local_engine_changes_only_its_wagon(
+    fleet: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
+) -> None:
+    import shutil
+
+    import duckdb
+
+    copy = tmp_path / "fleet"
+    shutil.copytree(fleet, copy)
+    logs = sorted((copy / "logs").glob("*/*.csv*"))
+    late = logs[0]  # the first file of the first wagon: held back, then landing late
+    held = tmp_path / late.name
+    late.rename(held)
+    db = tmp_path / "fleet.duckdb"
+    wagon = late.parent.name
+    with LocalEngine(2) as engine:
+        _run(copy, db, engine, rom_refinement, rom_cache_dir)
+        before = snapshot(db, ignore=("updated_utc",))
+        held.rename(late)
+        report = _run(copy, db, engine, rom_refinement, rom_cache_dir)
+    assert [r.path for r in report.ingest.results] == [  # type: ignore[attr-defined]
+        late.relative_to(copy).as_posix()
+    ]
+    after = snapshot(db, ignore=("updated_utc",))
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        for table, rows in after.items():
+            columns = [
+                r[0]
+                for r in con.execute(
+                    "SELECT column_name FROM information_schema.columns WHERE table_name = $t "
+                    "ORDER BY ordinal_position",
+                    {"t": table},
+                ).fetchall()
+                if r[0] != "updated_utc"
+            ]
+            if "wagon_id" not in columns:
+                continue
+            at = columns.index("wagon_id")
+            others_after = [row for row in rows if row[at] != wagon]
+            others_before = [row for row in before[table] if row[at] != wagon]
+            assert others_after == others_before, f"{table}: another wagon's rows changed"
+    finally:
+        con.close()
+    assert len(after["samples"]) > len(before["samples"])
