@@ -36,11 +36,11 @@ import typer
 from paho.mqtt.enums import CallbackAPIVersion
 from typer.testing import CliRunner
 
-from fleetbrake.bridge.cli import register
 from fleetbrake.bridge.config import BridgeConfig, BridgeConfigError, MqttProtocol
 from fleetbrake.bridge.landing import LandingBusyError, LandingFolder, read_seconds
 from fleetbrake.bridge.mqtt import MqttBridge
 from fleetbrake.bridge.sessions import SessionBuffer
+from fleetbrake.cli.bridge import register
 from fleetbrake.errors import EXIT_LOCKED, EXIT_USAGE
 from fleetbrake.fleet.logfile import COLUMNS, TIME_FORMAT, gzip_bytes, log_name, to_csv_bytes
 from fleetbrake.ingest.files import ingest_fleet, read_log
@@ -476,7 +476,7 @@ def test_broker_restart_mid_stream_reconnects_and_resumes(
 BRIDGE_SCRIPT = """
 import logging, sys
 import typer
-from fleetbrake.bridge.cli import register
+from fleetbrake.cli.bridge import register
 logging.basicConfig(level=logging.DEBUG, stream=sys.stderr, format="%(levelname)s %(name)s: %(message)s")
 logging.getLogger("paho").setLevel(logging.WARNING)
 app = typer.Typer()

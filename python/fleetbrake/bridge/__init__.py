@@ -11,7 +11,7 @@ sample lands in one file only, however often it is delivered. The pieces:
 * :mod:`fleetbrake.bridge.sessions`: each wagon's samples held in sessions until written;
 * :mod:`fleetbrake.bridge.landing`: durable, atomic, deduplicated writing of the files;
 * :mod:`fleetbrake.bridge.mqtt`: the MQTT client, acknowledgements, reconnection, stopping;
-* :mod:`fleetbrake.bridge.cli`: the ``bridge`` commands (``register(app)``).
+* :mod:`fleetbrake.cli.bridge`: the ``bridge`` commands (``register(app)``).
 
 At the ``app`` layer: it imports the log format (:mod:`fleetbrake.fleet`) and the error tree,
 and nothing of the warehouse or above. Operating it: ``docs/operations.md``. Nothing is

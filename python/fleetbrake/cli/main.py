@@ -29,9 +29,8 @@ from typing import Annotated, Literal, cast
 
 import typer
 
-from fleetbrake.app.watch.cli import register as register_watch
-from fleetbrake.bridge.cli import register as register_bridge
 from fleetbrake.cli.bench import bench_app
+from fleetbrake.cli.bridge import register as register_bridge
 from fleetbrake.cli.group import FleetbrakeGroup
 from fleetbrake.cli.logs import LogFormat, configure_logging, level_for
 from fleetbrake.cli.options import (
@@ -53,6 +52,7 @@ from fleetbrake.cli.output import (
     run_summary,
 )
 from fleetbrake.cli.threads import blas_single_thread
+from fleetbrake.cli.watch import register as register_watch
 
 __all__ = ["app", "main"]
 

@@ -6,5 +6,5 @@
 * :mod:`.service`: the observer, the rescans against the ingestion ledger, the units of work
   (one :func:`fleetbrake.app.run.run_fleet` each, the database held only meanwhile), the
   health line and the outcome of each processed file;
-* :mod:`.cli`: the ``watch`` command, its signals and its ``--json`` lines.
+* :mod:`fleetbrake.cli.watch`: the ``watch`` command, its signals and its ``--json`` lines.
 """

@@ -11,15 +11,14 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from types import FrameType
 from typing import Annotated, Literal, cast
 
 import typer
 
+from fleetbrake.cli.signals import stop_on_signals
 from fleetbrake.errors import ConfigError
 
 __all__ = ["register", "watch_command"]
@@ -29,28 +28,6 @@ SERVICE_LOGGER = "fleetbrake.app.watch"
 
 class WatchOptionError(ConfigError):
     """An option of ``fleetbrake watch`` cannot be used (exit 2); the message names it."""
-
-
-@contextlib.contextmanager
-def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """Set ``stop`` on SIGTERM and SIGINT while in the block (main thread only); the previous
-    handlers are put back afterwards."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        logging.getLogger(SERVICE_LOGGER).info(
-            "%s: finishing the unit in progress", signal.Signals(signum).name
-        )
-        stop.set()
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
 
 
 @contextlib.contextmanager
@@ -174,7 +151,7 @@ def watch_command(
         )
 
     stop = threading.Event()
-    with _service_log_level(), _stop_on_signals(stop):
+    with _service_log_level(), stop_on_signals(stop, logging.getLogger(SERVICE_LOGGER)):
         report = watch_fleet(fleet_dir, db, config, stop, on_file=on_file)
     if not json_lines:
         typer.echo(f"watch stopped: {report.line()}")

@@ -11,13 +11,9 @@ missing or cannot be written (exit 1), another bridge with the same client id on
 
 from __future__ import annotations
 
-import contextlib
 import json
-import signal
 import threading
-from collections.abc import Iterator
 from pathlib import Path
-from types import FrameType
 from typing import Annotated, Any
 
 import typer
@@ -29,6 +25,7 @@ from fleetbrake.bridge.config import (
     BridgeConfig,
     MqttProtocol,
 )
+from fleetbrake.cli.signals import stop_on_signals
 
 __all__ = ["bridge_app", "register", "stop_on_signals"]
 
@@ -49,25 +46,6 @@ def register(app: typer.Typer) -> None:
     if isinstance(group_class, type) and issubclass(group_class, TyperGroup):
         options["cls"] = group_class
     app.add_typer(bridge_app, name="bridge", **options)
-
-
-@contextlib.contextmanager
-def stop_on_signals(stop: threading.Event) -> Iterator[None]:
-    """Set ``stop`` on SIGTERM and SIGINT while in the block (main thread only; elsewhere
-    the block runs unchanged); the previous handlers are put back afterwards."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum: int, frame: FrameType | None) -> None:
-        stop.set()
-
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for sig, old in previous.items():
-            signal.signal(sig, old)
 
 
 @bridge_app.command("mqtt")
