@@ -15,8 +15,8 @@ TEST_REFINEMENT = float(os.environ.get("FLEETBRAKE_TEST_REFINEMENT", "0.6"))
 
 @pytest.fixture(scope="session")
 def rom_refinement() -> float:
-    """``TEST_REFINEMENT``, for tests that must pass it on (e.g. as FLEETBRAKE_REFINEMENT to a
-    command run in-process)."""
+    """``TEST_REFINEMENT``, for tests that must pass it on (e.g. as ``--refinement`` to a
+    command run in-process, or in a ``SimulationConfig``)."""
     return TEST_REFINEMENT
 
 

@@ -623,3 +623,48 @@ def test_command_line(tmp_path, monkeypatch, rom_cache_dir, rom_refinement, defa
     assert again.exit_code == 1 and "not empty" in again.output
     wrong = runner.invoke(app, ["synth", str(tmp_path / "w"), "--effect", "sensor_lag:tau=1"])
     assert wrong.exit_code == 2 and "unknown parameter" in wrong.output  # a bad --effect: usage
+
+
+# --------------------------------------------------------------------------------------------
+# The block made by the full finite-element model
+
+FE_REFINEMENT = 0.2
+"""A coarse mesh for the full model (409 hex20 nodes): affordable over whole days."""
+
+
+def test_a_fleet_made_by_the_full_model(tmp_path, reduced_model_for, monkeypatch):
+    """``solver="full"``: the same operation and readings' randomness as the reduced model's
+    fleet of the same seed, a block that differs from it by the model error of a coarse mesh
+    only (well below the sensor's noise), and the truth says which model made it. While the
+    unit sleeps the full model takes ``ASLEEP_STEP_S`` steps: what is logged is as a 1 Hz
+    run gives it."""
+    import fleetbrake.synth.generator as generator
+
+    base = SynthConfig.clean(wagons=1, days=1, seed=6, effects=EffectSet((SensorLag(tau_s=60.0),)))
+    reduced = generate_fleet(tmp_path / "rom", base, rom=reduced_model_for)
+    full_config = dataclass_replace(base, solver="full", refinement=FE_REFINEMENT)
+    full = generate_fleet(tmp_path / "full", full_config)
+    assert reduced.rom["solver"] == "rom" and reduced.rom["order"] > 10
+    assert full.rom == {"solver": "full", "refinement": FE_REFINEMENT, "nodes": 409}
+    assert load_truth(tmp_path / "full").config.solver == "full"
+    a, b = reduced.series("SGG-0001"), full.series("SGG-0001")
+    np.testing.assert_array_equal(a["brake_pressure_bar"], b["brake_pressure_bar"])
+    assert [f.path for f in reduced.files] == [f.path for f in full.files]
+    difference = (a["sensor_c"] - b["sensor_c"]).to_numpy()
+    assert 1e-3 < float(np.sqrt(np.mean(difference**2))) < 0.05
+    assert float(np.abs(difference).max()) < 0.3
+    # the sleeping steps: against the full model at 1 Hz throughout
+    monkeypatch.setattr(generator, "ASLEEP_MIN_S", 10**9)
+    every_second = generate_fleet(tmp_path / "full-1hz", full_config).series("SGG-0001")
+    awake = b["awake"].to_numpy()
+    assert 0.2 < awake.mean() < 0.9
+    off = np.abs((b["sensor_c"] - every_second["sensor_c"]).to_numpy())
+    assert off[awake].max() < 0.005 and off.max() < 0.01
+
+
+def test_a_model_of_the_other_solver_is_refused(tmp_path, reduced_model_for):
+    config = SynthConfig.clean(wagons=1, days=1, solver="full", refinement=FE_REFINEMENT)
+    with pytest.raises(ValueError, match="rom model, but the configuration's solver is 'full'"):
+        generate_fleet(tmp_path, config, rom=reduced_model_for)
+    with pytest.raises(ValueError, match="solver"):
+        SynthConfig(solver="fem")  # type: ignore[arg-type]

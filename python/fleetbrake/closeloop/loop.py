@@ -14,17 +14,21 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    ambient, time since activation and the phase (heating or cooling) is the evidence.
    The sensor noise is estimated from the residual itself (``std(diff) / sqrt(2)``: model
    errors are smooth, the thermistor's noise is white).
-3. **Candidates.** Every effect of :mod:`fleetbrake.model.effects`, acting where it acts
-   physically, its parameters fitted by bounded least squares on the per-second residual of
-   the fit events (each evaluation re-simulates them, carried state and all); then, when
-   one effect leaves the fit clearly above the noise, pairs with the best.
+3. **Candidates.** Every effect of :mod:`fleetbrake.model.effects` (or those of
+   ``CloseLoopConfig.candidates``), acting where it acts physically, its parameters fitted by
+   bounded least squares on the per-second residual of the fit events (each evaluation
+   re-simulates them, carried state and all, with the baseline revision's solver; each is
+   compared with the starting point second by second, matched by event and second, so that a
+   candidate losing a prediction is not scored on shifted seconds); then, when one effect
+   leaves the fit clearly above the noise, pairs with the best.
 4. **Choice** (never looks at the holdout): the Bayesian information criterion on an
    effective sample size (one independent residual per ``CORRELATION_S`` seconds: the
    residual of a missing effect is smooth, so the seconds are far from independent). A
    candidate must beat the current revision by ``bic_margin`` (a pair must also beat the
    best single effect by it) and cut the fit RMSE by ``min_improvement``; otherwise nothing
    is added and the report says so.
-5. **Revision.** The chosen effects become a new model revision (the current one), every
+5. **Revision.** The chosen effects become a new model revision (the current one, predicting
+   with its parent's solver: before and after compare one model form), every
    event is re-simulated with it, the flags are judged again with it (the baseline's flags
    take a fleet-wide misfit for weak brakes or failing sensors) and the effect is refitted on
    the events usable then, and the JSON report (and a Markdown report with plots
@@ -37,9 +41,8 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import json
+import logging
 import math
-import os
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,23 +51,30 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from fleetbrake.errors import FleetbrakeError
+from fleetbrake.errors import ConfigError, FleetbrakeError
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.effects import EFFECT_ORDER, Effect, EffectSet
+from fleetbrake.model.effects import EFFECT_ORDER, EFFECTS, Effect, EffectSet
 from fleetbrake.simulation.predictions import (
     Revision,
     SimulationConfig,
-    SimulationReport,
-    _simulate_wagon,
     current_revision,
-    load_chains,
+    load_wagon,
     model_for,
+    predict_wagon,
     simulate_events,
     stored_wagons,
 )
-from fleetbrake.warehouse.connection import Warehouse, open_warehouse
+from fleetbrake.warehouse.connection import Warehouse, open_warehouse, sql
 
-__all__ = ["CloseLoopConfig", "CloseLoopError", "close_loop", "run_close_loop"]
+__all__ = [
+    "CloseLoopConfig",
+    "CloseLoopConfigError",
+    "CloseLoopError",
+    "close_loop",
+    "run_close_loop",
+]
+
+logger = logging.getLogger(__name__)
 
 CORRELATION_S = 30.0
 """Seconds per independent residual in the information criterion."""
@@ -74,6 +84,10 @@ ANOMALY_KINDS = ("dragging_brake", "weak_brake", "sensor_fault")
 
 class CloseLoopError(FleetbrakeError, RuntimeError):
     """The closed loop cannot run (no events before the holdout date, no registry, ...)."""
+
+
+class CloseLoopConfigError(ConfigError):
+    """A close-loop configuration that cannot be used (the message names the key)."""
 
 
 @dataclass(frozen=True)
@@ -102,7 +116,23 @@ class CloseLoopConfig:
     """Events starting less than this after the end of a brake or sensor-fault flag of their
     wagon are left out: the state carried out of the anomaly is still off (a weak braking
     leaves the simulated block ~0.8 K too warm at the sensor 25 min later)."""
+    candidates: tuple[str, ...] | None = None
+    """The effects to try, by vocabulary name (None: every effect of
+    :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.candidates or ()) - set(EFFECTS))
+        if unknown:
+            raise CloseLoopConfigError(
+                f"candidates: unknown effect(s) {', '.join(unknown)}; the vocabulary is "
+                f"{', '.join(EFFECTS)}"
+            )
+
+    def candidate_classes(self) -> tuple[type[Effect], ...]:
+        """The effect classes to try, in :data:`EFFECT_ORDER`."""
+        wanted = set(EFFECTS) if self.candidates is None else set(self.candidates)
+        return tuple(cls for cls in EFFECT_ORDER if cls.name in wanted)
 
 
 @dataclass
@@ -120,7 +150,8 @@ class Candidate:
 
 # ---------------------------------------------------------------------------- evaluation
 class _Evaluator:
-    """Re-simulates a set of events with candidate effects (data loaded once)."""
+    """Re-simulates a set of events with candidate effects (data loaded once), with the
+    solver of the revision the candidates would become children of."""
 
     def __init__(
         self,
@@ -129,40 +160,32 @@ class _Evaluator:
         all_events: pl.DataFrame,
         events: pl.DataFrame,
         config: SimulationConfig,
+        solver: str,
     ):
         self.config = config
+        self.solver = solver
         self.parts = []
         for wagon_id in events["wagon_id"].unique(maintain_order=True).to_list():
             wagon = wagons.get(wagon_id)
             if wagon is None:
                 continue
-            todo = events.filter(pl.col("wagon_id") == wagon_id)
+            todo = events.filter(pl.col("wagon_id") == wagon_id)["event_id"].to_list()
             self.parts.append(
                 (
-                    wagon,
-                    model_for(wagon, "rom", config.refinement),
-                    all_events.filter(pl.col("wagon_id") == wagon_id),
-                    todo,
-                    load_chains(wh, wagon_id, todo, config),
+                    model_for(wagon, solver, config.refinement),
+                    load_wagon(wh, wagon, config),
+                    set(todo),
                 )
             )
-        self.wh = wh
 
     def frames(self, effects: EffectSet) -> pl.DataFrame:
-        rev = Revision("candidate", effects)
-        out = []
-        for wagon, rom, wagon_events, todo, wagon_chains in self.parts:
-            out += _simulate_wagon(
-                self.wh,
-                wagon,
-                rom,
-                rev,
-                wagon_events,
-                todo,
-                self.config,
-                SimulationReport(),
-                wagon_chains,
-            )
+        """The events' windows as the simulation stage predicts them (the one chain
+        algorithm), with ``effects``."""
+        rev = Revision("candidate", effects, self.solver)
+        out = [
+            predict_wagon(data, model, rev, self.config, event_ids=todo, timeline=False).predictions
+            for model, data, todo in self.parts
+        ]
         return pl.concat(out) if out else pl.DataFrame()
 
     def residual(self, effects: EffectSet) -> np.ndarray:
@@ -173,9 +196,40 @@ class _Evaluator:
         return r[np.isfinite(r)]
 
 
-def _debug(message: str) -> None:
-    if os.environ.get("FLEETBRAKE_DEBUG"):
-        print(f"[close-loop {time.strftime('%H:%M:%S')}] {message}", flush=True)
+RESIDUAL_KEY = ("event_id", "time_utc")
+"""What identifies one residual: the event and the second."""
+
+
+def _keyed_residual(frame: pl.DataFrame) -> pl.DataFrame:
+    """measured - predicted sensor temperature (``residual_k``) by event and second, where
+    both are known and finite."""
+    if frame.height == 0:
+        return pl.DataFrame(
+            schema={"event_id": pl.String, "time_utc": pl.Datetime("us"), "residual_k": pl.Float64}
+        )
+    return frame.select(
+        *RESIDUAL_KEY,
+        residual_k=pl.col("measured_sensor_c") - pl.col("predicted_sensor_c"),
+    ).filter(pl.col("residual_k").is_finite())
+
+
+def _aligned(reference: pl.DataFrame, candidate: pl.DataFrame) -> np.ndarray:
+    """The candidate's residual at each (event, second) of ``reference``, in its order; where
+    the candidate has no residual (a prediction dropped), the reference's. A second the
+    candidate gained is not scored: every candidate of one fit is scored on the same seconds,
+    and a dropped one neither helps nor hurts it."""
+    joined = reference.join(
+        candidate.rename({"residual_k": "candidate_k"}),
+        on=list(RESIDUAL_KEY),
+        how="left",
+        maintain_order="left",
+    )
+    return (
+        joined.select(pl.coalesce("candidate_k", "residual_k"))
+        .to_series()
+        .to_numpy()
+        .astype(np.float64)
+    )
 
 
 def _rmse(r: np.ndarray) -> float:
@@ -232,13 +286,12 @@ def _fit(
             effects = effects.with_effect(cls.from_parameters(params[cls]))
         return effects
 
-    reference = evaluator.residual(build(np.asarray(x0)))
+    # every evaluation is scored on the seconds of the starting point, matched by key: a
+    # candidate that loses or gains a prediction is still compared second by second
+    reference = _keyed_residual(evaluator.frames(build(np.asarray(x0))))
 
     def fun(x: np.ndarray) -> np.ndarray:
-        r = evaluator.residual(build(x))
-        if r.size != reference.size:  # a window lost or gained samples: compare like sizes
-            r = np.resize(r, reference.size)
-        return r
+        return _aligned(reference, _keyed_residual(evaluator.frames(build(x))))
 
     x_start = np.clip(np.asarray(x0), np.asarray(lo) + 1e-9, np.asarray(hi) - 1e-9)
     result = least_squares(
@@ -314,30 +367,8 @@ def _used_events(wh: Warehouse, revision: str, settle_after_flag_s: float) -> pl
     Disturbances: the anomaly flags, and the windows of events cut by a data gap
     (``complete`` false: part of their heat input was never logged)."""
     return wh.con.sql(
-        """
-        WITH windows AS (
-            SELECT event_id, wagon_id, min(time_utc) AS t0, max(time_utc) AS t1
-            FROM predictions WHERE model_revision = $rev GROUP BY event_id, wagon_id
-        ),
-        disturbances AS (
-            SELECT wagon_id, start_utc AS d0, end_utc AS d1 FROM flags
-            WHERE kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
-            UNION ALL
-            SELECT w.wagon_id, w.t0, w.t1 FROM windows w JOIN events e USING (event_id)
-            WHERE NOT e.complete
-        ),
-        flagged AS (
-            SELECT DISTINCT w.event_id
-            FROM windows w JOIN disturbances d
-              ON d.wagon_id = w.wagon_id AND d.d0 <= w.t1
-             AND d.d1 + to_microseconds(CAST($settle_us AS BIGINT)) >= w.t0
-        )
-        SELECT e.event_id, e.wagon_id, e.start_utc, e.end_utc, e.detected_utc,
-               e.event_id IN (SELECT event_id FROM flagged) AS flagged
-        FROM events e JOIN windows w USING (event_id)
-        ORDER BY e.wagon_id, e.start_utc
-        """,
-        params={"rev": revision, "settle_us": round(settle_after_flag_s * 1e6)},
+        sql("q_closeloop_used_events"),
+        params={"revision": revision, "settle_us": round(settle_after_flag_s * 1e6)},
     ).pl()
 
 
@@ -359,18 +390,9 @@ def _event_sets(
 
 def rmse_from_predictions(wh: Warehouse, revision: str, event_ids: Sequence[str]) -> float:
     """RMSE over every second of these events' windows with a valid measurement."""
-    ids = pl.DataFrame({"event_id": list(event_ids)}, schema={"event_id": pl.String})
-    wh.con.register("fb_rmse_ids", ids)
-    try:
-        ((value,),) = wh.con.execute(
-            "SELECT sqrt(avg(power(measured_sensor_c - predicted_sensor_c, 2))) "
-            "FROM v_predictions WHERE model_revision = $rev "
-            "AND measured_sensor_c IS NOT NULL "
-            "AND event_id IN (SELECT event_id FROM fb_rmse_ids)",
-            {"rev": revision},
-        ).fetchall()
-    finally:
-        wh.con.unregister("fb_rmse_ids")
+    ((value,),) = wh.con.execute(
+        sql("q_closeloop_rmse"), {"revision": revision, "event_ids": [str(e) for e in event_ids]}
+    ).fetchall()
     return float(value) if value is not None else float("nan")
 
 
@@ -385,12 +407,13 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         raise CloseLoopError(
             f"{wh.path}: no unflagged event with predictions before {config.holdout_from}"
         )
-    all_events = wh.con.sql(
-        "SELECT event_id, wagon_id, start_utc, end_utc FROM events ORDER BY wagon_id, start_utc"
-    ).pl()
+    all_events = wh.con.sql(sql("q_closeloop_events")).pl()
     sim = config.simulation
-    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim)
-    hold_eval = _Evaluator(wh, wagons, all_events, holdout, sim) if holdout.height else None
+    # candidates are simulated as the baseline's predictions were: with its solver
+    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base.solver)
+    hold_eval = (
+        _Evaluator(wh, wagons, all_events, holdout, sim, base.solver) if holdout.height else None
+    )
 
     base_frame = fit_eval.frames(base.effects)
     noise_k = _noise_k(base_frame)
@@ -404,17 +427,22 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     picks = np.linspace(0, fit.height - 1, min(config.screen_events, fit.height))
     screen_config = dataclasses.replace(sim, initial_state="uniform")
     screen_eval = _Evaluator(
-        wh, wagons, all_events, fit[np.unique(picks.round().astype(int))], screen_config
+        wh,
+        wagons,
+        all_events,
+        fit[np.unique(picks.round().astype(int))],
+        screen_config,
+        base.solver,
     )
     screened: list[Candidate] = []
     present = {type(e) for e in base.effects}
-    for cls in EFFECT_ORDER:
+    for cls in config.candidate_classes():
         if cls in present:
             continue
         effects, r = _fit(screen_eval, base.effects, [cls], None, config.max_nfev)
         k = len(cls.PARAMETER_RANGES)
         screened.append(Candidate(effects, _rmse(r), _bic(r, k), k))
-        _debug(f"screened {cls.name}: {effects} rmse {screened[-1].rmse_fit_k:.4f}")
+        logger.debug("screened %s: %s rmse %.4f K", cls.name, effects, screened[-1].rmse_fit_k)
     screened.sort(key=lambda c: c.bic)
     # refit the best on every fit event, from the screened parameters
     candidates: list[Candidate] = []
@@ -424,7 +452,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             classes = [type(e) for e in added]
             effects, r = _fit(fit_eval, base.effects, classes, added, max(4, config.max_nfev // 2))
             candidates.append(Candidate(effects, _rmse(r), _bic(r, c.n_parameters), c.n_parameters))
-            _debug(f"refitted {c.label}: {effects} rmse {candidates[-1].rmse_fit_k:.4f}")
+            logger.debug("refitted %s: %s rmse %.4f K", c.label, effects, candidates[-1].rmse_fit_k)
         else:
             r = fit_eval.residual(c.effects)
             candidates.append(
@@ -439,14 +467,14 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     ):
         first = [e for e in best.effects if type(e) not in present]
         pairs: list[Candidate] = []
-        for cls in EFFECT_ORDER:
+        for cls in config.candidate_classes():
             if cls in present or cls in {type(e) for e in first}:
                 continue
             classes = [type(first[0]), cls]
             effects, r = _fit(screen_eval, base.effects, classes, first, config.max_nfev)
             k = best.n_parameters + len(cls.PARAMETER_RANGES)
             pairs.append(Candidate(effects, _rmse(r), _bic(r, k), k))
-            _debug(f"screened pair {pairs[-1].label}: rmse {pairs[-1].rmse_fit_k:.4f}")
+            logger.debug("screened pair %s: rmse %.4f K", pairs[-1].label, pairs[-1].rmse_fit_k)
         if pairs:
             top = min(pairs, key=lambda c: c.bic)
             added = [e for e in top.effects if type(e) not in present]
@@ -456,7 +484,9 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             candidates.append(
                 Candidate(effects, _rmse(r), _bic(r, top.n_parameters), top.n_parameters)
             )
-            _debug(f"refitted pair {candidates[-1].label}: rmse {candidates[-1].rmse_fit_k:.4f}")
+            logger.debug(
+                "refitted pair %s: rmse %.4f K", candidates[-1].label, candidates[-1].rmse_fit_k
+            )
         candidates.sort(key=lambda c: c.bic)
         best = candidates[0]
         # a pair must beat the best single effect by the margin too
@@ -492,6 +522,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         ],
         "noise_k": round(noise_k, 5),
         "flags_judged_with": base.name,
+        "solver": base.solver,
         "residual": evidence,
         "selection": (
             f"Bayesian information criterion on the fit events (one independent residual per "
@@ -519,27 +550,27 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
 
     added = [e for e in best.effects if type(e) not in present]
     name = _new_revision_name(wh, best.label)
-    _record_revision(wh, name, base.name, best)
-    new_rev = Revision(name, best.effects)
+    _record_revision(wh, name, base, best)
+    new_rev = Revision(name, best.effects, base.solver)
     simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
     if config.reflag:
         # the flags were judged with the baseline, which lacks the effect: a fleet-wide misfit
         # looks like weak brakes or failing sensors. Judge them again with the new revision,
         # and refit on the events that are usable now.
-        _reflag(wh, wagons, name, sim)
+        _reflag(wh, wagons, new_rev, sim)
         fit, holdout, _ = _event_sets(wh, base.name, config)
         if fit.height and set(fit["event_id"].to_list()) != set(fit_ids):
-            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim)
+            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base.solver)
             effects, r = _fit(
                 refit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
             )
-            _debug(f"refitted on {fit.height} events after re-flagging: {effects}")
+            logger.debug("refitted on %d events after re-flagging: %s", fit.height, effects)
             best = Candidate(effects, _rmse(r), _bic(r, best.n_parameters), best.n_parameters)
             added = [e for e in best.effects if type(e) not in present]
             _set_revision_effects(wh, name, best.effects)
-            new_rev = Revision(name, best.effects)
+            new_rev = Revision(name, best.effects, base.solver)
             simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
-            _reflag(wh, wagons, name, sim)
+            _reflag(wh, wagons, new_rev, sim)
             fit, holdout, _ = _event_sets(wh, base.name, config)
         fit_ids = fit["event_id"].to_list()
         hold_ids = holdout["event_id"].to_list()
@@ -552,9 +583,12 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         for rev in (base.name, name)
     }
     wh.con.execute(
-        "UPDATE model_revisions SET rmse_fit_k = $fit, rmse_holdout_k = $hold "
-        "WHERE model_revision = $name",
-        {"fit": rmse[("fit", name)], "hold": rmse[("holdout", name)], "name": name},
+        sql("q_closeloop_set_revision_rmse"),
+        {
+            "name": name,
+            "rmse_fit_k": rmse[("fit", name)],
+            "rmse_holdout_k": rmse[("holdout", name)],
+        },
     )
     report.update(
         {
@@ -587,47 +621,46 @@ def _add_all_events(
 
 
 def _reflag(
-    wh: Warehouse, wagons: Mapping[str, WagonConfig], revision: str, sim: SimulationConfig
+    wh: Warehouse, wagons: Mapping[str, WagonConfig], revision: Revision, sim: SimulationConfig
 ) -> None:
-    """Judge every wagon's flags again with ``revision`` (the model its predictions came
-    from)."""
-    from fleetbrake.flags.detect import raise_flags
+    """Judge every wagon's flags again with ``revision``: the simulation stage's flow, its
+    timeline simulated and stored first (nothing to do for a wagon already simulated with it
+    from the same data), then the flags judged from what was stored."""
+    from fleetbrake.flags import raise_flags
 
-    raise_flags(wh, wagons, revision, refinement=sim.refinement)
+    simulate_events(wh, wagons, revision, sim, progress=False)
+    raise_flags(wh, wagons, revision.name)
 
 
 def _set_revision_effects(wh: Warehouse, name: str, effects: EffectSet) -> None:
     wh.con.execute(
-        "UPDATE model_revisions SET parameters_json = $params WHERE model_revision = $name",
-        {"params": json.dumps({"effects": effects.to_list()}), "name": name},
+        sql("q_closeloop_set_revision_effects"),
+        {"name": name, "parameters_json": json.dumps({"effects": effects.to_list()})},
     )
 
 
 def _new_revision_name(wh: Warehouse, label: str) -> str:
-    ((count,),) = wh.con.execute("SELECT count(*) FROM model_revisions").fetchall()
+    ((count,),) = wh.con.execute(sql("q_closeloop_revision_count")).fetchall()
     return f"r{count}-{label}"
 
 
-def _record_revision(wh: Warehouse, name: str, parent: str, best: Candidate) -> None:
+def _record_revision(wh: Warehouse, name: str, parent: Revision, best: Candidate) -> None:
+    """Record ``best`` as revision ``name``, the current one, child of ``parent``, predicting
+    with the parent's solver (a closed loop changes the effects, never the model form)."""
     now = dt.datetime.now(dt.UTC).replace(tzinfo=None)
-    wh.con.execute("BEGIN TRANSACTION")
-    try:
-        wh.con.execute("UPDATE model_revisions SET is_current = FALSE")
-        wh.con.execute(
-            "INSERT INTO model_revisions VALUES "
-            "($name, $parent, $effect, $params, NULL, NULL, 'rom', TRUE, $now)",
+    with wh.transaction() as con:
+        con.execute(sql("q_closeloop_clear_current"))
+        con.execute(
+            sql("q_closeloop_insert_revision"),
             {
                 "name": name,
-                "parent": parent,
+                "parent": parent.name,
                 "effect": best.label,
-                "params": json.dumps({"effects": best.effects.to_list()}),
-                "now": now,
+                "parameters_json": json.dumps({"effects": best.effects.to_list()}),
+                "solver": parent.solver,
+                "created_utc": now,
             },
         )
-        wh.con.execute("COMMIT")
-    except BaseException:
-        wh.con.execute("ROLLBACK")
-        raise
 
 
 def run_close_loop(

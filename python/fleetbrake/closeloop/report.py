@@ -8,21 +8,13 @@ from typing import Any
 
 import polars as pl
 
-from fleetbrake.warehouse.connection import Warehouse
+from fleetbrake.warehouse.connection import Warehouse, sql
 
 
 def _residuals(wh: Warehouse, revisions: list[str]) -> pl.DataFrame:
     frames = []
     for rev in revisions:
-        frames.append(
-            wh.con.sql(
-                "SELECT p.wagon_id, p.event_id, p.phase, p.time_utc, p.model_revision, "
-                "p.measured_sensor_c - p.predicted_sensor_c AS residual_k "
-                "FROM predictions p WHERE p.model_revision = $rev "
-                "AND p.measured_sensor_c IS NOT NULL",
-                params={"rev": rev},
-            ).pl()
-        )
+        frames.append(wh.con.sql(sql("q_closeloop_residuals"), params={"revision": rev}).pl())
     return pl.concat(frames) if frames else pl.DataFrame()
 
 
