@@ -318,6 +318,13 @@ def test_close_loop_prints_its_summary_last(fleet: Fleet, cli: CliRunner, tmp_pa
         assert (key in summary) == (key in report)
 
 
+def test_synth_with_an_unknown_solver_is_a_usage_error(tmp_path: Path) -> None:
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "fleet"), "--solver", "fem"])
+    line = _one_line_failure(result, 2, "synth")
+    assert "fem" in line and "full" in line
+    assert not (tmp_path / "fleet").exists()
+
+
 # --------------------------------------------------------------------------------------------
 # report
 

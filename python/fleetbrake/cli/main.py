@@ -316,8 +316,17 @@ def synth_command(
     ] = 0.5,
     refinement: Annotated[
         float,
-        typer.Option("--refinement", help="Mesh refinement of the reduced model (1.0: default)."),
+        typer.Option("--refinement", help="Mesh refinement of the model (1.0: default)."),
     ] = 1.0,
+    solver: Annotated[
+        str,
+        typer.Option(
+            "--solver",
+            help="What simulates the blocks: rom (the reduced model) or full (the finite-element "
+            "model, exact for inputs held over a step: data the pipeline's reduced model did not "
+            "make; slower, use a coarse --refinement).",
+        ),
+    ] = "rom",
 ) -> None:
     """Write a synthetic fleet and its truth.
 
@@ -345,6 +354,7 @@ def synth_command(
             anomalies=anomalies,
             gzip_fraction=gzip_fraction,
             refinement=refinement,
+            solver=cast(Literal["rom", "full"], solver),  # SynthConfig checks the value
         )
     total = config.wagons + int(config.unregistered_wagon) + int(config.bad_registry_entry)
     began = time.perf_counter()
