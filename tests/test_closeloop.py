@@ -265,7 +265,7 @@ def short_fleet(fleet_dir: Path, model: FullModelRunner, effects: EffectSet, see
 @pytest.mark.usefixtures("rom_env")
 def test_a_full_solver_database_stays_full(tmp_path, full_model_for):
     """``run --solver full``, then the close loop: the new revision predicts with the full
-    model as its parent does (before and after compare one model form), and the candidates
+    model on the mesh its parent does (before and after compare one model form), and the candidates
     are simulated with it too: the loop's own baseline residual is the stored baseline's, and
     the chosen candidate's fit residual is the stored new revision's."""
     fleet_dir = tmp_path / "fleet"
@@ -282,7 +282,9 @@ def test_a_full_solver_database_stays_full(tmp_path, full_model_for):
         refit=1,
         reflag=False,
         candidates=("heat_partition", "holder_conduction"),
-        simulation=simulation,
+        # the close loop's own defaults (the default mesh): the revisions it compares and
+        # makes keep the database's solver and mesh whatever they are
+        simulation=SimulationConfig(),
     )
     report = run_close_loop(db, holdout, tmp_path / "close-loop.json", config=loop)
 
@@ -290,9 +292,12 @@ def test_a_full_solver_database_stays_full(tmp_path, full_model_for):
     assert report["parameters"]["alpha"] == pytest.approx(0.80, abs=0.01)
     con = duckdb.connect(str(db), read_only=True)
     try:
-        revisions = dict(
-            con.execute("SELECT model_revision, solver FROM model_revisions").fetchall()
-        )
+        revisions = {
+            name: (solver, refinement)
+            for name, solver, refinement in con.execute(
+                "SELECT model_revision, solver, refinement FROM model_revisions"
+            ).fetchall()
+        }
         (parent,) = con.execute(
             "SELECT parent_revision FROM v_model_revisions WHERE model_revision = $name",
             {"name": report["new_revision"]},
@@ -300,7 +305,10 @@ def test_a_full_solver_database_stays_full(tmp_path, full_model_for):
     finally:
         con.close()
     assert parent == report["baseline_revision"] == "declared"
-    assert revisions == {"declared": "full", report["new_revision"]: "full"}
+    assert revisions == {
+        "declared": ("full", FE_REFINEMENT),
+        report["new_revision"]: ("full", FE_REFINEMENT),
+    }
     # the baseline the candidates were measured against is the stored one, second for second
     assert report["residual"]["rmse_k"] == pytest.approx(report["fit"]["rmse_before_k"], rel=1e-9)
     chosen = next(c for c in report["candidates"] if c["effect"] == report["effect"])

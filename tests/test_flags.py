@@ -650,7 +650,7 @@ def run_fleet(
                 simulate_events(
                     wh,
                     registry,
-                    current_revision(wh),
+                    current_revision(wh, refinement=TEST_REFINEMENT),
                     SimulationConfig(refinement=TEST_REFINEMENT),
                     progress=False,
                 )

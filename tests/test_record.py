@@ -131,7 +131,7 @@ def fleet_db(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
             )
         con.execute(
             "INSERT INTO model_revisions VALUES ('declared', NULL, NULL, '{}', NULL, NULL, "
-            "'rom', true, $now)",
+            "'rom', true, $now, NULL)",
             {"now": now},
         )
         con.execute(

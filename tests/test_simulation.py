@@ -235,7 +235,12 @@ def test_the_stage_stores_timeline_and_predictions_once(fleet: Fleet) -> None:
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
-        first = simulate_events(wh, fleet.registry, current_revision(wh), fleet.config)
+        first = simulate_events(
+            wh,
+            fleet.registry,
+            current_revision(wh, refinement=fleet.config.refinement),
+            fleet.config,
+        )
         registered = sorted(fleet.registry.wagons)
         with_samples = [
             w
@@ -264,7 +269,12 @@ def test_the_stage_stores_timeline_and_predictions_once(fleet: Fleet) -> None:
         ).fetchall()
         assert unanchored == 0
         # again: nothing to do, nothing changed
-        again = simulate_events(wh, fleet.registry, current_revision(wh), fleet.config)
+        again = simulate_events(
+            wh,
+            fleet.registry,
+            current_revision(wh, refinement=fleet.config.refinement),
+            fleet.config,
+        )
         assert (again.wagons_simulated, again.events_simulated) == ([], 0)
         assert _counts(wh) == counts
 
@@ -275,7 +285,7 @@ def test_a_wagon_whose_data_changed_is_simulated_again_alone(fleet: Fleet) -> No
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
-        rev = current_revision(wh)
+        rev = current_revision(wh, refinement=fleet.config.refinement)
         simulate_events(wh, fleet.registry, rev, fleet.config)
         first, second = sorted(fleet.registry.wagons)[:2]
         ((last,),) = wh.con.execute(
@@ -308,7 +318,7 @@ def test_the_flags_read_the_timeline_and_never_simulate(
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
-        rev = current_revision(wh)
+        rev = current_revision(wh, refinement=fleet.config.refinement)
         simulate_events(wh, fleet.registry, rev, fleet.config)
         expected = raise_flags(wh, fleet.registry, rev.name)
 
@@ -340,7 +350,7 @@ def test_close_loop_candidates_are_simulated_as_the_stage_stores_predictions(
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
-        rev = current_revision(wh)
+        rev = current_revision(wh, refinement=fleet.config.refinement)
         simulate_events(wh, fleet.registry, rev, fleet.config)
         wagon = fleet.registry.wagons[sorted(fleet.registry.wagons)[0]]
         stored = wh.con.sql(
@@ -376,15 +386,20 @@ def test_reflag_simulates_the_new_revision_then_judges_from_it(fleet: Fleet) -> 
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
-        base = current_revision(wh)
+        base = current_revision(wh, refinement=fleet.config.refinement)
         store_registry(wh, fleet.registry)
         effects = EffectSet((HeatPartition(alpha=0.8),))
         wh.con.execute(
             "INSERT INTO model_revisions VALUES ('r1-test', $p, 'heat_partition', $j, NULL, "
-            "NULL, 'rom', FALSE, $t)",
-            {"p": base.name, "j": f'{{"effects": {effects.to_json()}}}', "t": T0},
+            "NULL, 'rom', FALSE, $t, $r)",
+            {
+                "p": base.name,
+                "j": f'{{"effects": {effects.to_json()}}}',
+                "t": T0,
+                "r": base.refinement,
+            },
         )
-        new = Revision("r1-test", effects, base.solver)
+        new = Revision("r1-test", effects, base.solver, base.refinement)
         wh.con.execute("DELETE FROM flags")
         _reflag(wh, stored_wagons(wh), new, fleet.config)
         counts = _counts(wh, "r1-test")
@@ -502,7 +517,7 @@ def test_the_stage_runs_its_wagons_on_an_engine_and_stores_the_reference_rows(
         ).pl()
 
     with open_warehouse(fleet.db) as wh:
-        rev = current_revision(wh)
+        rev = current_revision(wh, refinement=fleet.config.refinement)
         wagons = sorted(fleet.registry.wagons)
         want = simulate_events(
             wh, fleet.registry, rev, fleet.config, wagons=wagons, reference=True, progress=False
@@ -522,3 +537,89 @@ def test_the_stage_runs_its_wagons_on_an_engine_and_stores_the_reference_rows(
         rtol=0,
         atol=1e-9,
     )
+
+
+def _stored_rows(wh: Any) -> dict[str, pl.DataFrame]:
+    """Every row the stage stored for ``declared`` (the time it was written left out)."""
+    order = {
+        "predictions": "event_id, time_utc",
+        "timeline": "wagon_id, time_utc",
+        "timeline_segments": "wagon_id, start_utc, kind",
+        "simulated_wagons": "wagon_id",
+    }
+    return {
+        table: wh.con.sql(
+            f"SELECT {'* EXCLUDE (simulated_utc)' if table == 'simulated_wagons' else '*'} "
+            f"FROM {table} WHERE model_revision = 'declared' ORDER BY {keys}"
+        ).pl()
+        for table, keys in order.items()
+    }
+
+
+def test_several_wagons_per_transaction_store_what_one_per_transaction_does(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``SimulationConfig.batch_rows``: whole wagons written together, fewer commits, the same
+    rows as one wagon per transaction; a second run adds nothing."""
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh, refinement=fleet.config.refinement)
+        wagons = sorted(fleet.registry.wagons)
+        commits: list[int] = []
+        real = wh.transaction
+
+        def counted() -> Any:
+            commits.append(1)
+            return real()
+
+        monkeypatch.setattr(wh, "transaction", counted)
+        one = dataclasses.replace(fleet.config, batch_rows=1)
+        first = simulate_events(wh, fleet.registry, rev, one, wagons=wagons, progress=False)
+        assert len(first.wagons_simulated) >= 2
+        assert len(commits) == len(first.wagons_simulated)  # one wagon per transaction
+        alone = _stored_rows(wh)
+        commits.clear()
+        again = simulate_events(wh, fleet.registry, rev, fleet.config, wagons=wagons)
+        assert again.wagons_simulated == first.wagons_simulated
+        assert len(commits) == 1  # the fleet's rows fit in one batch
+        together = _stored_rows(wh)
+        for table, frame in alone.items():
+            assert frame.height > 0, table
+            assert together[table].equals(frame), table
+        commits.clear()
+        nothing = simulate_events(wh, fleet.registry, rev, fleet.config)
+        assert (nothing.wagons_simulated, nothing.events_simulated, commits) == ([], 0, [])
+        for table, frame in _stored_rows(wh).items():
+            assert frame.equals(alone[table]), table
+
+
+def test_the_flags_judge_their_wagons_on_an_engine_as_inline(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``raise_flags(engine=...)``: each wagon's findings computed in a worker process from
+    the partition the parent read, the flags (ids, evidence, notes, stored rows) those of the
+    inline path."""
+    from fleetbrake.engine import LocalEngine
+    from fleetbrake.flags import raise_flags
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    def stored(wh: Any) -> list[tuple[Any, ...]]:
+        return wh.con.execute(
+            "SELECT flag_id, wagon_id, event_id, kind, severity, start_utc, end_utc, evidence "
+            "FROM flags ORDER BY flag_id"
+        ).fetchall()
+
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh, refinement=fleet.config.refinement)
+        simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
+        inline = raise_flags(wh, fleet.registry, rev.name)
+        rows = stored(wh)
+        with LocalEngine(2) as engine:
+            spread = raise_flags(wh, fleet.registry, rev.name, engine=engine)
+        assert stored(wh) == rows
+    assert inline.flags, "the fleet has anomalies: some flags expected"
+    assert spread.flags == inline.flags
+    assert spread.notes == inline.notes and spread.wagons == inline.wagons

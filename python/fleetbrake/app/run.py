@@ -33,7 +33,11 @@ __all__ = ["RunReport", "default_db_path", "run_fleet"]
 logger = logging.getLogger(__name__)
 
 
-_STAGE_MODULES = ("fleetbrake.ingest.files", "fleetbrake.simulation.predictions")
+_STAGE_MODULES = (
+    "fleetbrake.ingest.files",
+    "fleetbrake.simulation.predictions",
+    "fleetbrake.flags.judge",
+)
 """What the engine's workers run: imported as they start."""
 
 
@@ -141,10 +145,11 @@ def _stages(
             ingest.events = update_events(wh, engine=engine)
         with _clock(stage_s, "simulate"):
             store_registry(wh, registry)
-            rev = current_revision(wh, (simulation or SimulationConfig()).solver)
+            declared = simulation or SimulationConfig()
+            rev = current_revision(wh, declared.solver, declared.refinement)
             sim = simulate_events(wh, registry, rev, simulation, progress=progress, engine=engine)
         with _clock(stage_s, "flags"):
-            flags = raise_flags(wh, registry, rev.name, flag_config)
+            flags = raise_flags(wh, registry, rev.name, flag_config, engine=engine)
     except duckdb.Error as error:
         raise WarehouseError(f"{db_path}: {error}") from error
     return RunReport(

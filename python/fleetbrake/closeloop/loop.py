@@ -151,7 +151,7 @@ class Candidate:
 # ---------------------------------------------------------------------------- evaluation
 class _Evaluator:
     """Re-simulates a set of events with candidate effects (data loaded once), with the
-    solver of the revision the candidates would become children of."""
+    solver and mesh of the revision the candidates would become children of."""
 
     def __init__(
         self,
@@ -160,10 +160,10 @@ class _Evaluator:
         all_events: pl.DataFrame,
         events: pl.DataFrame,
         config: SimulationConfig,
-        solver: str,
+        base: Revision,
     ):
         self.config = config
-        self.solver = solver
+        self.base = base
         self.parts = []
         for wagon_id in events["wagon_id"].unique(maintain_order=True).to_list():
             wagon = wagons.get(wagon_id)
@@ -172,7 +172,7 @@ class _Evaluator:
             todo = events.filter(pl.col("wagon_id") == wagon_id)["event_id"].to_list()
             self.parts.append(
                 (
-                    model_for(wagon, solver, config.refinement),
+                    model_for(wagon, base.solver, base.refinement),
                     load_wagon(wh, wagon, config),
                     set(todo),
                 )
@@ -181,7 +181,7 @@ class _Evaluator:
     def frames(self, effects: EffectSet) -> pl.DataFrame:
         """The events' windows as the simulation stage predicts them (the one chain
         algorithm), with ``effects``."""
-        rev = Revision("candidate", effects, self.solver)
+        rev = Revision("candidate", effects, self.base.solver, self.base.refinement)
         out = [
             predict_wagon(data, model, rev, self.config, event_ids=todo, timeline=False).predictions
             for model, data, todo in self.parts
@@ -401,7 +401,9 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     wagons = stored_wagons(wh)
     if not wagons:
         raise CloseLoopError(f"{wh.path}: no registry stored: run `fleetbrake run` first")
-    base = current_revision(wh)
+    # the baseline keeps the solver and mesh it was made with; a database with no revision yet
+    # gets the declared one as ``run`` would make it
+    base = current_revision(wh, config.simulation.solver, config.simulation.refinement)
     fit, holdout, sets_all = _event_sets(wh, base.name, config)
     if fit.height == 0:
         raise CloseLoopError(
@@ -410,10 +412,8 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     all_events = wh.con.sql(sql("q_closeloop_events")).pl()
     sim = config.simulation
     # candidates are simulated as the baseline's predictions were: with its solver
-    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base.solver)
-    hold_eval = (
-        _Evaluator(wh, wagons, all_events, holdout, sim, base.solver) if holdout.height else None
-    )
+    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base)
+    hold_eval = _Evaluator(wh, wagons, all_events, holdout, sim, base) if holdout.height else None
 
     base_frame = fit_eval.frames(base.effects)
     noise_k = _noise_k(base_frame)
@@ -432,7 +432,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         all_events,
         fit[np.unique(picks.round().astype(int))],
         screen_config,
-        base.solver,
+        base,
     )
     screened: list[Candidate] = []
     present = {type(e) for e in base.effects}
@@ -551,7 +551,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     added = [e for e in best.effects if type(e) not in present]
     name = _new_revision_name(wh, best.label)
     _record_revision(wh, name, base, best)
-    new_rev = Revision(name, best.effects, base.solver)
+    new_rev = Revision(name, best.effects, base.solver, base.refinement)
     simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
     if config.reflag:
         # the flags were judged with the baseline, which lacks the effect: a fleet-wide misfit
@@ -560,7 +560,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         _reflag(wh, wagons, new_rev, sim)
         fit, holdout, _ = _event_sets(wh, base.name, config)
         if fit.height and set(fit["event_id"].to_list()) != set(fit_ids):
-            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base.solver)
+            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base)
             effects, r = _fit(
                 refit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
             )
@@ -568,7 +568,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             best = Candidate(effects, _rmse(r), _bic(r, best.n_parameters), best.n_parameters)
             added = [e for e in best.effects if type(e) not in present]
             _set_revision_effects(wh, name, best.effects)
-            new_rev = Revision(name, best.effects, base.solver)
+            new_rev = Revision(name, best.effects, base.solver, base.refinement)
             simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
             _reflag(wh, wagons, new_rev, sim)
             fit, holdout, _ = _event_sets(wh, base.name, config)
@@ -658,6 +658,7 @@ def _record_revision(wh: Warehouse, name: str, parent: Revision, best: Candidate
                 "effect": best.label,
                 "parameters_json": json.dumps({"effects": best.effects.to_list()}),
                 "solver": parent.solver,
+                "refinement": parent.refinement,
                 "created_utc": now,
             },
         )

@@ -30,7 +30,8 @@ The close loop re-simulates candidates with the same functions (:func:`load_wago
 The wagon is the unit of work: the parent reads a wagon's samples and events as Arrow
 (:func:`wagon_task`), :func:`simulate_wagon` (pure, picklable, no database) turns them into the
 rows' columns, each span in one call of the reduced model's chain kernel, and the parent writes
-them in bulk, one transaction per wagon; ``simulate_events(engine=...)`` runs the partitions on
+them in bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``);
+``simulate_events(engine=...)`` runs the partitions on
 an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
 """
 
@@ -66,9 +67,10 @@ from fleetbrake.simulation.chains import (
 from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 from fleetbrake.simulation.store import (
     WagonRows,
+    WagonWrite,
     data_keys,
     forget_wagon,
-    replace_wagon,
+    replace_wagons,
     simulated_wagons,
     utc_now,
     wagon_events,
@@ -116,6 +118,9 @@ class Revision:
     name: str
     effects: EffectSet = field(default_factory=EffectSet)
     solver: str = "rom"
+    refinement: float = DEFAULT_REFINEMENT
+    """The mesh refinement of its model: a revision's predictions all come from one mesh, and
+    a closed loop's child keeps its parent's (as it keeps the solver)."""
 
 
 @dataclass(frozen=True)
@@ -127,11 +132,17 @@ class SimulationConfig:
     """The chain/re-anchor algorithm's numbers (shared with the flags' timeline and the
     close loop)."""
     refinement: float = DEFAULT_REFINEMENT
-    """Mesh refinement of the models (1.0: the default mesh)."""
+    """Mesh refinement of a new ``declared`` revision's model (1.0: the default mesh). A
+    revision keeps the refinement it was made with (``model_revisions.refinement``)."""
     solver: Literal["rom", "full"] = "rom"
     """What a new ``declared`` revision predicts with: the reduced model (default), or the
     full finite-element model (the reference; a thousand times slower). A revision keeps the
     solver it was made with."""
+    batch_rows: int = 250_000
+    """The stage writes several wagons per transaction, up to about this many rows (of
+    ``predictions``, ``timeline`` and ``timeline_segments``) in each; a wagon is never split
+    (a larger one is written alone), so each stays whole-old or whole-new. 1: one wagon per
+    transaction. Changes no row."""
 
 
 @dataclass
@@ -149,7 +160,9 @@ class SimulationReport:
 # Revisions and the stored registry
 
 
-def ensure_declared(wh: Warehouse, solver: str = "rom") -> None:
+def ensure_declared(
+    wh: Warehouse, solver: str = "rom", refinement: float = DEFAULT_REFINEMENT
+) -> None:
     """Record the declared model's revision (the current one) if the warehouse has none."""
     ((count,),) = wh.con.execute(sql("q_simulation_revision_count")).fetchall()
     if count == 0:
@@ -159,6 +172,7 @@ def ensure_declared(wh: Warehouse, solver: str = "rom") -> None:
                 "name": DECLARED,
                 "parameters_json": json.dumps({"effects": []}),
                 "solver": solver,
+                "refinement": refinement,
                 "created_utc": utc_now(),
             },
         )
@@ -170,11 +184,16 @@ def revision(wh: Warehouse, name: str) -> Revision:
     if not rows:
         raise UnknownRevisionError(f"{wh.path}: no model revision {name!r}")
     params = json.loads(rows[0][0])
-    return Revision(name, EffectSet.from_list(params.get("effects", [])), rows[0][1])
+    refinement = DEFAULT_REFINEMENT if rows[0][2] is None else float(rows[0][2])
+    return Revision(name, EffectSet.from_list(params.get("effects", [])), rows[0][1], refinement)
 
 
-def current_revision(wh: Warehouse, solver: str = "rom") -> Revision:
-    ensure_declared(wh, solver)
+def current_revision(
+    wh: Warehouse, solver: str = "rom", refinement: float = DEFAULT_REFINEMENT
+) -> Revision:
+    """The current revision; the declared one, made with ``solver`` and ``refinement``, if the
+    warehouse has none yet."""
+    ensure_declared(wh, solver, refinement)
     rows = wh.con.execute(sql("q_simulation_current_revision")).fetchall()
     return revision(wh, rows[0][0] if rows else DECLARED)
 
@@ -491,7 +510,7 @@ def _model_key(wagon: WagonConfig, rev: Revision, config: SimulationConfig) -> s
             "solver": rev.solver,
             "initial_state": config.initial_state,
             "chain": dataclasses.asdict(config.chain),
-            "refinement": config.refinement,
+            "refinement": rev.refinement,
         },
         sort_keys=True,
         default=str,
@@ -587,7 +606,7 @@ def simulate_wagon(task: WagonTask) -> WagonResult:
         bridge_max_s=config.chain.bridge_max_s,
         events=_frame(task.events),
     )
-    model = _process_model(wagon, task.rev.solver, config.refinement)
+    model = _process_model(wagon, task.rev.solver, task.rev.refinement)
     result = predict_wagon(
         WagonData(wagon, spans), model, task.rev, config, reference=task.reference
     )
@@ -625,13 +644,14 @@ def simulate_events(
 ) -> SimulationReport:
     """Simulate with ``rev`` every wagon whose data, registry entry or simulation parameters
     changed since it was last simulated with it (or, forced, the wagons of ``event_ids`` and
-    ``wagons``), storing its event windows and timeline; each wagon in one transaction.
+    ``wagons``), storing its event windows and timeline; each wagon whole in one transaction.
 
     Each wagon is a partition: the parent reads it (:func:`wagon_task`), ``engine.map`` runs
     :func:`simulate_wagon` on it (default: the builtin ``map``, in this process; an engine's
-    workers otherwise), and the parent writes the result in bulk as it comes back, one
-    transaction per wagon. ``reference``: the segment-by-segment simulation instead of one
-    kernel call per span (the same rows, to rounding)."""
+    workers otherwise), and the parent writes the results in bulk as they come back, several
+    whole wagons per transaction (up to ``config.batch_rows`` rows). ``reference``: the
+    segment-by-segment simulation instead of one kernel call per span (the same rows, to
+    rounding)."""
     config = config or SimulationConfig()
     wagons_by_id = registry.wagons if isinstance(registry, Registry) else registry
     report = SimulationReport()
@@ -681,18 +701,19 @@ def simulate_events(
         for wagon, data_key, model_key in todo
     )
     results = map(simulate_wagon, tasks) if engine is None else engine.map(simulate_wagon, tasks)
+    pending: list[WagonWrite] = []
+    pending_rows = 0
     with Progress(disable=not show, transient=True) as bar:
         task = bar.add_task("simulating wagons", total=len(todo))
         for result in results:
             written = result.rows()
-            replace_wagon(
-                wh,
-                result.wagon_id,
-                result.revision,
-                written,
-                data_key=result.data_key,
-                model_key=result.model_key,
-            )
+            write = WagonWrite(result.wagon_id, written, result.data_key, result.model_key)
+            if pending and pending_rows + write.row_count > config.batch_rows:
+                replace_wagons(wh, rev.name, pending)  # whole wagons per transaction
+                bar.advance(task, len(pending))
+                pending, pending_rows = [], 0
+            pending.append(write)
+            pending_rows += write.row_count
             logger.info(
                 "wagon %s: %d events and %d timeline seconds simulated with revision %s",
                 result.wagon_id,
@@ -705,5 +726,6 @@ def simulate_events(
             report.prediction_rows += written.predictions.height
             report.timeline_rows += written.timeline.height
             report.skipped += result.skipped
-            bar.advance(task)
+        replace_wagons(wh, rev.name, pending)
+        bar.advance(task, len(pending))
     return report

@@ -1,4 +1,5 @@
--- One model revision's effects and solver. Parameters: $name.
-SELECT parameters_json, solver
+-- One model revision's effects, solver and mesh refinement (null: made before it was
+-- recorded, the default mesh). Parameters: $name.
+SELECT parameters_json, solver, refinement
 FROM model_revisions
 WHERE model_revision = $name;

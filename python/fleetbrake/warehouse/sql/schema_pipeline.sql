@@ -14,6 +14,9 @@ CREATE TABLE IF NOT EXISTS model_revisions (
     is_current      BOOLEAN   NOT NULL,  -- the revision `run` simulates new events with
     created_utc     TIMESTAMP NOT NULL
 );
+-- The mesh refinement of the revision's model (1.0: the default mesh; null in databases made
+-- before it was recorded: the default). A closed loop's child keeps its parent's.
+ALTER TABLE model_revisions ADD COLUMN IF NOT EXISTS refinement DOUBLE;
 
 -- Predictions per event, per second, per model revision: from activation until 600 s after
 -- release, or the next event, or the end of the data, whichever is first.
