@@ -6,7 +6,8 @@ simulate. One module per concern: :mod:`~fleetbrake.flags.config` (thresholds, t
 :mod:`~fleetbrake.flags.series` (what is read of a wagon), :mod:`~fleetbrake.flags.stats`
 (what the detectors measure), the detector families :mod:`~fleetbrake.flags.sensor`,
 :mod:`~fleetbrake.flags.brakes` and :mod:`~fleetbrake.flags.overheating`, and
-:mod:`~fleetbrake.flags.judge` (a wagon judged, its flags stored: :func:`raise_flags`).
+:mod:`~fleetbrake.flags.judge` (a wagon judged, its flags stored: :func:`raise_flags`; each
+wagon a partition the parent reads, :func:`judge_task` a pure function an engine runs).
 """
 
 from fleetbrake.flags.brakes import find_dragging, find_weak
@@ -18,7 +19,15 @@ from fleetbrake.flags.config import (
     FlagConfigError,
     load_flag_config,
 )
-from fleetbrake.flags.judge import flag_ids, judge_wagon, raise_flags
+from fleetbrake.flags.judge import (
+    FlagOutcome,
+    FlagTask,
+    flag_ids,
+    flag_task,
+    judge_task,
+    judge_wagon,
+    raise_flags,
+)
 from fleetbrake.flags.overheating import find_overheating
 from fleetbrake.flags.records import Finding, Flag, FlagReport
 from fleetbrake.flags.sensor import (
@@ -42,7 +51,9 @@ __all__ = [
     "Flag",
     "FlagConfig",
     "FlagConfigError",
+    "FlagOutcome",
     "FlagReport",
+    "FlagTask",
     "Segment",
     "SpanTimeline",
     "event_stats",
@@ -55,7 +66,9 @@ __all__ = [
     "find_overheating",
     "find_weak",
     "flag_ids",
+    "flag_task",
     "heat_flow_corrected",
+    "judge_task",
     "judge_wagon",
     "load_flag_config",
     "load_spans",

@@ -27,7 +27,9 @@ only readings the steps before found good):
 
 A wagon without a registry entry, or whose timeline of the revision is missing or older than
 its data, is judged on its readings only (step 1; the report's notes say so). Flags are
-recomputed per wagon and the wagons' rows of ``flags`` replaced in one transaction;
+recomputed per wagon (a partition: the parent reads it as Arrow, :func:`judge_task`, pure and
+picklable, judges it, on an engine's workers with ``engine=``) and the wagons' rows of
+``flags`` replaced in one transaction;
 ``flag_id`` is ``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>`` (``-2``, ... if taken), so the
 same data give the same ids, and a flag found again keeps its ``detected_utc``.
 """
@@ -36,11 +38,12 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import polars as pl
+import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.flags.brakes import find_dragging, find_weak
 from fleetbrake.flags.config import DEFAULT_FLAG_CONFIG, FlagConfig
@@ -55,16 +58,24 @@ from fleetbrake.flags.sensor import (
     heat_flow_corrected,
     merge_sensor_faults,
 )
-from fleetbrake.flags.series import SpanTimeline, load_spans
+from fleetbrake.flags.series import SpanTimeline, spans_of, stored_timeline
 from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
 from fleetbrake.fleet.registry import Registry, WagonConfig
 from fleetbrake.simulation.chains import constant_runs
-from fleetbrake.simulation.predictions import revision
+from fleetbrake.simulation.predictions import Mapper, revision
 from fleetbrake.simulation.series import BoolArray, WagonSeries, runs
-from fleetbrake.simulation.store import data_keys, load_timeline, utc_now, wagon_events
+from fleetbrake.simulation.store import StoredTimeline, data_keys, simulated_wagons, utc_now
 from fleetbrake.warehouse.connection import Warehouse, sql
 
-__all__ = ["flag_ids", "judge_wagon", "raise_flags"]
+__all__ = [
+    "FlagOutcome",
+    "FlagTask",
+    "flag_ids",
+    "flag_task",
+    "judge_task",
+    "judge_wagon",
+    "raise_flags",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -201,6 +212,120 @@ def flag_ids(wagon_id: str, findings: Sequence[Finding]) -> list[Flag]:
     return flags
 
 
+@dataclass(frozen=True)
+class FlagTask:
+    """One wagon's partition of the flags: everything :func:`judge_task` reads, as the parent
+    read it from the warehouse (Arrow tables; picklable: an engine ships it to a worker)."""
+
+    wagon_id: str
+    revision: str
+    ambient_c: float
+    samples: pa.Table
+    """The wagon's samples (``q_simulation_wagon_samples.sql``)."""
+    events: pa.Table
+    """Its braking events (``q_simulation_wagon_events.sql``)."""
+    config: FlagConfig
+    note: str | None = None
+    """Why the wagon is judged on its readings only (no timeline given), for the report."""
+    data_key: str | None = None
+    segments: pa.Table | None = None
+    """The revision's ``timeline_segments`` of the wagon (``q_simulation_timeline_segments``);
+    None: no current timeline, the readings alone are judged."""
+    timeline: pa.Table | None = None
+    """Its ``timeline`` rows (``q_simulation_timeline.sql``)."""
+    predictions: pa.Table | None = None
+    """Its ``predictions`` of the revision (``q_flags_predictions.sql``)."""
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        return f"wagon {self.wagon_id}"
+
+
+@dataclass(frozen=True)
+class FlagOutcome:
+    """What :func:`judge_task` hands back for the parent to store."""
+
+    wagon_id: str
+    flags: list[Flag]
+    notes: list[str]
+
+
+def _frame(table: pa.Table) -> pl.DataFrame:
+    frame = pl.from_arrow(table)
+    assert isinstance(frame, pl.DataFrame)
+    return frame
+
+
+def judge_task(task: FlagTask) -> FlagOutcome:
+    """One wagon judged from its partition's arrays, no database: a pure function of the
+    task, so an engine can run it in a worker process."""
+    samples, events = _frame(task.samples), _frame(task.events)
+    stored: StoredTimeline | None = None
+    if task.segments is not None and task.timeline is not None and task.data_key is not None:
+        stored = stored_timeline(
+            task.wagon_id,
+            task.revision,
+            task.data_key,
+            _frame(task.segments),
+            _frame(task.timeline),
+        )
+    spans = spans_of(
+        task.wagon_id, samples, events, ambient_default_c=task.ambient_c, stored=stored
+    )
+    if not spans:
+        return FlagOutcome(task.wagon_id, [], [])
+    notes = [] if task.note is None else [f"wagon {task.wagon_id}: {task.note}"]
+    predictions = None
+    if stored is not None and task.predictions is not None:
+        predictions = _frame(task.predictions)
+        if predictions.height == 0 and events.height:
+            notes.append(
+                f"wagon {task.wagon_id}: no predictions of revision {task.revision}; brakings "
+                "not judged for weak brakes, dragging in brakings or overheating"
+            )
+    findings = judge_wagon(
+        spans,
+        predictions=predictions,
+        events=events if stored is not None else None,
+        config=task.config,
+    )
+    return FlagOutcome(task.wagon_id, flag_ids(task.wagon_id, findings), notes)
+
+
+def flag_task(
+    wh: Warehouse,
+    wagon_id: str,
+    revision_name: str,
+    config: FlagConfig,
+    *,
+    ambient_c: float,
+    note: str | None,
+    data_key: str | None,
+) -> FlagTask:
+    """The wagon's partition, read from the warehouse (by the parent: workers never open
+    it); with ``data_key`` (the wagon's timeline of the revision is current) its timeline,
+    segments and predictions too."""
+    params = {"wagon_id": wagon_id}
+    timed = {"wagon_id": wagon_id, "revision": revision_name}
+
+    def arrow(name: str, values: Mapping[str, str]) -> pa.Table:
+        return wh.con.sql(sql(name), params=dict(values)).to_arrow_table()
+
+    current = data_key is not None
+    return FlagTask(
+        wagon_id=wagon_id,
+        revision=revision_name,
+        ambient_c=ambient_c,
+        samples=arrow("q_simulation_wagon_samples", params),
+        events=arrow("q_simulation_wagon_events", params),
+        config=config,
+        note=note,
+        data_key=data_key,
+        segments=arrow("q_simulation_timeline_segments", timed) if current else None,
+        timeline=arrow("q_simulation_timeline", timed) if current else None,
+        predictions=arrow("q_flags_predictions", timed) if current else None,
+    )
+
+
 def raise_flags(
     wh: Warehouse,
     registry: Registry | Mapping[str, WagonConfig],
@@ -208,13 +333,19 @@ def raise_flags(
     config: FlagConfig = DEFAULT_FLAG_CONFIG,
     *,
     wagons: Iterable[str] | None = None,
+    engine: Mapper | None = None,
 ) -> FlagReport:
     """Recompute the flags of ``wagons`` (default: every wagon with samples) from their
     samples, events and what the simulation stored for ``revision_name`` (its timeline and
     predictions), and replace their rows of ``flags`` in one transaction. A wagon without a
     registry entry, or without a current timeline of the revision, is judged on its readings
     only (a note in the report names it). Raises
-    :class:`fleetbrake.simulation.predictions.UnknownRevisionError` for an unknown revision."""
+    :class:`fleetbrake.simulation.predictions.UnknownRevisionError` for an unknown revision.
+
+    Each wagon is a partition: the parent reads it (:func:`flag_task`), ``engine.map`` runs
+    :func:`judge_task` on it (default: the builtin ``map``, in this process; an engine's
+    workers otherwise), and the parent stores every wagon's flags at the end, in bulk. The
+    flags are the same with any engine."""
     revision(wh, revision_name)  # the revision must exist
     if isinstance(registry, Registry):
         wagons_by_id: Mapping[str, WagonConfig] = registry.wagons
@@ -228,45 +359,43 @@ def raise_flags(
         wanted = sorted(set(wagons))
     report = FlagReport(wagons=wanted)
     keys = data_keys(wh)
-    new: list[Flag] = []
-    for wagon_id in wanted:
-        wagon = wagons_by_id.get(wagon_id)
-        ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
-        stored = load_timeline(wh, wagon_id, revision_name) if wagon is not None else None
-        if wagon is None:
-            note = "no valid registry entry; only its readings were judged"
-        elif stored is None:
-            note = (
-                f"not simulated with revision {revision_name}; only its readings were judged "
-                "(the flags read the simulation's timeline: run the simulation first)"
-            )
-        elif stored.data_key != keys.get(wagon_id):
-            note = (
-                f"its data changed since it was simulated with revision {revision_name}; only "
-                "its readings were judged (run the simulation first)"
-            )
-            stored = None
-        else:
-            note = None
-        spans = load_spans(wh, wagon_id, ambient_default_c=ambient, stored=stored)
-        if not spans:
-            continue
-        if note is not None:
-            report.notes.append(f"wagon {wagon_id}: {note}")
-        predictions = events = None
-        if stored is not None:
-            predictions = wh.con.sql(
-                sql("q_flags_predictions"),
-                params={"wagon_id": wagon_id, "revision": revision_name},
-            ).pl()
-            events = wagon_events(wh, wagon_id)
-            if predictions.height == 0 and events.height:
-                report.notes.append(
-                    f"wagon {wagon_id}: no predictions of revision {revision_name}; brakings "
-                    "not judged for weak brakes, dragging in brakings or overheating"
+    done = simulated_wagons(wh, revision_name)
+
+    def tasks() -> Iterator[FlagTask]:
+        for wagon_id in wanted:
+            wagon = wagons_by_id.get(wagon_id)
+            ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
+            simulated = done.get(wagon_id) if wagon is not None else None
+            data_key: str | None = None
+            if wagon is None:
+                note: str | None = "no valid registry entry; only its readings were judged"
+            elif simulated is None:
+                note = (
+                    f"not simulated with revision {revision_name}; only its readings were "
+                    "judged (the flags read the simulation's timeline: run the simulation first)"
                 )
-        findings = judge_wagon(spans, predictions=predictions, events=events, config=config)
-        new += flag_ids(wagon_id, findings)
+            elif simulated.data_key != keys.get(wagon_id):
+                note = (
+                    f"its data changed since it was simulated with revision {revision_name}; "
+                    "only its readings were judged (run the simulation first)"
+                )
+            else:
+                note, data_key = None, simulated.data_key
+            yield flag_task(
+                wh,
+                wagon_id,
+                revision_name,
+                config,
+                ambient_c=ambient,
+                note=note,
+                data_key=data_key,
+            )
+
+    outcomes = map(judge_task, tasks()) if engine is None else engine.map(judge_task, tasks())
+    new: list[Flag] = []
+    for outcome in outcomes:
+        report.notes += outcome.notes
+        new += outcome.flags
     _store(wh, report.wagons, new)
     report.flags = new
     logger.info("flags of %d wagons judged: %d flags", len(report.wagons), len(new))

@@ -12,6 +12,7 @@ simulate).
 
 from __future__ import annotations
 
+import datetime as dt
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ from fleetbrake.simulation.series import FloatArray, WagonSeries
 from fleetbrake.simulation.store import StoredTimeline, TimelineSpan, wagon_events, wagon_samples
 from fleetbrake.warehouse.connection import Warehouse
 
-__all__ = ["SpanTimeline", "load_spans", "span_timeline"]
+__all__ = ["SpanTimeline", "load_spans", "span_timeline", "spans_of", "stored_timeline"]
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,28 @@ def span_timeline(series: WagonSeries, span: TimelineSpan) -> SpanTimeline:
     return SpanTimeline(predicted, [*starts, series.n], kinds, gaps)
 
 
+def stored_timeline(
+    wagon_id: str, revision: str, data_key: str, segments: pl.DataFrame, values: pl.DataFrame
+) -> StoredTimeline:
+    """A wagon's stored timeline from its rows of ``timeline_segments`` (with
+    ``span_start_utc``, ``span_end_utc``) and ``timeline`` as read by
+    ``q_simulation_timeline_segments.sql`` and ``q_simulation_timeline.sql``, cut by span
+    (what :func:`fleetbrake.simulation.store.load_timeline` returns, without a database)."""
+    stored = StoredTimeline(wagon_id, revision, data_key)
+    if segments.height == 0:
+        return stored
+    for (start, end), part in segments.group_by(
+        ["span_start_utc", "span_end_utc"], maintain_order=True
+    ):
+        assert isinstance(start, dt.datetime) and isinstance(end, dt.datetime)
+        inside = values.filter(pl.col("time_utc").is_between(start, end))
+        stored.spans.append(
+            TimelineSpan(start, end, part.drop("span_start_utc", "span_end_utc"), inside)
+        )
+    stored.spans.sort(key=lambda s: s.start_utc)
+    return stored
+
+
 def load_spans(
     wh: Warehouse,
     wagon_id: str,
@@ -63,10 +86,27 @@ def load_spans(
     """The wagon's spans of samples, each with its stored timeline: the spans the simulation
     cut when ``stored`` is given (it must be of the wagon's data as they are), else those of
     the default :class:`ChainParams` with no timeline (the readings alone are judged)."""
-    samples = wagon_samples(wh, wagon_id)
+    return spans_of(
+        wagon_id,
+        wagon_samples(wh, wagon_id),
+        wagon_events(wh, wagon_id),
+        ambient_default_c=ambient_default_c,
+        stored=stored,
+    )
+
+
+def spans_of(
+    wagon_id: str,
+    samples: pl.DataFrame,
+    events: pl.DataFrame,
+    *,
+    ambient_default_c: float,
+    stored: StoredTimeline | None,
+) -> list[tuple[WagonSeries, SpanTimeline | None]]:
+    """:func:`load_spans` from the wagon's ``samples`` and ``events`` as read by
+    ``q_simulation_wagon_samples.sql`` and ``q_simulation_wagon_events.sql`` (no database)."""
     if samples.height == 0:
         return []
-    events = wagon_events(wh, wagon_id)
     if stored is None or not stored.spans:
         spans = WagonSeries.spans_from_frame(
             wagon_id,

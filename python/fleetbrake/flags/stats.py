@@ -5,7 +5,6 @@ predictions), and where the simulated block is unsure (:func:`unsure_mask`)."""
 from __future__ import annotations
 
 import datetime as dt
-import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -115,6 +114,39 @@ def unsure_mask(
     return unsure
 
 
+def _segment_sums(values: FloatArray, starts: np.ndarray, counts: np.ndarray) -> FloatArray:
+    """Per segment the sum of its slice of ``values`` (consecutive slices from ``starts``,
+    ``counts`` long; 0 for an empty one)."""
+    out = np.zeros(counts.size)
+    full = counts > 0
+    if full.any():
+        out[full] = np.add.reduceat(values, starts[full]) if values.size else 0.0
+    return out
+
+
+def _segment_reduce(
+    ufunc: np.ufunc, values: np.ndarray, starts: np.ndarray, counts: np.ndarray, empty: float
+) -> FloatArray:
+    out = np.full(counts.size, empty)
+    full = counts > 0
+    if full.any() and values.size:
+        out[full] = ufunc.reduceat(values, starts[full])
+    return out
+
+
+def _edge_means(
+    values: FloatArray, first: np.ndarray, counts: np.ndarray, width: int
+) -> FloatArray:
+    """Per segment the mean of ``values[first + j]`` for ``j < min(width, count)``."""
+    j = np.arange(width)
+    take = j[None, :] < counts[:, None]
+    at = np.where(take, first[:, None] + j[None, :], 0)
+    picked = values[at] if values.size else np.zeros(at.shape)
+    size = np.minimum(counts, width)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(take, picked, 0.0).sum(axis=1) / size
+
+
 def segment_stats(
     series: WagonSeries,
     predicted_c: FloatArray,
@@ -125,65 +157,94 @@ def segment_stats(
     unsure: BoolArray | None = None,
     invalid: BoolArray | None = None,
 ) -> list[Segment]:
-    """The :class:`Segment` of each [bounds[i], bounds[i+1]) of the series and its prediction."""
+    """The :class:`Segment` of each [bounds[i], bounds[i+1]) of the series and its prediction.
+
+    Computed over the series' columns at once: the valid seconds (a reading and a prediction)
+    compressed, each segment a consecutive slice of them, its sums taken with ``reduceat``."""
     measured = series.measured_c.copy()
     if invalid is not None:
         measured[invalid] = np.nan
     releases = sorted(b for _, _, b, _ in series.events)
     event_at = {a: event_id for event_id, a, _, _ in series.events}
     smooth = nan_running_mean(measured, config.smooth_s)
+    edges = np.asarray(bounds, dtype=np.int64)
+    if edges.size < 2:
+        return []
+    a_all, b_all = edges[:-1], edges[1:]
+    ok = np.isfinite(measured) & np.isfinite(predicted_c)
+    ranks = np.concatenate([[0], np.cumsum(ok)])
+    first = ranks[a_all]
+    count = ranks[b_all] - first
+    pos = np.flatnonzero(ok)
+    mv, pv = measured[pos], predicted_c[pos]
+    seg = np.repeat(np.arange(a_all.size), count)
+    k = (pos - a_all[seg]).astype(np.float64)  # seconds since the segment's start
+    r = mv - pv
+    size = np.maximum(count, 1).astype(np.float64)
+    has = count >= 2
+    # the least-squares line of measured - predicted against k, as np.polyfit has it
+    k_mean = _segment_sums(k, first, count) / size
+    r_mean = _segment_sums(r, first, count) / size
+    dk = k - k_mean[seg]
+    dr = r - r_mean[seg]
+    s_kk = _segment_sums(dk * dk, first, count)
+    s_kr = _segment_sums(dk * dr, first, count)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = np.where(has, s_kr / s_kk, math.nan)
+    intercept = r_mean - slope * k_mean
+    line = r - (slope[seg] * k + intercept[seg])
+    rms = np.sqrt(_segment_sums(line * line, first, count) / size)
+    m_start = _edge_means(mv, first, count, config.edge_s)
+    p_start = _edge_means(pv, first, count, config.edge_s)
+    last = ranks[b_all] - np.minimum(count, config.edge_s)
+    m_end = _edge_means(mv, last, count, config.edge_s)
+    p_end = _edge_means(pv, last, count, config.edge_s)
+    m_peak = _segment_reduce(np.fmax, smooth[pos], first, count, math.nan)
+    p_peak = _segment_reduce(np.maximum, pv, first, count, math.nan)
+    m_ambient = _segment_sums(np.abs(mv - series.ambient_c[pos]), first, count) / size
+    length = b_all - a_all
+    speed = _segment_sums(series.speed_kmh, a_all, length) / np.maximum(length, 1)
+    pressure = _segment_reduce(np.maximum, series.pressure_bar, a_all, length, math.nan)
+    ambient = _segment_sums(series.ambient_c, a_all, length) / np.maximum(length, 1)
+    if unsure is not None:
+        shaky = np.concatenate([[0], np.cumsum(unsure)])
+        calm = shaky[b_all] - shaky[a_all] == 0
+    else:
+        calm = np.ones(a_all.size, dtype=bool)
+    enough = (
+        (length >= config.min_segment_s)
+        & (count >= 2 * config.edge_s)
+        & (count >= config.min_valid_fraction * length)
+    )
+    since_j = np.searchsorted(np.asarray(releases, dtype=np.int64), a_all, side="right") - 1
+    nan = math.nan
     out = []
-    for i, (a, b) in enumerate(itertools.pairwise(bounds)):
-        m = measured[a:b]
-        p = predicted_c[a:b]
-        ok = np.isfinite(m) & np.isfinite(p)
-        idx = np.flatnonzero(ok)
-        length = b - a
-        enough = (
-            length >= config.min_segment_s
-            and idx.size >= 2 * config.edge_s
-            and idx.size >= config.min_valid_fraction * length
-        )
-        calm = unsure is None or not unsure[a:b].any()
-        nan = math.nan
-        if idx.size >= 2:
-            head, tail = idx[: config.edge_s], idx[-config.edge_s :]
-            m_start, m_end = float(m[head].mean()), float(m[tail].mean())
-            p_start, p_end = float(p[head].mean()), float(p[tail].mean())
-            r = m[idx] - p[idx]
-            k = idx.astype(np.float64)
-            slope, intercept = np.polyfit(k, r, 1)
-            rms = float(np.sqrt(np.mean((r - (slope * k + intercept)) ** 2)))
-            sm = smooth[a:b][idx]
-            m_rise = float(np.nanmax(sm) - m_start)
-            p_rise = float(np.max(p[idx]) - p_start)
-            m_ambient = float(np.mean(np.abs(m[idx] - series.ambient_c[a:b][idx])))
-        else:
-            m_start = m_end = p_start = p_end = m_rise = p_rise = nan
-            slope, rms, m_ambient = nan, nan, nan
-        j = np.searchsorted(releases, a, side="right") - 1
+    for i in range(a_all.size):
+        a, b = int(a_all[i]), int(b_all[i])
+        j = int(since_j[i])
         since = a - releases[j] if j >= 0 else math.inf
+        full = bool(has[i])
         out.append(
             Segment(
-                start=int(a),
-                stop=int(b),
+                start=a,
+                stop=b,
                 kind=kinds[i],
-                enough=bool(enough),
-                calm=bool(calm),
+                enough=bool(enough[i]),
+                calm=bool(calm[i]),
                 event_id=event_at.get(a) if kinds[i] == "braking" else None,
-                speed_kmh=float(series.speed_kmh[a:b].mean()),
-                pressure_max_bar=float(series.pressure_bar[a:b].max()),
-                ambient_c=float(series.ambient_c[a:b].mean()),
-                m_start=m_start,
-                m_end=m_end,
-                p_start=p_start,
-                p_end=p_end,
-                m_rise=m_rise,
-                p_rise=p_rise,
-                slope_k_per_h=float(slope) * 3600.0,
-                line_rms_k=rms,
+                speed_kmh=float(speed[i]) if b > a else nan,
+                pressure_max_bar=float(pressure[i]),
+                ambient_c=float(ambient[i]) if b > a else nan,
+                m_start=float(m_start[i]) if full else nan,
+                m_end=float(m_end[i]) if full else nan,
+                p_start=float(p_start[i]) if full else nan,
+                p_end=float(p_end[i]) if full else nan,
+                m_rise=float(m_peak[i] - m_start[i]) if full else nan,
+                p_rise=float(p_peak[i] - p_start[i]) if full else nan,
+                slope_k_per_h=float(slope[i]) * 3600.0 if full else nan,
+                line_rms_k=float(rms[i]) if full else nan,
                 since_release_s=float(since),
-                m_ambient_k=m_ambient,
+                m_ambient_k=float(m_ambient[i]) if full else nan,
             )
         )
     return out
@@ -224,35 +285,45 @@ def event_stats(
     ``predictions`` (rows of one wagon and revision). A braking is not judged when incomplete,
     when its window overlaps ``excluded`` (sensor faults), when [activation - settle_s,
     release] overlaps ``unsure``, or with too few valid readings."""
-    out = []
-    by_event = {key[0]: group for key, group in predictions.group_by(["event_id"])}
+    out: list[EventStat] = []
+    if predictions.height == 0:
+        return out
+    # the wagon's windows as columns, sorted by event and time once; each event a slice
+    rows = predictions.sort(["event_id", "time_utc"], maintain_order=True)
+    ids = rows["event_id"].to_numpy()
+    times = rows["time_utc"].to_list()
+    m_all = rows["measured_sensor_c"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    p_all = rows["predicted_sensor_c"].cast(pl.Float64).to_numpy()
+    cmax_all = rows["predicted_contact_max_c"].cast(pl.Float64).to_numpy()
+    pressure_all = rows["brake_pressure_bar"].cast(pl.Float64).fill_null(0.0).to_numpy()
+    speed_all = rows["speed_kmh"].cast(pl.Float64).fill_null(0.0).to_numpy()
+    heating_all = (rows["phase"] == "heating").fill_null(False).to_numpy()
+    cut = np.flatnonzero(ids[1:] != ids[:-1]) + 1
+    starts = np.concatenate([[0], cut])
+    stops = np.concatenate([cut, [ids.size]])
+    by_event = {str(ids[a]): (int(a), int(b)) for a, b in zip(starts, stops, strict=True)}
+    lead = dt.timedelta(seconds=config.settle_s)
     for row in events.sort("start_utc").iter_rows(named=True):
-        group = by_event.get(row["event_id"])
-        if group is None or group.height < 2:
+        where = by_event.get(row["event_id"])
+        if where is None or where[1] - where[0] < 2:
             continue
-        group = group.sort("time_utc")
-        times = group["time_utc"]
-        m = group["measured_sensor_c"].cast(pl.Float64).fill_null(np.nan).to_numpy()
-        p = group["predicted_sensor_c"].to_numpy().astype(np.float64)
-        cmax = group["predicted_contact_max_c"].to_numpy().astype(np.float64)
-        w0, w1 = times[0], times[-1]
+        a, b = where
+        m, p, cmax = m_all[a:b], p_all[a:b], cmax_all[a:b]
+        w0, w1 = times[a], times[b - 1]
         valid = np.isfinite(m)
         start_vals = m[: config.rise_start_s][valid[: config.rise_start_s]]
         judged = bool(row.get("complete", True)) and valid.mean() >= config.min_valid_fraction
         judged = judged and start_vals.size > 0
-        judged = judged and not any(a < w1 and w0 < b for a, b in excluded)
-        lead = dt.timedelta(seconds=config.settle_s)
+        judged = judged and not any(x < w1 and w0 < y for x, y in excluded)
         judged = judged and not any(
-            a < row["end_utc"] and row["start_utc"] - lead < b for a, b in unsure
+            x < row["end_utc"] and row["start_utc"] - lead < y for x, y in unsure
         )
         m0 = float(start_vals.mean()) if start_vals.size else math.nan
         smooth = nan_running_mean(m, config.smooth_s)
         m_rise = float(np.nanmax(smooth) - m0) if np.isfinite(smooth).any() else math.nan
         p_rise = float(p.max() - p[0])
         k = int(np.argmax(cmax))
-        pressure = group["brake_pressure_bar"].cast(pl.Float64).fill_null(0.0).to_numpy()
-        speed = group["speed_kmh"].cast(pl.Float64).fill_null(0.0).to_numpy()
-        heating = (group["phase"] == "heating").to_numpy()
+        speed, heating = speed_all[a:b], heating_all[a:b]
         v_h = speed[heating] if heating.any() else speed
         out.append(
             EventStat(
@@ -264,10 +335,10 @@ def event_stats(
                 m_rise=m_rise,
                 p_rise=p_rise,
                 contact_max_c=float(cmax[k]),
-                contact_max_utc=times[k],
+                contact_max_utc=times[a + k],
                 v_start_kmh=float(v_h[0]),
                 v_end_kmh=float(v_h[-1]),
-                p_max_bar=float(pressure.max()),
+                p_max_bar=float(pressure_all[a:b].max()),
             )
         )
     return out

@@ -17,6 +17,7 @@ from). A wagon's rows of one revision are replaced together, in one transaction.
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import polars as pl
@@ -28,10 +29,12 @@ __all__ = [
     "StoredTimeline",
     "TimelineSpan",
     "WagonRows",
+    "WagonWrite",
     "data_keys",
     "forget_wagon",
     "load_timeline",
     "replace_wagon",
+    "replace_wagons",
     "simulated_wagons",
     "utc_now",
     "wagon_events",
@@ -111,6 +114,21 @@ def wagon_events(wh: Warehouse, wagon_id: str) -> pl.DataFrame:
     return wh.con.sql(sql("q_simulation_wagon_events"), params={"wagon_id": wagon_id}).pl()
 
 
+@dataclass(frozen=True)
+class WagonWrite:
+    """One wagon's rows of a revision and the keys it was simulated from, to be stored
+    whole (:func:`replace_wagons`)."""
+
+    wagon_id: str
+    rows: WagonRows
+    data_key: str
+    model_key: str
+
+    @property
+    def row_count(self) -> int:
+        return self.rows.predictions.height + self.rows.timeline.height + self.rows.segments.height
+
+
 def replace_wagon(
     wh: Warehouse,
     wagon_id: str,
@@ -122,32 +140,49 @@ def replace_wagon(
 ) -> None:
     """Replace the wagon's rows of ``revision`` in every table of the stage, in one
     transaction, recording the keys it was simulated from."""
-    key = {"wagon_id": wagon_id, "revision": revision}
+    replace_wagons(wh, revision, [WagonWrite(wagon_id, rows, data_key, model_key)])
+
+
+def replace_wagons(wh: Warehouse, revision: str, wagons: Sequence[WagonWrite]) -> None:
+    """Replace the rows of ``revision`` of every wagon of ``wagons`` in every table of the
+    stage, all in one transaction (each wagon whole-old or whole-new whatever happens), one
+    bulk delete and one bulk insert per table, recording the keys each was simulated from."""
+    if not wagons:
+        return
+    if len({w.wagon_id for w in wagons}) != len(wagons):
+        raise ValueError("replace_wagons: a wagon given twice")
     batches = (
-        ("prediction_batch", rows.predictions, "q_simulation_insert_predictions"),
-        ("timeline_batch", rows.timeline, "q_simulation_insert_timeline"),
-        ("segment_batch", rows.segments, "q_simulation_insert_timeline_segments"),
+        ("prediction_batch", "predictions", "q_simulation_insert_predictions"),
+        ("timeline_batch", "timeline", "q_simulation_insert_timeline"),
+        ("segment_batch", "segments", "q_simulation_insert_timeline_segments"),
     )
+    key = {"wagon_ids": [w.wagon_id for w in wagons], "revision": revision}
+    now = utc_now()
     with wh.transaction() as con:
         for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
-            con.execute(sql(f"q_simulation_delete_{table}"), key)
-        for name, frame, statement in batches:
-            if frame.height:
-                con.register(name, frame)
-                try:
-                    con.execute(sql(statement))
-                finally:
-                    con.unregister(name)
-        con.execute(
-            sql("q_simulation_insert_simulated_wagon"),
-            {
-                **key,
-                "data_key": data_key,
-                "model_key": model_key,
-                "events": rows.events,
-                "simulated_utc": utc_now(),
-            },
-        )
+            con.execute(sql(f"q_simulation_delete_{table}_wagons"), key)
+        for name, attribute, statement in batches:
+            frames = [frame for w in wagons if (frame := getattr(w.rows, attribute)).height]
+            if not frames:
+                continue
+            frame = frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical")
+            con.register(name, frame)
+            try:
+                con.execute(sql(statement))
+            finally:
+                con.unregister(name)
+        for w in wagons:
+            con.execute(
+                sql("q_simulation_insert_simulated_wagon"),
+                {
+                    "wagon_id": w.wagon_id,
+                    "revision": revision,
+                    "data_key": w.data_key,
+                    "model_key": w.model_key,
+                    "events": w.rows.events,
+                    "simulated_utc": now,
+                },
+            )
 
 
 def forget_wagon(wh: Warehouse, wagon_id: str, revision: str) -> None:
