@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from fleetbrake.cli.group import FleetbrakeGroup
-from fleetbrake.cli.options import global_options
+from fleetbrake.cli.options import RefinementOption, WorkersOption, global_options
 from fleetbrake.cli.threads import blas_single_thread
 
 __all__ = ["bench_app"]
@@ -111,16 +111,8 @@ def bench_fleet_command(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 0,
     workdir: WorkdirOption = None,
     fleet_dir: BenchFleetOption = None,
-    refinement: Annotated[
-        float,
-        typer.Option("--refinement", help="Mesh refinement of the reduced model (1.0: default)."),
-    ] = 1.0,
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            "--workers", help="Worker processes of the local engine (default: the cores)."
-        ),
-    ] = None,
+    refinement: RefinementOption = 1.0,
+    workers: WorkersOption = None,
 ) -> None:
     """A fleet-day from log files to flags: `fleetbrake run` timed end to end (and per
     stage) on a generated fleet (generation not timed)."""

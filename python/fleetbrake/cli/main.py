@@ -40,7 +40,9 @@ from fleetbrake.cli.options import (
     GlobalOptions,
     OptionError,
     OutputDirError,
+    RefinementOption,
     WaitOption,
+    WorkersOption,
     global_options,
     option_values,
 )
@@ -153,12 +155,7 @@ def run_command(
             "ray (not yet available).",
         ),
     ] = "local",
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            "--workers", help="Worker processes of the local engine (default: the cores)."
-        ),
-    ] = None,
+    workers: WorkersOption = None,
 ) -> None:
     """Ingest new files, detect events, simulate every new event, raise flags.
 
@@ -314,10 +311,7 @@ def synth_command(
     gzip_fraction: Annotated[
         float, typer.Option("--gzip-fraction", help="Share of the log files gzipped.")
     ] = 0.5,
-    refinement: Annotated[
-        float,
-        typer.Option("--refinement", help="Mesh refinement of the model (1.0: default)."),
-    ] = 1.0,
+    refinement: RefinementOption = 1.0,
     solver: Annotated[
         str,
         typer.Option(

@@ -74,6 +74,14 @@ def option_values(*options: str) -> Iterator[None]:
 
 
 DbOption = Annotated[Path, typer.Option("--db", help="DuckDB warehouse.")]
+WorkersOption = Annotated[
+    int | None,
+    typer.Option("--workers", help="Worker processes of the local engine (default: the cores)."),
+]
+RefinementOption = Annotated[
+    float,
+    typer.Option("--refinement", help="Mesh refinement of the model (1.0: the default mesh)."),
+]
 WaitOption = Annotated[
     float,
     typer.Option("--wait", help="Seconds to wait for another process writing the database."),

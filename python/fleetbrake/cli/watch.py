@@ -18,6 +18,7 @@ from typing import Annotated, Literal, cast
 
 import typer
 
+from fleetbrake.cli.options import RefinementOption, WorkersOption
 from fleetbrake.cli.signals import stop_on_signals
 from fleetbrake.errors import ConfigError
 
@@ -91,16 +92,8 @@ def watch_command(
     solver: Annotated[
         str, typer.Option("--solver", help="Model of a new `declared` revision: rom or full.")
     ] = "rom",
-    refinement: Annotated[
-        float,
-        typer.Option("--refinement", help="Mesh refinement of the reduced model (1.0: default)."),
-    ] = 1.0,
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            "--workers", help="Worker processes of the local engine (default: the cores)."
-        ),
-    ] = None,
+    refinement: RefinementOption = 1.0,
+    workers: WorkersOption = None,
     json_lines: Annotated[
         bool,
         typer.Option("--json", help="One JSON object per processed file on stdout."),

@@ -58,13 +58,19 @@ from fleetbrake.flags.sensor import (
     heat_flow_corrected,
     merge_sensor_faults,
 )
-from fleetbrake.flags.series import SpanTimeline, spans_of, stored_timeline
+from fleetbrake.flags.series import SpanTimeline, spans_of
 from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
 from fleetbrake.fleet.registry import Registry, WagonConfig
 from fleetbrake.simulation.chains import constant_runs
 from fleetbrake.simulation.predictions import Mapper, revision
 from fleetbrake.simulation.series import BoolArray, WagonSeries, runs
-from fleetbrake.simulation.store import StoredTimeline, data_keys, simulated_wagons, utc_now
+from fleetbrake.simulation.store import (
+    StoredTimeline,
+    data_keys,
+    simulated_wagons,
+    stored_timeline,
+    utc_now,
+)
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [

@@ -12,7 +12,6 @@ simulate).
 
 from __future__ import annotations
 
-import datetime as dt
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +22,7 @@ from fleetbrake.simulation.series import FloatArray, WagonSeries
 from fleetbrake.simulation.store import StoredTimeline, TimelineSpan, wagon_events, wagon_samples
 from fleetbrake.warehouse.connection import Warehouse
 
-__all__ = ["SpanTimeline", "load_spans", "span_timeline", "spans_of", "stored_timeline"]
+__all__ = ["SpanTimeline", "load_spans", "span_timeline", "spans_of"]
 
 
 @dataclass(frozen=True)
@@ -52,28 +51,6 @@ def span_timeline(series: WagonSeries, span: TimelineSpan) -> SpanTimeline:
     kinds = [str(kind) for kind in span.segments["kind"]]
     gaps = [(a - 1, b) for a, b, kind in zip(starts, stops, kinds, strict=True) if kind == "gap"]
     return SpanTimeline(predicted, [*starts, series.n], kinds, gaps)
-
-
-def stored_timeline(
-    wagon_id: str, revision: str, data_key: str, segments: pl.DataFrame, values: pl.DataFrame
-) -> StoredTimeline:
-    """A wagon's stored timeline from its rows of ``timeline_segments`` (with
-    ``span_start_utc``, ``span_end_utc``) and ``timeline`` as read by
-    ``q_simulation_timeline_segments.sql`` and ``q_simulation_timeline.sql``, cut by span
-    (what :func:`fleetbrake.simulation.store.load_timeline` returns, without a database)."""
-    stored = StoredTimeline(wagon_id, revision, data_key)
-    if segments.height == 0:
-        return stored
-    for (start, end), part in segments.group_by(
-        ["span_start_utc", "span_end_utc"], maintain_order=True
-    ):
-        assert isinstance(start, dt.datetime) and isinstance(end, dt.datetime)
-        inside = values.filter(pl.col("time_utc").is_between(start, end))
-        stored.spans.append(
-            TimelineSpan(start, end, part.drop("span_start_utc", "span_end_utc"), inside)
-        )
-    stored.spans.sort(key=lambda s: s.start_utc)
-    return stored
 
 
 def load_spans(

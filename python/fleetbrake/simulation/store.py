@@ -36,6 +36,7 @@ __all__ = [
     "replace_wagon",
     "replace_wagons",
     "simulated_wagons",
+    "stored_timeline",
     "utc_now",
     "wagon_events",
     "wagon_samples",
@@ -203,7 +204,17 @@ def load_timeline(wh: Warehouse, wagon_id: str, revision: str) -> StoredTimeline
     params = {"wagon_id": wagon_id, "revision": revision}
     segments = wh.con.sql(sql("q_simulation_timeline_segments"), params=params).pl()
     values = wh.con.sql(sql("q_simulation_timeline"), params=params).pl()
-    stored = StoredTimeline(wagon_id, revision, done.data_key)
+    return stored_timeline(wagon_id, revision, done.data_key, segments, values)
+
+
+def stored_timeline(
+    wagon_id: str, revision: str, data_key: str, segments: pl.DataFrame, values: pl.DataFrame
+) -> StoredTimeline:
+    """A wagon's stored timeline from its rows of ``timeline_segments`` (with
+    ``span_start_utc``, ``span_end_utc``) and ``timeline`` as read by
+    ``q_simulation_timeline_segments.sql`` and ``q_simulation_timeline.sql``, cut by span
+    (what :func:`load_timeline` returns, without a database: the flags' workers call it)."""
+    stored = StoredTimeline(wagon_id, revision, data_key)
     if segments.height == 0:
         return stored
     for (start, end), part in segments.group_by(
