@@ -318,6 +318,17 @@ def test_close_loop_prints_its_summary_last(fleet: Fleet, cli: CliRunner, tmp_pa
         assert (key in summary) == (key in report)
 
 
+@pytest.mark.parametrize("command", ["run", "watch"])
+def test_an_engine_that_cannot_be_had_is_a_usage_error(
+    fleet: Fleet, cli: CliRunner, tmp_path: Path, command: str
+) -> None:
+    db = tmp_path / "fleet.duckdb"
+    result = cli.invoke(app, [command, str(fleet.fleet_dir), "--db", str(db), "--engine", "ray"])
+    line = _one_line_failure(result, 2, command)
+    assert "--engine ray" in line
+    assert not db.exists()  # refused before anything was written
+
+
 def test_synth_with_an_unknown_solver_is_a_usage_error(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["synth", str(tmp_path / "fleet"), "--solver", "fem"])
     line = _one_line_failure(result, 2, "synth")

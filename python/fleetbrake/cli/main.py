@@ -36,6 +36,7 @@ from fleetbrake.cli.logs import LogFormat, configure_logging, level_for
 from fleetbrake.cli.options import (
     DEFAULT_DB,
     DbOption,
+    EngineOption,
     FleetDirArgument,
     GlobalOptions,
     OptionError,
@@ -147,14 +148,7 @@ def run_command(
     json_summary: Annotated[
         bool, typer.Option("--json", help="Last line of stdout: one JSON summary.")
     ] = False,
-    engine: Annotated[
-        str,
-        typer.Option(
-            "--engine",
-            help="Where partitions run: local (worker processes on this machine, default); "
-            "ray (not yet available).",
-        ),
-    ] = "local",
+    engine: EngineOption = "local",
     workers: WorkersOption = None,
 ) -> None:
     """Ingest new files, detect events, simulate every new event, raise flags.

@@ -74,6 +74,14 @@ def option_values(*options: str) -> Iterator[None]:
 
 
 DbOption = Annotated[Path, typer.Option("--db", help="DuckDB warehouse.")]
+EngineOption = Annotated[
+    str,
+    typer.Option(
+        "--engine",
+        help="Where partitions run: local (worker processes on this machine, default); "
+        "ray (not yet available).",
+    ),
+]
 WorkersOption = Annotated[
     int | None,
     typer.Option("--workers", help="Worker processes of the local engine (default: the cores)."),

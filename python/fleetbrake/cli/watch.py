@@ -18,7 +18,7 @@ from typing import Annotated, Literal, cast
 
 import typer
 
-from fleetbrake.cli.options import RefinementOption, WorkersOption
+from fleetbrake.cli.options import EngineOption, RefinementOption, WorkersOption
 from fleetbrake.cli.signals import stop_on_signals
 from fleetbrake.errors import ConfigError
 
@@ -93,6 +93,7 @@ def watch_command(
         str, typer.Option("--solver", help="Model of a new `declared` revision: rom or full.")
     ] = "rom",
     refinement: RefinementOption = 1.0,
+    engine: EngineOption = "local",
     workers: WorkersOption = None,
     json_lines: Annotated[
         bool,
@@ -124,6 +125,7 @@ def watch_command(
             rescan_s=rescan_s,
             wait_s=wait_s,
             flag_config_path=flag_config,
+            engine=engine,
             workers=workers,
             simulation=SimulationConfig(
                 solver=cast(Literal["rom", "full"], solver), refinement=refinement

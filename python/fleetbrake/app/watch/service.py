@@ -97,6 +97,8 @@ class WatchConfig:
     """As ``run``'s (None: its defaults)."""
     flag_config_path: Path | None = None
     """As ``run --flag-config``."""
+    engine: str = "local"
+    """Where each unit's partitions run (``fleetbrake.engine.make_engine``'s names)."""
     workers: int | None = None
     """Worker processes of the local engine, kept for the service's life (None: the cores;
     1: in the service's own process)."""
@@ -306,7 +308,7 @@ class _Service:
         from fleetbrake.engine import make_engine
 
         if self._engine is None:
-            self._engine = make_engine("local", self.config.workers)
+            self._engine = make_engine(self.config.engine, self.config.workers)
         return self._engine
 
     def _close_engine(self) -> None:
@@ -578,11 +580,14 @@ def watch_fleet(
     Raises before watching what :func:`fleetbrake.ingest.files.load_fleet_registry` raises for
     an unusable fleet directory or registry, and :class:`WatchError` when it cannot go on.
     """
+    from fleetbrake.engine import make_engine
     from fleetbrake.ingest.files import load_fleet_registry
 
     fleet_dir, db_path = Path(fleet_dir), Path(db_path)
     load_fleet_registry(fleet_dir)  # an unusable fleet is refused before anything else
-    service = _Service(
-        fleet_dir, db_path, config or WatchConfig(), stop or threading.Event(), on_file
-    )
+    config = config or WatchConfig()
+    # an engine that cannot be had is refused now (exit 2), not at the first unit; the
+    # service makes its own at the first unit and keeps it
+    make_engine(config.engine, config.workers).close()
+    service = _Service(fleet_dir, db_path, config, stop or threading.Event(), on_file)
     return service.run()
