@@ -126,3 +126,37 @@ def test_candidates_are_effects_of_the_vocabulary():
     assert len(CloseLoopConfig(holdout).candidate_classes()) == len(EFFECT_ORDER)
     with pytest.raises(CloseLoopConfigError, match=r"candidates: unknown effect.*heat_partitio\b"):
         CloseLoopConfig(holdout, candidates=("heat_partitio",))
+
+
+class CountingBrakings(ThreeBrakings):
+    """:class:`ThreeBrakings` that records the parameter of every simulation it is asked for."""
+
+    def __init__(self, alphas: tuple[float, ...], drop_above: float) -> None:
+        super().__init__(alphas, drop_above)
+        self.simulated: list[float] = []
+
+    def frames(self, effects: EffectSet) -> pl.DataFrame:
+        partition = effects.get("heat_partition")
+        assert isinstance(partition, HeatPartition)
+        self.simulated.append(partition.alpha)
+        return super().frames(effects)
+
+
+def test_a_fit_simulates_each_parameter_vector_once():
+    """The optimiser's first call (the starting point, already simulated for the reference
+    seconds) and the fit's residual (its last accepted point) reuse what was simulated: every
+    simulation of a fit is of a new parameter vector, and the residual returned is the one of
+    the fitted effects."""
+    brakings = CountingBrakings(alphas=(0.70, 0.75, 0.80), drop_above=0.76)
+
+    effects, residual = _fit(
+        brakings,  # type: ignore[arg-type]  # the evaluator's frames/residual, in miniature
+        EffectSet(),
+        [HeatPartition],
+        None,
+        max_nfev=14,
+    )
+
+    assert len(brakings.simulated) >= 3
+    assert len(set(brakings.simulated)) == len(brakings.simulated), brakings.simulated
+    np.testing.assert_array_equal(residual, ThreeBrakings.residual(brakings, effects))

@@ -57,6 +57,7 @@ from fleetbrake.model.effects import EFFECT_ORDER, EFFECTS, Effect, EffectSet
 from fleetbrake.simulation.predictions import (
     Revision,
     SimulationConfig,
+    WagonData,
     current_revision,
     load_wagon,
     model_for,
@@ -161,21 +162,24 @@ class _Evaluator:
         events: pl.DataFrame,
         config: SimulationConfig,
         base: Revision,
+        loaded: dict[tuple[str, float], WagonData] | None = None,
     ):
+        """``loaded``: the wagons' data already read, by (wagon, ``bridge_max_s``), shared by
+        the evaluators of one run (filled here): each wagon is read once per run."""
         self.config = config
         self.base = base
         self.parts = []
+        loaded = {} if loaded is None else loaded
         for wagon_id in events["wagon_id"].unique(maintain_order=True).to_list():
             wagon = wagons.get(wagon_id)
             if wagon is None:
                 continue
             todo = events.filter(pl.col("wagon_id") == wagon_id)["event_id"].to_list()
+            key = (wagon_id, config.chain.bridge_max_s)
+            if key not in loaded:
+                loaded[key] = load_wagon(wh, wagon, config)
             self.parts.append(
-                (
-                    model_for(wagon, base.solver, base.refinement),
-                    load_wagon(wh, wagon, config),
-                    set(todo),
-                )
+                (model_for(wagon, base.solver, base.refinement), loaded[key], set(todo))
             )
 
     def frames(self, effects: EffectSet) -> pl.DataFrame:
@@ -189,11 +193,16 @@ class _Evaluator:
         return pl.concat(out) if out else pl.DataFrame()
 
     def residual(self, effects: EffectSet) -> np.ndarray:
-        frame = self.frames(effects)
-        if frame.height == 0:
-            return np.zeros(0)
-        r = (frame["measured_sensor_c"] - frame["predicted_sensor_c"]).to_numpy()
-        return r[np.isfinite(r)]
+        return _finite_residual(self.frames(effects))
+
+
+def _finite_residual(frame: pl.DataFrame) -> np.ndarray:
+    """measured - predicted sensor temperature of every second where both are finite, in the
+    frame's order."""
+    if frame.height == 0:
+        return np.zeros(0)
+    r = (frame["measured_sensor_c"] - frame["predicted_sensor_c"]).to_numpy()
+    return r[np.isfinite(r)]
 
 
 RESIDUAL_KEY = ("event_id", "time_utc")
@@ -287,11 +296,25 @@ def _fit(
         return effects
 
     # every evaluation is scored on the seconds of the starting point, matched by key: a
-    # candidate that loses or gains a prediction is still compared second by second
-    reference = _keyed_residual(evaluator.frames(build(np.asarray(x0))))
+    # candidate that loses or gains a prediction is still compared second by second. Each
+    # parameter vector is simulated once: the optimiser's first call (the starting point) and
+    # the residual of its result (its last accepted point) are taken from what was computed.
+    seen: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def evaluate(x: np.ndarray, reference: pl.DataFrame | None) -> pl.DataFrame:
+        frame = evaluator.frames(build(x))
+        keyed = _keyed_residual(frame)
+        aligned = _aligned(keyed if reference is None else reference, keyed)
+        seen[np.asarray(x, dtype=np.float64).tobytes()] = (aligned, _finite_residual(frame))
+        return keyed
+
+    reference = evaluate(np.asarray(x0, dtype=np.float64), None)
 
     def fun(x: np.ndarray) -> np.ndarray:
-        return _aligned(reference, _keyed_residual(evaluator.frames(build(x))))
+        key = np.asarray(x, dtype=np.float64).tobytes()
+        if key not in seen:
+            evaluate(x, reference)
+        return seen[key][0]
 
     x_start = np.clip(np.asarray(x0), np.asarray(lo) + 1e-9, np.asarray(hi) - 1e-9)
     result = least_squares(
@@ -304,7 +327,8 @@ def _fit(
         method="trf",
     )
     effects = build(result.x)
-    return effects, evaluator.residual(effects)
+    done = seen.get(np.asarray(result.x, dtype=np.float64).tobytes())
+    return effects, done[1] if done is not None else evaluator.residual(effects)
 
 
 # ---------------------------------------------------------------------------- evidence
@@ -412,8 +436,11 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
     all_events = wh.con.sql(sql("q_closeloop_events")).pl()
     sim = config.simulation
     # candidates are simulated as the baseline's predictions were: with its solver
-    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base)
-    hold_eval = _Evaluator(wh, wagons, all_events, holdout, sim, base) if holdout.height else None
+    loaded: dict[tuple[str, float], WagonData] = {}
+    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base, loaded)
+    hold_eval = (
+        _Evaluator(wh, wagons, all_events, holdout, sim, base, loaded) if holdout.height else None
+    )
 
     base_frame = fit_eval.frames(base.effects)
     noise_k = _noise_k(base_frame)
@@ -433,6 +460,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         fit[np.unique(picks.round().astype(int))],
         screen_config,
         base,
+        loaded,
     )
     screened: list[Candidate] = []
     present = {type(e) for e in base.effects}
@@ -560,7 +588,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         _reflag(wh, wagons, new_rev, sim)
         fit, holdout, _ = _event_sets(wh, base.name, config)
         if fit.height and set(fit["event_id"].to_list()) != set(fit_ids):
-            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base)
+            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base, loaded)
             effects, r = _fit(
                 refit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
             )
