@@ -263,3 +263,21 @@ def test_bad_inputs_are_clear_errors(rom):
         rom.simulate_batch(
             dt_s=1.0, flux_w_m2=np.zeros((4, 10)), initial_c=20.0, ambient_c=np.zeros(3)
         )
+
+
+def test_unique_rows_equals_numpys_unique_of_rows() -> None:
+    """The run-wise distinct rows (convection series) are numpy's, keys and inverse alike."""
+    from fleetbrake.model.rom import unique_rows
+
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        n, faces = int(rng.integers(1, 700)), int(rng.integers(1, 4))
+        runs = rng.integers(1, 50, size=n)
+        levels = rng.choice([0.0, 1.5, -2.0, 3.25], size=(n, faces))
+        values = np.repeat(levels, runs, axis=0)[:n]
+        keys, inverse = np.unique(values, axis=0, return_inverse=True)
+        got_keys, got_inverse = unique_rows(values)
+        np.testing.assert_array_equal(got_keys, keys)
+        np.testing.assert_array_equal(got_inverse, inverse.reshape(-1))
+    empty_keys, empty_inverse = unique_rows(np.zeros((0, 2)))
+    assert empty_keys.shape == (0, 2) and empty_inverse.shape == (0,)

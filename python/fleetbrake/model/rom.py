@@ -526,8 +526,7 @@ class ReducedModel:
         drive = h_steps * (ambient - t_ref)[:, None]  # (S, F): h_s (T_amb - T_ref)
         u = flux[:, None] * self.b_flux[None, :] + drive @ self.b_faces  # (S, r)
         h_nom = self._h_nominal_by_face()
-        keys, inverse = np.unique(np.round(h_steps - h_nom, 12), axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1).astype(np.int64)
+        keys, inverse = unique_rows(np.round(h_steps - h_nom, 12))
         props = [self._cached_propagator(key, dt_s, scheme) for key in keys]
         repeats = np.ones(n_steps, dtype=np.int64)
         if scheme == "crank-nicolson":  # damped steps: two backward-Euler half steps
@@ -642,8 +641,8 @@ class ReducedModel:
             if not dh[at].any():
                 keys, inverse = np.zeros((1, faces)), np.zeros(at.size, dtype=np.int64)
             else:
-                keys, inverse = np.unique(dh[at], axis=0, return_inverse=True)
-            index[at] = len(props) + inverse.reshape(-1)
+                keys, inverse = unique_rows(dh[at])
+            index[at] = len(props) + inverse
             props += [self._cached_propagator(key, float(dt_s), "exact") for key in keys]
         r = self.order
         if not props:  # no steps at all: one unused propagator keeps the table well formed
@@ -797,6 +796,20 @@ def _series(name: str, value: float | ArrayLike, n_steps: int) -> NDArray[np.flo
     if arr.size != n_steps:
         raise LengthMismatchError(f"{name} has {arr.size} values, expected {n_steps}")
     return arr
+
+
+def unique_rows(
+    values: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """``np.unique(values, axis=0, return_inverse=True)`` (the sorted distinct rows, and each
+    row's index among them) for rows that come in runs, as a convection series does: the runs'
+    first rows are compared, not every row (the sort of every row cost more than the kernel)."""
+    if len(values) == 0:
+        return values.reshape(0, *values.shape[1:]), np.zeros(0, dtype=np.int64)
+    starts = np.flatnonzero(np.r_[True, np.any(values[1:] != values[:-1], axis=1)])
+    keys, run_index = np.unique(values[starts], axis=0, return_inverse=True)
+    lengths = np.diff(np.r_[starts, len(values)])
+    return keys, np.repeat(run_index.reshape(-1).astype(np.int64), lengths)
 
 
 def _damped_mask(
