@@ -320,12 +320,13 @@ def test_close_loop_prints_its_summary_last(fleet: Fleet, cli: CliRunner, tmp_pa
 
 @pytest.mark.parametrize("command", ["run", "watch"])
 def test_an_engine_that_cannot_be_had_is_a_usage_error(
-    fleet: Fleet, cli: CliRunner, tmp_path: Path, command: str
+    fleet: Fleet, cli: CliRunner, tmp_path: Path, command: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed: `import ray` fails
     db = tmp_path / "fleet.duckdb"
     result = cli.invoke(app, [command, str(fleet.fleet_dir), "--db", str(db), "--engine", "ray"])
     line = _one_line_failure(result, 2, command)
-    assert "--engine ray" in line
+    assert "--engine ray" in line and 'pip install "fleetbrake[ray]"' in line
     assert not db.exists()  # refused before anything was written
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -120,12 +121,13 @@ def test_workers_run_one_thread_per_library() -> None:
     assert os.getpid() not in {pid for _, _, pid in seen}
 
 
-def test_make_engine() -> None:
+def test_make_engine(monkeypatch: pytest.MonkeyPatch) -> None:
     assert isinstance(make_engine("local", 1), InlineEngine)
     engine = make_engine("local", 2)
     assert isinstance(engine, LocalEngine) and engine.workers == 2
     engine.close()
-    with pytest.raises(EngineConfigError, match="issue 15") as ray:
+    monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
+    with pytest.raises(EngineConfigError, match=r'pip install "fleetbrake\[ray\]"') as ray:
         make_engine("ray")
     assert ray.value.exit_code == EXIT_USAGE
     with pytest.raises(EngineConfigError, match="--workers must be >= 1"):
@@ -134,16 +136,19 @@ def test_make_engine() -> None:
         make_engine("dask")
 
 
-def test_run_refuses_the_ray_engine_and_a_bad_worker_count(tmp_path: Path) -> None:
+def test_run_refuses_the_ray_engine_and_a_bad_worker_count(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     from typer.testing import CliRunner
 
     from fleetbrake.cli.main import app
 
+    monkeypatch.setitem(sys.modules, "ray", None)  # Ray not installed
     runner = CliRunner()
     db = str(tmp_path / "fleet.duckdb")
     ray = runner.invoke(app, ["run", str(tmp_path), "--db", db, "--engine", "ray"])
     assert ray.exit_code == EXIT_USAGE
-    assert "--engine ray: the Ray engine is not available yet (issue 15)" in ray.output
+    assert '--engine ray needs Ray: pip install "fleetbrake[ray]"' in ray.output
     zero = runner.invoke(app, ["run", str(tmp_path), "--db", db, "--workers", "0"])
     assert zero.exit_code == EXIT_USAGE and "--workers must be >= 1, got 0" in zero.output
     assert not (tmp_path / "fleet.duckdb").exists()  # refused before anything was written

@@ -82,17 +82,19 @@ def run_fleet(
     progress: bool | None = None,
     engine: Engine | str = "local",
     workers: int | None = None,
+    address: str | None = None,
 ) -> RunReport:
     """``fleetbrake run``: ingest the files not yet ingested, detect events, simulate every
     new event with the current model revision, raise flags; one writer at a time.
 
     Raises (before anything is written) what :func:`fleetbrake.ingest.files.run_ingest` raises for
     an unusable fleet directory, registry or database, and
-    :class:`~fleetbrake.engine.EngineConfigError` for an unknown ``engine`` name (``ray``
-    until issue 15) or ``workers < 1``. ``progress``: show progress bars (None: when stdout
+    :class:`~fleetbrake.engine.EngineConfigError` for an unknown ``engine`` name, ``ray``
+    without Ray installed, or ``workers < 1``. ``progress``: show progress bars (None: when stdout
     is a terminal).
 
-    ``engine``: an engine's name (:func:`fleetbrake.engine.make_engine`, with ``workers``;
+    ``engine``: an engine's name (:func:`fleetbrake.engine.make_engine`, with ``workers``
+    and, for ``ray``, the cluster's ``address``;
     made once here, handed to every stage, closed at the end) or an engine the caller made
     and closes. The tables are the same with any engine.
     """
@@ -103,7 +105,9 @@ def run_fleet(
     progress = sys.stdout.isatty() if progress is None else progress
     with contextlib.ExitStack() as owned:
         if isinstance(engine, str):  # a bad name or count: refused before anything is read
-            engine = owned.enter_context(make_engine(engine, workers, preload=_STAGE_MODULES))
+            engine = owned.enter_context(
+                make_engine(engine, workers, preload=_STAGE_MODULES, address=address)
+            )
             engine.start()  # the workers import the stages while the files are scanned
         registry = load_fleet_registry(fleet_dir)
         flag_config = load_flag_config(flag_config_path) if flag_config_path else FlagConfig()

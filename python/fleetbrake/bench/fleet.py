@@ -11,7 +11,12 @@ rest of the total is opening the database.
 The reduced thermal model is loaded (or built and cached) before the clock starts, as a
 fleet server would have it; the refinement (``--refinement``) is 1.0, the default mesh,
 unless given; the generator and the run use the same model. The run uses the local engine
-of ``--workers`` processes (default: the cores; 1: everything in this process).
+of ``--workers`` processes (default: the cores; 1: everything in this process), or with
+``--engine ray`` Ray tasks (a local Ray instance of ``--workers`` CPUs, or the cluster at
+``--address``): run both on the same ``--fleet`` to print them side by side. On Ray,
+``peak_rss_workers_mb`` is not the tasks' (Ray's workers are not this process's children:
+it is the largest of the local instance's own processes, 0 with ``--address``), and a local
+instance's start-up is inside the run's seconds (``other_s``).
 
 Memory: ``peak_rss_mb`` is the peak resident set of this process (the writer) during the
 run: the generation runs first in this process, so its peak is reset before the clock starts
@@ -95,6 +100,8 @@ def bench_fleet(
     progress: bool | None = None,
     refinement: float = 1.0,
     workers: int | None = None,
+    engine: str = "local",
+    address: str | None = None,
 ) -> dict[str, Any]:
     """Generate the fleet (or reuse ``fleet_dir`` if it holds the same one), then time
     ``run_fleet`` on it into a fresh database; return the figures. Everything but a given
@@ -135,7 +142,9 @@ def bench_fleet(
             db,
             simulation=SimulationConfig(refinement=refinement),
             progress=show,
+            engine=engine,
             workers=workers,
+            address=address,
         )
         seconds = time.perf_counter() - began
         peak_self_mb = _peak_rss_self_mb(reset)

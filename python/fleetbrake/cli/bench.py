@@ -10,7 +10,13 @@ from typing import Annotated
 import typer
 
 from fleetbrake.cli.group import FleetbrakeGroup
-from fleetbrake.cli.options import RefinementOption, WorkersOption, global_options
+from fleetbrake.cli.options import (
+    AddressOption,
+    EngineOption,
+    RefinementOption,
+    WorkersOption,
+    global_options,
+)
 from fleetbrake.cli.threads import blas_single_thread
 
 __all__ = ["bench_app"]
@@ -113,6 +119,8 @@ def bench_fleet_command(
     fleet_dir: BenchFleetOption = None,
     refinement: RefinementOption = 1.0,
     workers: WorkersOption = None,
+    engine: EngineOption = "local",
+    address: AddressOption = None,
 ) -> None:
     """A fleet-day from log files to flags: `fleetbrake run` timed end to end (and per
     stage) on a generated fleet (generation not timed)."""
@@ -128,6 +136,8 @@ def bench_fleet_command(
             refinement=refinement,
             progress=global_options(ctx).progress,
             workers=workers,
+            engine=engine,
+            address=address,
         )
     print_figures(figures, typer.echo)
     if json_out:

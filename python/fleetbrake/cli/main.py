@@ -35,6 +35,7 @@ from fleetbrake.cli.group import FleetbrakeGroup
 from fleetbrake.cli.logs import LogFormat, configure_logging, level_for
 from fleetbrake.cli.options import (
     DEFAULT_DB,
+    AddressOption,
     DbOption,
     EngineOption,
     FleetDirArgument,
@@ -150,6 +151,7 @@ def run_command(
     ] = False,
     engine: EngineOption = "local",
     workers: WorkersOption = None,
+    address: AddressOption = None,
 ) -> None:
     """Ingest new files, detect events, simulate every new event, raise flags.
 
@@ -175,6 +177,7 @@ def run_command(
         progress=global_options(ctx).progress,
         engine=engine,
         workers=workers,
+        address=address,
     )
     print_report(report.ingest)
     print_run(report)

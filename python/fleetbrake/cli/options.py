@@ -79,12 +79,24 @@ EngineOption = Annotated[
     typer.Option(
         "--engine",
         help="Where partitions run: local (worker processes on this machine, default); "
-        "ray (not yet available).",
+        'ray (Ray tasks: pip install "fleetbrake[ray]").',
+    ),
+]
+AddressOption = Annotated[
+    str | None,
+    typer.Option(
+        "--address",
+        help="Ray cluster to connect to with --engine ray (default: a local one of --workers "
+        "CPUs).",
     ),
 ]
 WorkersOption = Annotated[
     int | None,
-    typer.Option("--workers", help="Worker processes of the local engine (default: the cores)."),
+    typer.Option(
+        "--workers",
+        help="Partitions at once: worker processes of the local engine, CPUs of a local Ray "
+        "instance (default: the cores; with --address, the cluster's CPUs).",
+    ),
 ]
 RefinementOption = Annotated[
     float,

@@ -18,7 +18,12 @@ from typing import Annotated, Literal, cast
 
 import typer
 
-from fleetbrake.cli.options import EngineOption, RefinementOption, WorkersOption
+from fleetbrake.cli.options import (
+    AddressOption,
+    EngineOption,
+    RefinementOption,
+    WorkersOption,
+)
 from fleetbrake.cli.signals import stop_on_signals
 from fleetbrake.errors import ConfigError
 
@@ -95,6 +100,7 @@ def watch_command(
     refinement: RefinementOption = 1.0,
     engine: EngineOption = "local",
     workers: WorkersOption = None,
+    address: AddressOption = None,
     json_lines: Annotated[
         bool,
         typer.Option("--json", help="One JSON object per processed file on stdout."),
@@ -127,6 +133,7 @@ def watch_command(
             flag_config_path=flag_config,
             engine=engine,
             workers=workers,
+            address=address,
             simulation=SimulationConfig(
                 solver=cast(Literal["rom", "full"], solver), refinement=refinement
             ),

@@ -11,7 +11,7 @@ the single writer of the warehouse::
         for result in engine.map(parse_partition, partitions):   # in the order given
             write(result)                                          # one transaction each
 
-The interface (:class:`Engine`), which a distributed engine implements too (issue 15:
+The interface (:class:`Engine`), which the distributed engine implements too (issue 15:
 ``--engine ray``):
 
 * ``map(fn, items, *, name=None)``: the results of ``fn(item)``, yielded in the order of
@@ -30,8 +30,11 @@ The interface (:class:`Engine`), which a distributed engine implements too (issu
 
 Engines: :class:`InlineEngine` (the calling process, one partition at a time: tests, and
 ``workers=1``) and :class:`LocalEngine` (a pool of ``workers`` processes on this machine,
-``spawn``-started, each limited to one Rayon and one polars thread). The builtin ``map`` can
-stand in wherever an engine is optional.
+``spawn``-started, each limited to one Rayon and one polars thread), and
+:class:`~fleetbrake.engine.ray.RayEngine` (``make_engine("ray", workers, address=...)``: Ray
+tasks on a cluster, or on a local Ray instance; needs ``pip install "fleetbrake[ray]"`` and
+is imported only when asked for, so ``fleetbrake.engine`` never imports Ray). The builtin
+``map`` can stand in wherever an engine is optional.
 """
 
 from __future__ import annotations

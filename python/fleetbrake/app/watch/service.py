@@ -102,6 +102,8 @@ class WatchConfig:
     workers: int | None = None
     """Worker processes of the local engine, kept for the service's life (None: the cores;
     1: in the service's own process)."""
+    address: str | None = None
+    """The Ray cluster of ``engine="ray"`` (None: a local one)."""
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:
@@ -308,7 +310,9 @@ class _Service:
         from fleetbrake.engine import make_engine
 
         if self._engine is None:
-            self._engine = make_engine(self.config.engine, self.config.workers)
+            self._engine = make_engine(
+                self.config.engine, self.config.workers, address=self.config.address
+            )
         return self._engine
 
     def _close_engine(self) -> None:
@@ -588,6 +592,6 @@ def watch_fleet(
     config = config or WatchConfig()
     # an engine that cannot be had is refused now (exit 2), not at the first unit; the
     # service makes its own at the first unit and keeps it
-    make_engine(config.engine, config.workers).close()
+    make_engine(config.engine, config.workers, address=config.address).close()
     service = _Service(fleet_dir, db_path, config, stop or threading.Event(), on_file)
     return service.run()
