@@ -1,4 +1,4 @@
-"""Type stubs of the Rust extension (crates/fleetbrake_py: errors.rs, convert.rs, model.rs, rom.rs).
+"""Type stubs of the Rust extension (crates/fleetbrake_py: errors.rs, convert.rs, model.rs, rom.rs, estimator.rs).
 
 Private to fleetbrake.model: use fleetbrake.model.thermal and fleetbrake.model.rom instead.
 """
@@ -142,3 +142,13 @@ def rom_simulate_batch(
     drive: NDArray[np.float64],
     t_ref: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]: ...
+def estimator_run(
+    problems: list[dict[str, Any]],
+    measurement_k: float,
+    power_w_per_sqrt_s: float,
+    smooth: bool,
+    steady_tolerance: float,
+    smoother_tolerance: float,
+    checkpoint_steps: int,
+    outputs_wanted: bool,
+) -> list[dict[str, Any]]: ...

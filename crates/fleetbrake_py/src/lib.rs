@@ -11,6 +11,7 @@
 
 mod convert;
 mod errors;
+mod estimator;
 mod model;
 mod rom;
 
@@ -21,6 +22,7 @@ use pyo3::prelude::*;
 #[pymodule]
 fn _ext(m: &Bound<'_, PyModule>) -> PyResult<()> {
     errors::register(m)?;
+    estimator::register(m)?;
     model::register(m)?;
     rom::register(m)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;

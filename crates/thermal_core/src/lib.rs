@@ -12,6 +12,7 @@
 pub mod assembly;
 pub mod element;
 pub mod error;
+pub mod estimator;
 pub mod mesh;
 pub mod model;
 pub mod probe;

@@ -1,0 +1,1880 @@
+//! The virtual sensor's kernel: a Kalman filter and a Rauch-Tung-Striebel smoother (in the
+//! modified Bryson-Frazier form, which needs no matrix inverse) on a reduced model's state,
+//! augmented with an unexplained heat power on the friction face and, optionally, the
+//! thermistor's lag.
+//!
+//! State `x = (ξ, P[, s])`, `n = r + 1 (+ 1)`: the modal state `ξ` (r), the unexplained power
+//! `P`, the lagged reading `s`. Transition `k` is
+//!
+//! ```text
+//!     ξ' = A ξ + γ P + w        A diagonal (nominal convection) or dense
+//!     P' = φ P + ω              var ω = σ_w² q_unit
+//!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
+//! ```
+//!
+//! with `w` the modal response to the declared inputs of the step (given per step). The
+//! reading is `y = h x + T_ref + v`, `h = c_p` on the modes (or `e_s` with a lag),
+//! `var v = σ_v²`; NaN skips the update.
+//!
+//! Speed comes from the structure: the transition is applied as "diagonal plus a border"
+//! (O(n²) per covariance step instead of O(n³)); and where the step's key (transition,
+//! reading or not) repeats and the covariance has stopped changing (every element by at
+//! most `tol √(Σ_ii Σ_jj)`), the steady gain and covariance are kept and only the mean is
+//! stepped (O(n)). The smoother runs backwards over blocks of `checkpoint_steps` seconds,
+//! each replayed from the filter's checkpoint, so its memory does not grow with the series;
+//! its information matrix `Λ` is frozen the same way inside a steady stretch.
+
+use std::borrow::Cow;
+
+use rayon::prelude::*;
+
+use crate::error::{Result, ThermalError};
+use crate::simd::{has_avx2_fma, madd};
+
+/// One distinct transition of a problem (see the module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transition {
+    /// Whether `a` is diagonal (then `e` holds its diagonal).
+    pub diagonal: bool,
+    /// The modal propagator, r x r row-major.
+    pub a: Vec<f64>,
+    /// The diagonal of `a`.
+    pub e: Vec<f64>,
+    /// Response of the modes to 1 W of unexplained power over the step.
+    pub gamma: Vec<f64>,
+    /// Decay of the unexplained power over the step.
+    pub phi: f64,
+    /// Variance of the power's increment per unit σ_w².
+    pub q_unit: f64,
+    /// Decay of the lagged reading.
+    pub lag_a: f64,
+    /// Weight of the seat temperature at the step's end in the lagged reading.
+    pub lag_b1: f64,
+    /// The lag's row of the transition on the modes.
+    pub lag_row: Vec<f64>,
+    /// The lag's entry on the power.
+    pub lag_power: f64,
+}
+
+/// One wagon's filtering problem.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Problem<'a> {
+    pub order: usize,
+    pub lag: bool,
+    pub t_ref_c: f64,
+    pub transitions: Vec<Transition>,
+    /// Transition of each step (N - 1). The per-step series may be borrowed (from the
+    /// caller's arrays, without a copy) or owned.
+    pub index: Cow<'a, [u32]>,
+    /// (N - 1, r) row-major: modal response to the declared inputs of each step.
+    pub w: Cow<'a, [f64]>,
+    /// Readings (N), NaN where none.
+    pub reading_c: Cow<'a, [f64]>,
+    pub c_probe: Vec<f64>,
+    pub c_mean: Vec<f64>,
+    /// (m, r) row-major: the friction-face nodes that stand for the face maximum.
+    pub c_nodes: Vec<f64>,
+    pub x0: Vec<f64>,
+    /// (n, n) row-major, without the power's prior (added as σ_w² `p_prior_unit`).
+    pub cov0: Vec<f64>,
+    pub p_prior_unit: f64,
+}
+
+/// The noise parameters.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Noise {
+    /// σ_v, K.
+    pub measurement_k: f64,
+    /// σ_w, W/√s.
+    pub power_w_per_sqrt_s: f64,
+}
+
+/// How to run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settings {
+    pub smooth: bool,
+    /// The filter's covariance counts as steady when no element changed by more than this
+    /// times `√(Σ_ii Σ_jj)` in a step (0: only when unchanged).
+    pub steady_tolerance: f64,
+    /// The same for the smoother's information matrix (which only the smoothed variances
+    /// use: the smoothed means do not depend on it).
+    pub smoother_tolerance: f64,
+    pub checkpoint_steps: usize,
+    /// Whether to produce the per-second outputs (false: the likelihood only).
+    pub outputs: bool,
+}
+
+/// Per-second estimates of one quantity set (filtered or smoothed).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Estimates {
+    pub mean_c: Vec<f64>,
+    pub mean_sd_k: Vec<f64>,
+    pub max_c: Vec<f64>,
+    pub max_sd_k: Vec<f64>,
+    pub power_w: Vec<f64>,
+    pub power_sd_w: Vec<f64>,
+}
+
+impl Estimates {
+    fn nan(len: usize) -> Self {
+        let v = vec![f64::NAN; len];
+        Estimates {
+            mean_c: v.clone(),
+            mean_sd_k: v.clone(),
+            max_c: v.clone(),
+            max_sd_k: v.clone(),
+            power_w: v.clone(),
+            power_sd_w: v,
+        }
+    }
+}
+
+/// What a run returns.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Outputs {
+    pub filtered: Estimates,
+    pub innovation_k: Vec<f64>,
+    pub innovation_var_k2: Vec<f64>,
+    pub predicted_reading_c: Vec<f64>,
+    pub smoothed: Option<Estimates>,
+    pub log_likelihood: f64,
+    pub updates: usize,
+    pub frozen_steps: usize,
+    pub smoother_frozen_steps: usize,
+    pub final_state: Vec<f64>,
+    pub final_cov: Vec<f64>,
+}
+
+impl Problem<'_> {
+    pub fn n_state(&self) -> usize {
+        self.order + 1 + usize::from(self.lag)
+    }
+
+    pub fn n_nodes(&self) -> usize {
+        self.c_nodes.len() / self.order.max(1)
+    }
+
+    /// Check every length and index.
+    pub fn validate(&self) -> Result<()> {
+        let r = self.order;
+        let n = self.n_state();
+        let steps = self.reading_c.len().saturating_sub(1);
+        let mismatch = |name: &str, expected: usize, got: usize| {
+            Err(ThermalError::LengthMismatch {
+                name: name.into(),
+                expected,
+                got,
+            })
+        };
+        if r == 0 {
+            return mismatch("estimator order", 1, 0);
+        }
+        if self.reading_c.is_empty() {
+            return mismatch("estimator readings", 1, 0);
+        }
+        for (name, len, expected) in [
+            ("estimator step index", self.index.len(), steps),
+            ("estimator step inputs", self.w.len(), steps * r),
+            ("estimator c_probe", self.c_probe.len(), r),
+            ("estimator c_mean", self.c_mean.len(), r),
+            ("estimator x0", self.x0.len(), n),
+            ("estimator cov0", self.cov0.len(), n * n),
+        ] {
+            if len != expected {
+                return mismatch(name, expected, len);
+            }
+        }
+        if self.c_nodes.is_empty() || self.c_nodes.len() % r != 0 {
+            return mismatch("estimator c_nodes", r, self.c_nodes.len());
+        }
+        for (k, t) in self.transitions.iter().enumerate() {
+            for (name, len, expected) in [
+                ("transition a", t.a.len(), r * r),
+                ("transition e", t.e.len(), r),
+                ("transition gamma", t.gamma.len(), r),
+                ("transition lag_row", t.lag_row.len(), r),
+            ] {
+                if len != expected {
+                    return mismatch(&format!("{name} of transition {k}"), expected, len);
+                }
+            }
+        }
+        if let Some(&bad) = self
+            .index
+            .iter()
+            .find(|&&k| k as usize >= self.transitions.len())
+        {
+            return Err(ThermalError::InvalidParameter {
+                name: "estimator transition index".into(),
+                value: f64::from(bad),
+                reason: format!("only {} transitions", self.transitions.len()),
+            });
+        }
+        crate::error::check_finite("t_ref_c", self.t_ref_c)?;
+        Ok(())
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// Small dense helpers (row-major, n x n). `FMA`: fused multiply-adds, only where the caller
+// enables the CPU feature (without it `mul_add` is a call into libm).
+
+/// `Σ a_i b_i` in four partial sums.
+#[inline(always)]
+fn dot<const FMA: bool>(a: &[f64], b: &[f64]) -> f64 {
+    let mut s = [0.0f64; 4];
+    let ca = a.chunks_exact(4);
+    let cb = b.chunks_exact(4);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for l in 0..4 {
+            s[l] = madd::<FMA>(x[l], y[l], s[l]);
+        }
+    }
+    let mut t = (s[0] + s[1]) + (s[2] + s[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        t = madd::<FMA>(*x, *y, t);
+    }
+    t
+}
+
+/// `y += α x`.
+#[inline(always)]
+fn axpy<const FMA: bool>(alpha: f64, x: &[f64], y: &mut [f64]) {
+    for (yi, xi) in y.iter_mut().zip(x) {
+        *yi = madd::<FMA>(alpha, *xi, *yi);
+    }
+}
+
+/// Four dot products of `x` at once (one pass over `x`): `[x·a, x·b, x·c, x·d]`.
+#[inline(always)]
+fn dot4<const FMA: bool>(x: &[f64], a: &[f64], b: &[f64], c: &[f64], d: &[f64]) -> [f64; 4] {
+    let mut s = [[0.0f64; 4]; 4];
+    let n4 = x.len() / 4 * 4;
+    for q in (0..n4).step_by(4) {
+        for l in 0..4 {
+            let xv = x[q + l];
+            s[0][l] = madd::<FMA>(xv, a[q + l], s[0][l]);
+            s[1][l] = madd::<FMA>(xv, b[q + l], s[1][l]);
+            s[2][l] = madd::<FMA>(xv, c[q + l], s[2][l]);
+            s[3][l] = madd::<FMA>(xv, d[q + l], s[3][l]);
+        }
+    }
+    let mut out = [0.0f64; 4];
+    for (o, lanes) in out.iter_mut().zip(&s) {
+        *o = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+    }
+    for q in n4..x.len() {
+        out[0] = madd::<FMA>(x[q], a[q], out[0]);
+        out[1] = madd::<FMA>(x[q], b[q], out[1]);
+        out[2] = madd::<FMA>(x[q], c[q], out[2]);
+        out[3] = madd::<FMA>(x[q], d[q], out[3]);
+    }
+    out
+}
+
+/// `y1 += a1 x`, `y2 += a2 x` in one pass over `x`.
+#[inline(always)]
+fn axpy2<const FMA: bool>(a1: f64, a2: f64, x: &[f64], y1: &mut [f64], y2: &mut [f64]) {
+    for ((v1, v2), &xi) in y1.iter_mut().zip(y2.iter_mut()).zip(x) {
+        *v1 = madd::<FMA>(a1, xi, *v1);
+        *v2 = madd::<FMA>(a2, xi, *v2);
+    }
+}
+
+/// The transpose of a rows x cols row-major matrix, its rows padded with zeros to `width`
+/// (>= rows) entries.
+fn transpose(a: &[f64], rows: usize, cols: usize, width: usize) -> Vec<f64> {
+    let mut t = vec![0.0; width * cols];
+    for i in 0..rows {
+        for j in 0..cols {
+            t[j * width + i] = a[i * cols + j];
+        }
+    }
+    t
+}
+
+/// Every element changed by at most `tol √(d_i d_j)` (d: the new diagonal); stops at the
+/// first that did not.
+#[inline(always)]
+fn converged(new: &[f64], old: &[f64], n: usize, tol: f64, d: &mut [f64]) -> bool {
+    for (i, di) in d.iter_mut().enumerate() {
+        *di = new[i * n + i].abs().sqrt();
+    }
+    for i in 0..n {
+        let row_new = &new[i * n..(i + 1) * n];
+        let row_old = &old[i * n..(i + 1) * n];
+        let bound = tol * d[i];
+        for j in 0..n {
+            if (row_new[j] - row_old[j]).abs() > bound * d[j] {
+                return false;
+            }
+        }
+    }
+    true
+}
+
+// ------------------------------------------------------------------------------------------
+// The transition's structured products
+
+struct Dims {
+    r: usize,
+    n: usize,
+    lag: bool,
+}
+
+impl Transition {
+    /// `out = F x`.
+    #[inline(always)]
+    fn apply<const FMA: bool>(&self, d: &Dims, x: &[f64], out: &mut [f64]) {
+        let r = d.r;
+        let p = x[r];
+        if self.diagonal {
+            let pairs = self.e.iter().zip(&self.gamma);
+            for ((o, &xi), (&e, &g)) in out[..r].iter_mut().zip(&x[..r]).zip(pairs) {
+                *o = madd::<FMA>(e, xi, g * p);
+            }
+        } else {
+            let rows = self.a.chunks_exact(r).zip(&self.gamma);
+            for (o, (row, &g)) in out[..r].iter_mut().zip(rows) {
+                *o = madd::<FMA>(g, p, dot::<FMA>(row, &x[..r]));
+            }
+        }
+        out[r] = self.phi * p;
+        if d.lag {
+            let s = dot::<FMA>(&self.lag_row, &x[..r]);
+            out[r + 1] = madd::<FMA>(self.lag_a, x[r + 1], madd::<FMA>(self.lag_power, p, s));
+        }
+    }
+
+    /// `out = Fᵀ x`.
+    #[inline(always)]
+    fn apply_t<const FMA: bool>(&self, d: &Dims, x: &[f64], out: &mut [f64]) {
+        let r = d.r;
+        let s = if d.lag { x[r + 1] } else { 0.0 };
+        if self.diagonal {
+            if d.lag {
+                let pairs = self.e.iter().zip(&self.lag_row);
+                for ((o, &xi), (&e, &l)) in out[..r].iter_mut().zip(&x[..r]).zip(pairs) {
+                    *o = madd::<FMA>(e, xi, l * s);
+                }
+            } else {
+                for ((o, &xi), &e) in out[..r].iter_mut().zip(&x[..r]).zip(&self.e) {
+                    *o = e * xi;
+                }
+            }
+        } else {
+            out[..r].fill(0.0);
+            for (k, row) in self.a.chunks_exact(r).enumerate() {
+                axpy::<FMA>(x[k], row, &mut out[..r]);
+            }
+            axpy::<FMA>(s, &self.lag_row, &mut out[..r]);
+        }
+        let g = dot::<FMA>(&self.gamma, &x[..r]);
+        out[r] = madd::<FMA>(self.lag_power, s, madd::<FMA>(self.phi, x[r], g));
+        if d.lag {
+            out[r + 1] = self.lag_a * s;
+        }
+    }
+
+    /// `out = F X Fᵀ` for a symmetric X (symmetric to rounding). `a`, `b`: n scratch; `big`:
+    /// n x n scratch.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn predict_cov<const FMA: bool>(
+        &self,
+        d: &Dims,
+        x: &[f64],
+        out: &mut [f64],
+        a: &mut [f64],
+        b: &mut [f64],
+        big: &mut [f64],
+        mut ph: Option<(&[f64], &mut [f64])>,
+    ) {
+        let (r, n) = (d.r, d.n);
+        if let Some((_, acc)) = ph.as_mut() {
+            acc.fill(0.0);
+        }
+        if !self.diagonal {
+            // T = X Fᵀ row by row (F applied to each row of the symmetric X), then F T
+            for (xr, tr) in x.chunks_exact(n).zip(big.chunks_exact_mut(n)) {
+                self.apply::<FMA>(d, xr, tr);
+            }
+            for i in 0..r {
+                let o = &mut out[i * n..(i + 1) * n];
+                o.fill(0.0);
+                for (k, &aik) in self.a[i * r..(i + 1) * r].iter().enumerate() {
+                    axpy::<FMA>(aik, &big[k * n..(k + 1) * n], o);
+                }
+                axpy::<FMA>(self.gamma[i], &big[r * n..(r + 1) * n], o);
+                if let Some((h, acc)) = ph.as_mut() {
+                    axpy::<FMA>(h[i], o, acc);
+                }
+            }
+            self.border_rows::<FMA>(d, big, out, a);
+            return;
+        }
+        // T = X Fᵀ: row P first (every mode row of F X Fᵀ needs it)
+        let tp = &mut *a;
+        self.apply::<FMA>(d, &x[r * n..(r + 1) * n], tp);
+        let z = &mut *b;
+        z.fill(0.0);
+        let t = &mut big[..n];
+        for i in 0..r {
+            let xi = &x[i * n..(i + 1) * n];
+            let xp = xi[r];
+            // row i of T: e ⊙ X_i + γ X_iP on the modes, φ X_iP, and the lag's entry
+            for ((tj, &xj), (&ej, &gj)) in t[..r]
+                .iter_mut()
+                .zip(&xi[..r])
+                .zip(self.e.iter().zip(&self.gamma))
+            {
+                *tj = madd::<FMA>(ej, xj, gj * xp);
+            }
+            t[r] = self.phi * xp;
+            if d.lag {
+                let s = dot::<FMA>(&self.lag_row, &xi[..r]);
+                t[r + 1] = madd::<FMA>(self.lag_a, xi[r + 1], madd::<FMA>(self.lag_power, xp, s));
+                axpy::<FMA>(self.lag_row[i], t, z);
+            }
+            // row i of F T: e_i T_i + γ_i T_P (and its share of Σh, in the same pass)
+            let (ei, gi) = (self.e[i], self.gamma[i]);
+            let o = &mut out[i * n..(i + 1) * n];
+            match ph.as_mut() {
+                Some((h, acc)) => {
+                    let hi = h[i];
+                    for (((oj, &tj), &pj), aj) in o
+                        .iter_mut()
+                        .zip(t.iter())
+                        .zip(tp.iter())
+                        .zip(acc.iter_mut())
+                    {
+                        *oj = madd::<FMA>(ei, tj, gi * pj);
+                        *aj = madd::<FMA>(hi, *oj, *aj);
+                    }
+                }
+                None => {
+                    for ((oj, &tj), &pj) in o.iter_mut().zip(t.iter()).zip(tp.iter()) {
+                        *oj = madd::<FMA>(ei, tj, gi * pj);
+                    }
+                }
+            }
+        }
+        for (oj, &pj) in out[r * n..(r + 1) * n].iter_mut().zip(tp.iter()) {
+            *oj = self.phi * pj;
+        }
+        if d.lag {
+            // row s: Σ_k ℓ_k T_k + ℓ_P T_P + a T_s, with T_s = F X_s
+            self.apply::<FMA>(d, &x[(r + 1) * n..(r + 2) * n], t);
+            for ((oj, &tj), (&pj, &zj)) in out[(r + 1) * n..(r + 2) * n]
+                .iter_mut()
+                .zip(t.iter())
+                .zip(tp.iter().zip(z.iter()))
+            {
+                *oj = madd::<FMA>(self.lag_a, tj, madd::<FMA>(self.lag_power, pj, zj));
+            }
+        }
+    }
+
+    /// The power's and the lag's rows of `F T` (`t`: T = X Fᵀ), for the dense path.
+    #[inline(always)]
+    fn border_rows<const FMA: bool>(&self, d: &Dims, t: &[f64], out: &mut [f64], z: &mut [f64]) {
+        let (r, n) = (d.r, d.n);
+        for j in 0..n {
+            out[r * n + j] = self.phi * t[r * n + j];
+        }
+        if d.lag {
+            z.fill(0.0);
+            for k in 0..r {
+                axpy::<FMA>(self.lag_row[k], &t[k * n..(k + 1) * n], z);
+            }
+            axpy::<FMA>(self.lag_power, &t[r * n..(r + 1) * n], z);
+            axpy::<FMA>(self.lag_a, &t[(r + 1) * n..(r + 2) * n], z);
+            out[(r + 1) * n..(r + 2) * n].copy_from_slice(z);
+        }
+    }
+
+    /// Row k of `L̃ F`: `Fᵀ L_k - h_k Fᵀu + (c h_k - u_k) Fᵀh` (`corr`: u, c, Fᵀu, Fᵀh).
+    #[allow(clippy::type_complexity)]
+    #[inline(always)]
+    fn back_row<const FMA: bool>(
+        &self,
+        d: &Dims,
+        l: &[f64],
+        h: &[f64],
+        corr: Option<(&[f64], f64, &[f64], &[f64])>,
+        k: usize,
+        out_row: &mut [f64],
+    ) {
+        let n = d.n;
+        self.apply_t::<FMA>(d, &l[k * n..(k + 1) * n], out_row);
+        if let Some((u, c, ftu, fth)) = corr {
+            let (hk, uk) = (h[k], u[k]);
+            if hk != 0.0 {
+                axpy::<FMA>(-hk, ftu, out_row);
+            }
+            let w = c * hk - uk;
+            if w != 0.0 {
+                axpy::<FMA>(w, fth, out_row);
+            }
+        }
+    }
+
+    /// `out = Fᵀ L̃ F` with `L̃ = L - h uᵀ - u hᵀ + c h hᵀ` (`corr` = Some((u, c))) or `L`,
+    /// for a symmetric L (symmetric to rounding). Row k of `R = L̃ F` is
+    /// `Fᵀ L_k - h_k Fᵀu + (c h_k - u_k) Fᵀh` (Fᵀ is linear), then `out = Fᵀ R`.
+    /// `scratch`: four n vectors; `big`: n x n scratch (dense transitions).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn back_cov<const FMA: bool>(
+        &self,
+        d: &Dims,
+        l: &[f64],
+        h: &[f64],
+        corr: Option<(&[f64], f64)>,
+        out: &mut [f64],
+        scratch: &mut [Vec<f64>; 4],
+        big: &mut [f64],
+    ) {
+        let (r, n) = (d.r, d.n);
+        let [ftu, fth, rs, acc] = scratch;
+        if let Some((u, _)) = corr {
+            self.apply_t::<FMA>(d, u, ftu);
+            self.apply_t::<FMA>(d, h, fth);
+        }
+        let corr = corr.map(|(u, c)| (u, c, &ftu[..], &fth[..]));
+        if !self.diagonal {
+            for k in 0..n {
+                self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
+            }
+            // out = Fᵀ R: rows combined
+            for i in 0..r {
+                let o = &mut out[i * n..(i + 1) * n];
+                o.fill(0.0);
+                for k in 0..r {
+                    axpy::<FMA>(self.a[k * r + i], &big[k * n..(k + 1) * n], o);
+                }
+                if d.lag {
+                    axpy::<FMA>(self.lag_row[i], &big[(r + 1) * n..(r + 2) * n], o);
+                }
+            }
+            acc.fill(0.0);
+            for k in 0..r {
+                axpy::<FMA>(self.gamma[k], &big[k * n..(k + 1) * n], acc);
+            }
+            axpy::<FMA>(self.phi, &big[r * n..(r + 1) * n], acc);
+            if d.lag {
+                axpy::<FMA>(self.lag_power, &big[(r + 1) * n..(r + 2) * n], acc);
+                for j in 0..n {
+                    out[(r + 1) * n + j] = self.lag_a * big[(r + 1) * n + j];
+                }
+            }
+            out[r * n..(r + 1) * n].copy_from_slice(acc);
+            return;
+        }
+        // diagonal: Fᵀ has e_i (and ℓ_i) in the mode rows, γ, φ, ℓ_P in the power's
+        self.back_row::<FMA>(d, l, h, corr, r, acc); // R_P, scaled by φ below
+        if d.lag {
+            self.back_row::<FMA>(d, l, h, corr, r + 1, rs);
+        }
+        acc.iter_mut().for_each(|v| *v *= self.phi);
+        if d.lag {
+            axpy::<FMA>(self.lag_power, rs, acc);
+        }
+        for i in 0..r {
+            let o = &mut out[i * n..(i + 1) * n];
+            let li = &l[i * n..(i + 1) * n];
+            // R_i = Fᵀ L_i - h_i Fᵀu + (c h_i - u_i) Fᵀh on the modes, in one pass, then
+            // out_i = e_i R_i + ℓ_i R_s and the power's row gathers γ_i R_i
+            let ls = if d.lag { li[r + 1] } else { 0.0 };
+            let (ei, gi) = (self.e[i], self.gamma[i]);
+            let (a1, a2) = match corr {
+                Some((u, c, _, _)) => (-h[i], c * h[i] - u[i]),
+                None => (0.0, 0.0),
+            };
+            let modes = o[..r].iter_mut().zip(&li[..r]).zip(&self.e);
+            let extra = ftu[..r].iter().zip(&fth[..r]).zip(&self.lag_row);
+            for (((oj, &lij), &ej), ((&uj, &hj), &lj)) in modes.zip(extra) {
+                let mut v = madd::<FMA>(ej, lij, lj * ls);
+                v = madd::<FMA>(a1, uj, v);
+                v = madd::<FMA>(a2, hj, v);
+                *oj = v;
+            }
+            // the power's and the lag's entries of R_i
+            let gl = dot::<FMA>(&self.gamma, &li[..r]);
+            let mut rp_i = madd::<FMA>(self.lag_power, ls, madd::<FMA>(self.phi, li[r], gl));
+            rp_i = madd::<FMA>(a1, ftu[r], madd::<FMA>(a2, fth[r], rp_i));
+            o[r] = rp_i;
+            if d.lag {
+                let v = self.lag_a * ls;
+                o[r + 1] = madd::<FMA>(a1, ftu[r + 1], madd::<FMA>(a2, fth[r + 1], v));
+            }
+            for (aj, oj) in acc.iter_mut().zip(o.iter_mut()) {
+                *aj = madd::<FMA>(gi, *oj, *aj);
+                *oj *= ei;
+            }
+            if d.lag {
+                axpy::<FMA>(self.lag_row[i], rs, o);
+            }
+        }
+        out[r * n..(r + 1) * n].copy_from_slice(acc);
+        if d.lag {
+            for (oj, &sj) in out[(r + 1) * n..(r + 2) * n].iter_mut().zip(rs.iter()) {
+                *oj = self.lag_a * sj;
+            }
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------------------
+// The filter
+
+/// Step `t`'s covariance mode: computed in full, or the steady cache `id`.
+const FULL: u32 = u32::MAX;
+
+/// What stays constant while the filter is steady for one key.
+#[derive(Debug, Clone)]
+struct Steady {
+    key: (u32, bool),
+    cov: Vec<f64>,
+    gain: Vec<f64>,
+    s_var: f64,
+    mean_var: f64,
+    /// Filtered variance of every face node.
+    node_var: Vec<f64>,
+    power_var: f64,
+    /// `Σ c_mean`, `Σ c_node` (m x n), `Σ e_P`: the smoother's products with Σ.
+    sig_mean: Vec<f64>,
+    sig_nodes: Vec<f64>,
+    /// `sig_nodes` transposed (n x m, m padded to a multiple of 4).
+    sig_nodes_t: Vec<f64>,
+    sig_power: Vec<f64>,
+}
+
+/// The filter's checkpoint at the start of a smoother block.
+#[derive(Debug, Clone)]
+struct Checkpoint {
+    x: Vec<f64>,
+    /// Empty when the step was steady (the cache has it).
+    cov: Vec<f64>,
+    gain: Vec<f64>,
+    nu: f64,
+    s_var: f64,
+}
+
+/// Scratch vectors of a covariance step.
+struct Work {
+    a: Vec<f64>,
+    b: Vec<f64>,
+    d: Vec<f64>,
+    big: Vec<f64>,
+    four: [Vec<f64>; 4],
+}
+
+impl Work {
+    fn new(n: usize) -> Self {
+        Work {
+            a: vec![0.0; n],
+            b: vec![0.0; n],
+            d: vec![0.0; n],
+            big: vec![0.0; n * n],
+            four: [vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]],
+        }
+    }
+}
+
+struct Kernel<'a> {
+    p: &'a Problem<'a>,
+    d: Dims,
+    m: usize,
+    var_v: f64,
+    sw2: f64,
+    tol: f64,
+    tol_back: f64,
+    h: Vec<f64>,
+    cm: Vec<f64>,
+    /// The face nodes' rows transposed (r x m, m padded to a multiple of 4): node values as a
+    /// sum of r scaled rows.
+    cn_t: Vec<f64>,
+}
+
+impl<'a> Kernel<'a> {
+    fn new(p: &'a Problem<'a>, noise: Noise, settings: &Settings) -> Self {
+        let (r, n) = (p.order, p.n_state());
+        let mut h = vec![0.0; n];
+        if p.lag {
+            h[r + 1] = 1.0;
+        } else {
+            h[..r].copy_from_slice(&p.c_probe);
+        }
+        Kernel {
+            p,
+            d: Dims { r, n, lag: p.lag },
+            m: p.n_nodes(),
+            var_v: noise.measurement_k * noise.measurement_k,
+            sw2: noise.power_w_per_sqrt_s * noise.power_w_per_sqrt_s,
+            tol: settings.steady_tolerance,
+            tol_back: settings.smoother_tolerance,
+            h,
+            cm: p.c_mean.clone(),
+            cn_t: transpose(&p.c_nodes, p.n_nodes(), r, p.n_nodes().next_multiple_of(4)),
+        }
+    }
+
+    #[inline(always)]
+    fn key(&self, t: usize) -> Option<(u32, bool)> {
+        (t > 0).then(|| (self.p.index[t - 1], self.p.reading_c[t].is_finite()))
+    }
+
+    fn prior_cov(&self) -> Vec<f64> {
+        let (r, n) = (self.d.r, self.d.n);
+        let mut cov = self.p.cov0.clone();
+        cov[r * n + r] += self.sw2 * self.p.p_prior_unit;
+        cov
+    }
+
+    /// The mean's prediction into step `t` (t > 0): `x_prior = F x + w`.
+    #[inline(always)]
+    fn predict_mean<const FMA: bool>(&self, t: usize, x: &[f64], out: &mut [f64]) {
+        let r = self.d.r;
+        let tr = &self.p.transitions[self.p.index[t - 1] as usize];
+        tr.apply::<FMA>(&self.d, x, out);
+        let w = &self.p.w[(t - 1) * r..t * r];
+        for (o, wi) in out[..r].iter_mut().zip(w) {
+            *o += wi;
+        }
+        if self.d.lag {
+            out[r + 1] = madd::<FMA>(tr.lag_b1, dot::<FMA>(&self.p.c_probe, w), out[r + 1]);
+        }
+    }
+
+    /// The predicted covariance into `t` (`pred`; t = 0: the prior), `Σh`
+    /// into `ph`; returns the reading's predicted variance S.
+    #[inline(always)]
+    fn predict_cov<const FMA: bool>(
+        &self,
+        t: usize,
+        prev: &[f64],
+        pred: &mut [f64],
+        ph: &mut [f64],
+        w: &mut Work,
+    ) -> f64 {
+        let (r, n) = (self.d.r, self.d.n);
+        let fused = t > 0 && !self.d.lag;
+        if t > 0 {
+            let tr = &self.p.transitions[self.p.index[t - 1] as usize];
+            // without a lag, Σh (h on the modes) is summed while the rows are made
+            let acc = fused.then(|| (&self.h[..r], &mut *ph));
+            tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc);
+            pred[r * n + r] = madd::<FMA>(self.sw2, tr.q_unit, pred[r * n + r]);
+        } else {
+            pred.copy_from_slice(prev);
+        }
+        if self.d.lag {
+            // Σh is the lag's column (its row: the matrix is symmetric to rounding)
+            ph.copy_from_slice(&pred[(r + 1) * n..(r + 2) * n]);
+        } else if !fused {
+            ph.fill(0.0);
+            for (row, &hi) in pred.chunks_exact(n).zip(&self.h[..r]) {
+                axpy::<FMA>(hi, row, ph);
+            }
+        }
+        dot::<FMA>(&self.h, ph) + self.var_v
+    }
+
+    /// In place: the predicted covariance becomes the filtered covariance `Σ - K (Σh)ᵀ`;
+    /// `acc` (Some): adds `Σ c` for the first r entries of each `c` into its accumulator.
+    #[inline(always)]
+    fn filter_cov<const FMA: bool>(
+        &self,
+        cov: &mut [f64],
+        gain: &[f64],
+        ph: &[f64],
+        measured: bool,
+        mut acc: Option<[(&[f64], &mut [f64]); 2]>,
+    ) {
+        let n = self.d.n;
+        let r = self.d.r;
+        if let Some(accs) = acc.as_mut() {
+            for (_, a) in accs.iter_mut() {
+                a.fill(0.0);
+            }
+        }
+        for (i, row) in cov.chunks_exact_mut(n).enumerate() {
+            let ki = if measured { gain[i] } else { 0.0 };
+            match acc.as_mut() {
+                Some([(c1, a1), (c2, a2)]) if i < r => {
+                    // the row's update and its share of Σ c for both outputs, in one pass
+                    let (w1, w2) = (c1[i], c2[i]);
+                    for (((v, &pj), s1), s2) in
+                        row.iter_mut().zip(ph).zip(a1.iter_mut()).zip(a2.iter_mut())
+                    {
+                        *v = madd::<FMA>(-ki, pj, *v);
+                        *s1 = madd::<FMA>(w1, *v, *s1);
+                        *s2 = madd::<FMA>(w2, *v, *s2);
+                    }
+                }
+                _ => {
+                    if measured {
+                        axpy::<FMA>(-ki, ph, row);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Node values `c_j ξ - s_j·λ` (`minus`: Some((s transposed, n x m, λ))) into `v`, and
+    /// the largest with its index.
+    #[inline(always)]
+    fn nodes_max<const FMA: bool>(
+        &self,
+        x: &[f64],
+        minus: Option<(&[f64], &[f64])>,
+        v: &mut [f64],
+    ) -> (f64, usize) {
+        let (r, m) = (self.d.r, self.m.next_multiple_of(4));
+        v.fill(0.0);
+        for (row, &xi) in self.cn_t.chunks_exact(m).zip(&x[..r]) {
+            axpy::<FMA>(xi, row, v);
+        }
+        if let Some((s_t, lam)) = minus {
+            for (row, &li) in s_t.chunks_exact(m).zip(lam) {
+                axpy::<FMA>(-li, row, v);
+            }
+        }
+        let mut best = (f64::NEG_INFINITY, 0usize);
+        for (j, &vj) in v[..self.m].iter().enumerate() {
+            if vj > best.0 {
+                best = (vj, j);
+            }
+        }
+        best
+    }
+
+    #[inline(always)]
+    fn node_row(&self, j: usize) -> &[f64] {
+        let r = self.d.r;
+        &self.p.c_nodes[j * r..(j + 1) * r]
+    }
+
+    /// `M c` for a symmetric M and `c` on the first entries.
+    #[inline(always)]
+    fn times<const FMA: bool>(&self, m: &[f64], c: &[f64], out: &mut [f64]) {
+        let n = self.d.n;
+        out.fill(0.0);
+        for (row, &ci) in m.chunks_exact(n).zip(c) {
+            axpy::<FMA>(ci, row, out);
+        }
+    }
+
+    /// `sᵀ M s` for a symmetric M (`tmp`: n scratch).
+    #[inline(always)]
+    fn quad<const FMA: bool>(&self, m: &[f64], s: &[f64], tmp: &mut [f64]) -> f64 {
+        self.times::<FMA>(m, s, tmp);
+        dot::<FMA>(s, tmp)
+    }
+
+    #[inline(always)]
+    fn make_steady<const FMA: bool>(
+        &self,
+        key: (u32, bool),
+        cov: &[f64],
+        gain: &[f64],
+        s_var: f64,
+        smooth: bool,
+    ) -> Steady {
+        let (r, n) = (self.d.r, self.d.n);
+        let mut sig_mean = vec![0.0; n];
+        self.times::<FMA>(cov, &self.cm, &mut sig_mean);
+        let mut sig_nodes = vec![0.0; self.m * n];
+        let mut node_var = Vec::with_capacity(self.m);
+        for (j, out) in sig_nodes.chunks_exact_mut(n).enumerate() {
+            self.times::<FMA>(cov, self.node_row(j), out);
+            node_var.push(dot::<FMA>(self.node_row(j), &out[..r]));
+        }
+        let mean_var = dot::<FMA>(&self.cm, &sig_mean[..r]);
+        let sig_power = cov[r * n..(r + 1) * n].to_vec();
+        if !smooth {
+            sig_nodes.clear();
+        }
+        let sig_nodes_t = if smooth {
+            transpose(&sig_nodes, self.m, n, self.m.next_multiple_of(4))
+        } else {
+            Vec::new()
+        };
+        Steady {
+            key,
+            cov: cov.to_vec(),
+            gain: gain.to_vec(),
+            s_var,
+            mean_var,
+            node_var,
+            power_var: cov[r * n + r],
+            sig_mean,
+            sig_nodes,
+            sig_nodes_t,
+            sig_power,
+        }
+    }
+}
+
+/// Run one problem.
+pub fn run(problem: &Problem<'_>, noise: Noise, settings: &Settings) -> Result<Outputs> {
+    problem.validate()?;
+    crate::error::check_positive("measurement noise", noise.measurement_k)?;
+    crate::error::check_positive("power noise", noise.power_w_per_sqrt_s)?;
+    crate::error::check_non_negative("steady tolerance", settings.steady_tolerance)?;
+    crate::error::check_non_negative("smoother tolerance", settings.smoother_tolerance)?;
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2_fma() {
+        // SAFETY: the CPU has the features the function is compiled for.
+        return Ok(unsafe { run_avx2(problem, noise, settings) });
+    }
+    Ok(run_generic::<false>(problem, noise, settings))
+}
+
+/// Run many problems (one per wagon) in parallel.
+pub fn run_many(
+    problems: &[Problem<'_>],
+    noise: Noise,
+    settings: &Settings,
+) -> Result<Vec<Outputs>> {
+    problems
+        .par_iter()
+        .map(|p| run(p, noise, settings))
+        .collect()
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn run_avx2(problem: &Problem<'_>, noise: Noise, settings: &Settings) -> Outputs {
+    run_generic::<true>(problem, noise, settings)
+}
+
+#[inline(always)]
+fn run_generic<const FMA: bool>(
+    problem: &Problem<'_>,
+    noise: Noise,
+    settings: &Settings,
+) -> Outputs {
+    let k = Kernel::new(problem, noise, settings);
+    let fwd = forward::<FMA>(&k, settings);
+    let mut out = fwd.outputs;
+    if settings.smooth {
+        let (est, frozen) = smooth::<FMA>(&k, &fwd.modes, &fwd.caches, &fwd.checkpoints, settings);
+        out.smoothed = Some(est);
+        out.smoother_frozen_steps = frozen;
+    }
+    out
+}
+
+struct Forward {
+    outputs: Outputs,
+    modes: Vec<u32>,
+    caches: Vec<Steady>,
+    checkpoints: Vec<Checkpoint>,
+}
+
+// `t` indexes the readings, the modes, the outputs and the steps alike
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
+    let p = k.p;
+    let (r, n) = (k.d.r, k.d.n);
+    let n_t = p.reading_c.len();
+    let block = settings.checkpoint_steps.max(1);
+    let mut out = Outputs::default();
+    if settings.outputs {
+        out.filtered = Estimates::nan(n_t);
+        out.innovation_k = vec![f64::NAN; n_t];
+        out.innovation_var_k2 = vec![f64::NAN; n_t];
+        out.predicted_reading_c = vec![f64::NAN; n_t];
+    }
+    let mut modes = vec![FULL; n_t];
+    let mut caches: Vec<Steady> = Vec::new();
+    let mut checkpoints = Vec::new();
+    let mut x = p.x0.clone();
+    let mut x_prior = vec![0.0; n];
+    // `cov`: the filtered covariance of the last full step (during a steady stretch the
+    // cache was made from it); `prev`: the one before
+    let mut cov = k.prior_cov();
+    let mut prev = cov.clone();
+    let mut gain = vec![0.0; n];
+    let mut acc_mean = vec![0.0; n];
+    let mut acc_node = vec![0.0; n];
+    let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
+    let mut w = Work::new(n);
+    let mut steady: Option<usize> = None;
+    let mut prev_key: Option<(u32, bool)> = None;
+    for t in 0..n_t {
+        let key = k.key(t);
+        if t > 0 {
+            k.predict_mean::<FMA>(t, &x, &mut x_prior);
+        } else {
+            x_prior.copy_from_slice(&x);
+        }
+        let measured = p.reading_c[t].is_finite();
+        let frozen = steady.filter(|&c| Some(caches[c].key) == key);
+        let s_var = match frozen {
+            Some(c) => {
+                out.frozen_steps += 1;
+                modes[t] = c as u32;
+                gain.copy_from_slice(&caches[c].gain);
+                caches[c].s_var
+            }
+            None => {
+                steady = None;
+                std::mem::swap(&mut prev, &mut cov);
+                let s_var = k.predict_cov::<FMA>(t, &prev, &mut cov, &mut gain, &mut w);
+                // `gain` holds Σh: keep it for the update, then scale it into K
+                w.b.copy_from_slice(&gain);
+                if measured {
+                    let inv = 1.0 / s_var;
+                    gain.iter_mut().for_each(|v| *v *= inv);
+                } else {
+                    gain.fill(0.0);
+                }
+                s_var
+            }
+        };
+        let predicted = dot::<FMA>(&k.h, &x_prior) + p.t_ref_c;
+        let mut nu = f64::NAN;
+        if measured {
+            nu = p.reading_c[t] - predicted;
+            for ((xi, &pi), &gi) in x.iter_mut().zip(&x_prior).zip(&gain) {
+                *xi = madd::<FMA>(gi, nu, pi);
+            }
+            out.log_likelihood -=
+                0.5 * ((2.0 * std::f64::consts::PI * s_var).ln() + nu * nu / s_var);
+            out.updates += 1;
+        } else {
+            x.copy_from_slice(&x_prior);
+        }
+        let (top, j) = if settings.outputs {
+            k.nodes_max::<FMA>(&x, None, &mut node_values)
+        } else {
+            (0.0, 0)
+        };
+        let (mean_var, node_var, power_var) = match frozen {
+            Some(c) => {
+                let s = &caches[c];
+                (s.mean_var, s.node_var[j], s.power_var)
+            }
+            None => {
+                let ph = std::mem::take(&mut w.b);
+                if settings.outputs {
+                    let accs = [
+                        (&k.cm[..], &mut acc_mean[..]),
+                        (k.node_row(j), &mut acc_node[..]),
+                    ];
+                    k.filter_cov::<FMA>(&mut cov, &gain, &ph, measured, Some(accs));
+                } else {
+                    k.filter_cov::<FMA>(&mut cov, &gain, &ph, measured, None);
+                }
+                w.b = ph;
+                if let Some(key_now) = key {
+                    if key == prev_key && converged(&cov, &prev, n, k.tol, &mut w.d) {
+                        let made =
+                            k.make_steady::<FMA>(key_now, &cov, &gain, s_var, settings.smooth);
+                        caches.push(made);
+                        steady = Some(caches.len() - 1);
+                    }
+                }
+                (
+                    dot::<FMA>(&k.cm, &acc_mean[..r]),
+                    dot::<FMA>(k.node_row(j), &acc_node[..r]),
+                    cov[r * n + r],
+                )
+            }
+        };
+        if settings.outputs {
+            let f = &mut out.filtered;
+            f.mean_c[t] = dot::<FMA>(&k.cm, &x[..r]) + p.t_ref_c;
+            f.mean_sd_k[t] = mean_var.max(0.0).sqrt();
+            f.max_c[t] = top + p.t_ref_c;
+            f.max_sd_k[t] = node_var.max(0.0).sqrt();
+            f.power_w[t] = x[r];
+            f.power_sd_w[t] = power_var.max(0.0).sqrt();
+            out.innovation_k[t] = nu;
+            out.innovation_var_k2[t] = s_var;
+            out.predicted_reading_c[t] = predicted;
+        }
+        if settings.smooth && t % block == 0 {
+            checkpoints.push(Checkpoint {
+                x: x.clone(),
+                cov: if frozen.is_none() {
+                    cov.clone()
+                } else {
+                    Vec::new()
+                },
+                gain: gain.clone(),
+                nu,
+                s_var,
+            });
+        }
+        prev_key = key;
+    }
+    out.final_state = x;
+    out.final_cov = cov; // a steady stretch's cache was made from it
+    Forward {
+        outputs: out,
+        modes,
+        caches,
+        checkpoints,
+    }
+}
+
+/// The smoothed variances while the smoother's information matrix is steady inside one
+/// steady stretch of the filter.
+struct BackSteady {
+    cache: u32,
+    mean_var: f64,
+    node_var: Vec<f64>,
+    power_var: f64,
+}
+
+/// One block of the filter replayed from its checkpoint: filtered state, covariance (full
+/// steps), gain, innovation and its variance, per step.
+struct Replay {
+    xs: Vec<f64>,
+    covs: Vec<f64>,
+    gains: Vec<f64>,
+    nus: Vec<f64>,
+    s_vars: Vec<f64>,
+    x_prior: Vec<f64>,
+    ph: Vec<f64>,
+    work: Work,
+}
+
+impl Replay {
+    fn new(block: usize, n: usize) -> Self {
+        Replay {
+            xs: vec![0.0; block * n],
+            covs: vec![0.0; block * n * n],
+            gains: vec![0.0; block * n],
+            nus: vec![0.0; block],
+            s_vars: vec![0.0; block],
+            x_prior: vec![0.0; n],
+            ph: vec![0.0; n],
+            work: Work::new(n),
+        }
+    }
+
+    /// Steps `t0 .. t1` as the forward pass computed them (the same operations).
+    #[inline(always)]
+    fn run<const FMA: bool>(
+        &mut self,
+        k: &Kernel,
+        modes: &[u32],
+        caches: &[Steady],
+        cp: &Checkpoint,
+        t0: usize,
+        t1: usize,
+    ) {
+        let n = k.d.n;
+        let nn = n * n;
+        self.xs[..n].copy_from_slice(&cp.x);
+        self.gains[..n].copy_from_slice(&cp.gain);
+        if modes[t0] == FULL {
+            self.covs[..nn].copy_from_slice(&cp.cov);
+        }
+        self.nus[0] = cp.nu;
+        self.s_vars[0] = cp.s_var;
+        for t in t0 + 1..t1 {
+            let i = t - t0;
+            let (done, rest) = self.xs.split_at_mut(i * n);
+            k.predict_mean::<FMA>(t, &done[(i - 1) * n..], &mut self.x_prior);
+            let gain = &mut self.gains[i * n..(i + 1) * n];
+            let measured = k.p.reading_c[t].is_finite();
+            let s_var = if modes[t] != FULL {
+                let c = &caches[modes[t] as usize];
+                gain.copy_from_slice(&c.gain);
+                c.s_var
+            } else {
+                let (before, after) = self.covs.split_at_mut(i * nn);
+                let prev: &[f64] = if modes[t - 1] == FULL {
+                    &before[(i - 1) * nn..]
+                } else {
+                    &caches[modes[t - 1] as usize].cov
+                };
+                let cov = &mut after[..nn];
+                let s_var = k.predict_cov::<FMA>(t, prev, cov, &mut self.ph, &mut self.work);
+                if measured {
+                    let inv = 1.0 / s_var;
+                    for (g, v) in gain.iter_mut().zip(&self.ph) {
+                        *g = v * inv;
+                    }
+                } else {
+                    gain.fill(0.0);
+                }
+                k.filter_cov::<FMA>(cov, gain, &self.ph, measured, None);
+                s_var
+            };
+            let predicted = dot::<FMA>(&k.h, &self.x_prior) + k.p.t_ref_c;
+            let x = &mut rest[..n];
+            let mut nu = f64::NAN;
+            if measured {
+                nu = k.p.reading_c[t] - predicted;
+                for ((xi, &pi), &gi) in x.iter_mut().zip(&self.x_prior).zip(gain.iter()) {
+                    *xi = madd::<FMA>(gi, nu, pi);
+                }
+            } else {
+                x.copy_from_slice(&self.x_prior);
+            }
+            self.nus[i] = nu;
+            self.s_vars[i] = s_var;
+        }
+    }
+}
+
+/// The modified Bryson-Frazier smoother, backwards over the blocks of the checkpoints:
+/// `x_t|N = x_t|t - Σ_t|t λ_t`, `Σ_t|N = Σ_t|t - Σ_t|t Λ_t Σ_t|t`; at a reading
+/// `λ̃ = Ĉᵀ λ - h ν/S`, `Λ̃ = Ĉᵀ Λ Ĉ + h hᵀ/S` (`Ĉ = I - K hᵀ`); then `λ_t-1 = Fᵀ λ̃`,
+/// `Λ_t-1 = Fᵀ Λ̃ F`. Returns the estimates and the number of steady steps.
+#[inline(always)]
+fn smooth<const FMA: bool>(
+    k: &Kernel,
+    modes: &[u32],
+    caches: &[Steady],
+    checkpoints: &[Checkpoint],
+    settings: &Settings,
+) -> (Estimates, usize) {
+    let p = k.p;
+    let (r, n) = (k.d.r, k.d.n);
+    let nn = n * n;
+    let n_t = p.reading_c.len();
+    let block = settings.checkpoint_steps.max(1);
+    let mut est = Estimates::nan(n_t);
+    let mut rep = Replay::new(block.min(n_t), n);
+    let mut lam = vec![0.0; n];
+    let mut lam_t = vec![0.0; n];
+    let mut big = vec![0.0; nn];
+    let mut big_new = vec![0.0; nn];
+    let mut work = Work::new(n);
+    let mut xs_t = vec![0.0; n];
+    let mut sc_mean = vec![0.0; n];
+    let mut sc_node = vec![0.0; n];
+    let mut q = [vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]];
+    let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
+    let mut back: Option<BackSteady> = None;
+    let mut frozen_steps = 0;
+    for (b, cp) in checkpoints.iter().enumerate().rev() {
+        let t0 = b * block;
+        let t1 = (t0 + block).min(n_t);
+        rep.run::<FMA>(k, modes, caches, cp, t0, t1);
+        for t in (t0..t1).rev() {
+            let i = t - t0;
+            let mode = modes[t];
+            let measured = p.reading_c[t].is_finite();
+            let gain = &rep.gains[i * n..(i + 1) * n];
+            let x = &rep.xs[i * n..(i + 1) * n];
+            let frozen = mode != FULL && back.as_ref().is_some_and(|bs| bs.cache == mode);
+            // the smoothed state's outputs: c x - (Σ c)·λ
+            let (top, j, mean, power);
+            let (sig_mean, sig_node, sig_power): (&[f64], &[f64], &[f64]);
+            if mode != FULL {
+                let c = &caches[mode as usize];
+                mean = dot::<FMA>(&k.cm, &x[..r]) - dot::<FMA>(&c.sig_mean, &lam);
+                power = x[r] - dot::<FMA>(&c.sig_power, &lam);
+                (top, j) = k.nodes_max::<FMA>(x, Some((&c.sig_nodes_t, &lam)), &mut node_values);
+                sig_mean = &c.sig_mean;
+                sig_node = &c.sig_nodes[j * n..(j + 1) * n];
+                sig_power = &c.sig_power;
+            } else {
+                let cov = &rep.covs[i * nn..(i + 1) * nn];
+                // one pass: Σλ and Σ c_mean
+                xs_t.fill(0.0);
+                sc_mean.fill(0.0);
+                for (row_i, row) in cov.chunks_exact(n).enumerate() {
+                    if row_i < r {
+                        axpy2::<FMA>(lam[row_i], k.cm[row_i], row, &mut xs_t, &mut sc_mean);
+                    } else {
+                        axpy::<FMA>(lam[row_i], row, &mut xs_t);
+                    }
+                }
+                for (v, xi) in xs_t.iter_mut().zip(x) {
+                    *v = xi - *v;
+                }
+                mean = dot::<FMA>(&k.cm, &xs_t[..r]);
+                power = xs_t[r];
+                (top, j) = k.nodes_max::<FMA>(&xs_t, None, &mut node_values);
+                k.times::<FMA>(cov, k.node_row(j), &mut sc_node);
+                sig_mean = &sc_mean;
+                sig_node = &sc_node;
+                sig_power = &cov[r * n..(r + 1) * n];
+            }
+            let (mean_var, node_var, power_var) = match back.as_ref().filter(|_| frozen) {
+                Some(bs) => {
+                    frozen_steps += 1;
+                    (bs.mean_var, bs.node_var[j], bs.power_var)
+                }
+                None => {
+                    // one pass over Λ (symmetric): its rows dotted with Σc for the three
+                    // outputs and with K; the quadratic forms (Σc)ᵀΛ(Σc), and ΛK
+                    let u = &mut q[3];
+                    let mut quad = [0.0f64; 3];
+                    for (row_i, row) in big.chunks_exact(n).enumerate() {
+                        let [dm, dn, dp, du] =
+                            dot4::<FMA>(row, sig_mean, sig_node, sig_power, gain);
+                        quad[0] = madd::<FMA>(sig_mean[row_i], dm, quad[0]);
+                        quad[1] = madd::<FMA>(sig_node[row_i], dn, quad[1]);
+                        quad[2] = madd::<FMA>(sig_power[row_i], dp, quad[2]);
+                        u[row_i] = du;
+                    }
+                    (
+                        dot::<FMA>(&k.cm, &sig_mean[..r]) - quad[0],
+                        dot::<FMA>(k.node_row(j), &sig_node[..r]) - quad[1],
+                        sig_power[r] - quad[2],
+                    )
+                }
+            };
+            est.mean_c[t] = mean + p.t_ref_c;
+            est.mean_sd_k[t] = mean_var.max(0.0).sqrt();
+            est.max_c[t] = top + p.t_ref_c;
+            est.max_sd_k[t] = node_var.max(0.0).sqrt();
+            est.power_w[t] = power;
+            est.power_sd_w[t] = power_var.max(0.0).sqrt();
+            if t == 0 {
+                break;
+            }
+            // the reading at t, then back through the transition into t
+            if measured {
+                let s_var = rep.s_vars[i];
+                let shift = dot::<FMA>(gain, &lam) + rep.nus[i] / s_var;
+                for ((lt, &l), &hi) in lam_t.iter_mut().zip(&lam).zip(&k.h) {
+                    *lt = madd::<FMA>(-hi, shift, l);
+                }
+            } else {
+                lam_t.copy_from_slice(&lam);
+            }
+            let tr = &p.transitions[p.index[t - 1] as usize];
+            tr.apply_t::<FMA>(&k.d, &lam_t, &mut lam);
+            if frozen {
+                continue; // Λ stays the steady one
+            }
+            back = None;
+            let corr = if measured {
+                let u = &q[3];
+                Some((&u[..], dot::<FMA>(gain, u) + 1.0 / rep.s_vars[i]))
+            } else {
+                None
+            };
+            tr.back_cov::<FMA>(
+                &k.d,
+                &big,
+                &k.h,
+                corr,
+                &mut big_new,
+                &mut work.four,
+                &mut work.big,
+            );
+            if mode != FULL && converged(&big_new, &big, n, k.tol_back, &mut work.d) {
+                let c = &caches[mode as usize];
+                let mean_var = dot::<FMA>(&k.cm, &c.sig_mean[..r])
+                    - k.quad::<FMA>(&big_new, &c.sig_mean, &mut work.a);
+                let mut node_var = Vec::with_capacity(k.m);
+                for jj in 0..k.m {
+                    let sn = &c.sig_nodes[jj * n..(jj + 1) * n];
+                    node_var.push(
+                        dot::<FMA>(k.node_row(jj), &sn[..r])
+                            - k.quad::<FMA>(&big_new, sn, &mut work.a),
+                    );
+                }
+                let power_var = c.sig_power[r] - k.quad::<FMA>(&big_new, &c.sig_power, &mut work.a);
+                back = Some(BackSteady {
+                    cache: mode,
+                    mean_var,
+                    node_var,
+                    power_var,
+                });
+            }
+            std::mem::swap(&mut big, &mut big_new);
+        }
+    }
+    (est, frozen_steps)
+}
+
+#[cfg(test)]
+// the reference implementations index as the textbook writes them
+#[allow(clippy::needless_range_loop)]
+mod tests {
+    use super::*;
+
+    fn dot(a: &[f64], b: &[f64]) -> f64 {
+        super::dot::<false>(a, b)
+    }
+
+    /// xorshift64*: reproducible numbers without a dependency.
+    struct Rng(u64);
+
+    impl Rng {
+        fn uniform(&mut self) -> f64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            (self.0.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64
+        }
+
+        fn normal(&mut self) -> f64 {
+            let (u, v) = (self.uniform().max(1e-300), self.uniform());
+            (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
+        }
+    }
+
+    fn matmul(a: &[f64], b: &[f64], n: usize) -> Vec<f64> {
+        let mut c = vec![0.0; n * n];
+        for i in 0..n {
+            for k in 0..n {
+                for j in 0..n {
+                    c[i * n + j] += a[i * n + k] * b[k * n + j];
+                }
+            }
+        }
+        c
+    }
+
+    fn transpose(a: &[f64], n: usize) -> Vec<f64> {
+        (0..n * n).map(|ij| a[(ij % n) * n + ij / n]).collect()
+    }
+
+    fn inverse(a: &[f64], n: usize) -> Vec<f64> {
+        let mut m = a.to_vec();
+        let mut inv: Vec<f64> = (0..n * n)
+            .map(|ij| if ij / n == ij % n { 1.0 } else { 0.0 })
+            .collect();
+        for c in 0..n {
+            let piv = (c..n)
+                .max_by(|&x, &y| m[x * n + c].abs().total_cmp(&m[y * n + c].abs()))
+                .unwrap();
+            for j in 0..n {
+                m.swap(c * n + j, piv * n + j);
+                inv.swap(c * n + j, piv * n + j);
+            }
+            let d = m[c * n + c];
+            for j in 0..n {
+                m[c * n + j] /= d;
+                inv[c * n + j] /= d;
+            }
+            for i in (0..n).filter(|&i| i != c) {
+                let f = m[i * n + c];
+                for j in 0..n {
+                    m[i * n + j] -= f * m[c * n + j];
+                    inv[i * n + j] -= f * inv[c * n + j];
+                }
+            }
+        }
+        inv
+    }
+
+    fn dense_f(p: &Problem<'_>, k: usize) -> Vec<f64> {
+        let (r, n) = (p.order, p.n_state());
+        let t = &p.transitions[k];
+        let mut f = vec![0.0; n * n];
+        for i in 0..r {
+            f[i * n..i * n + r].copy_from_slice(&t.a[i * r..(i + 1) * r]);
+            f[i * n + r] = t.gamma[i];
+        }
+        f[r * n + r] = t.phi;
+        if p.lag {
+            f[(r + 1) * n..(r + 1) * n + r].copy_from_slice(&t.lag_row);
+            f[(r + 1) * n + r] = t.lag_power;
+            f[(r + 1) * n + r + 1] = t.lag_a;
+        }
+        f
+    }
+
+    /// A small problem: three modes, a diagonal, a dense and a gap-like transition, readings
+    /// of a simulated truth with noise and missing stretches.
+    fn problem(lag: bool, n_t: usize, seed: u64) -> Problem<'static> {
+        let mut rng = Rng(seed);
+        let r = 3;
+        let lam = [0.004, 0.2, 1.5];
+        let c_probe = vec![0.8, -0.3, 0.1];
+        let lag_a = (-1.0f64 / 30.0).exp();
+        let lag_c = 30.0 * (1.0 - lag_a) - lag_a;
+        let lag_b1 = 1.0 - lag_a - lag_c;
+        let make = |a: Vec<f64>, diagonal: bool, gamma: Vec<f64>, phi: f64| {
+            let mut at_cp = vec![0.0; r];
+            for i in 0..r {
+                for kk in 0..r {
+                    at_cp[i] += a[kk * r + i] * c_probe[kk];
+                }
+            }
+            let lag_row: Vec<f64> = if lag {
+                (0..r)
+                    .map(|i| lag_b1 * at_cp[i] + lag_c * c_probe[i])
+                    .collect()
+            } else {
+                vec![0.0; r]
+            };
+            let lag_power = if lag {
+                lag_b1 * dot(&c_probe, &gamma)
+            } else {
+                0.0
+            };
+            let e = (0..r).map(|i| a[i * r + i]).collect();
+            Transition {
+                diagonal,
+                a,
+                e,
+                gamma,
+                phi,
+                q_unit: 0.5 * 600.0 * (1.0 - phi * phi),
+                lag_a: if lag { lag_a } else { 0.0 },
+                lag_b1: if lag { lag_b1 } else { 0.0 },
+                lag_row,
+                lag_power,
+            }
+        };
+        let e: Vec<f64> = lam.iter().map(|l: &f64| (-l).exp()).collect();
+        let mut diag = vec![0.0; r * r];
+        for i in 0..r {
+            diag[i * r + i] = e[i];
+        }
+        let (cs, sn) = (0.6f64, 0.8f64);
+        let q = [cs, -sn, 0.0, sn, cs, 0.0, 0.0, 0.0, 1.0];
+        let mut dense = vec![0.0; r * r];
+        for i in 0..r {
+            for j in 0..r {
+                for kk in 0..r {
+                    dense[i * r + j] += q[i * r + kk] * e[kk] * 0.97 * q[j * r + kk];
+                }
+            }
+        }
+        let phi = (-1.0f64 / 600.0).exp();
+        let transitions = vec![
+            make(diag.clone(), true, vec![0.02, 0.01, -0.005], phi),
+            make(dense, false, vec![0.015, 0.012, -0.004], phi),
+            make(
+                diag.iter().map(|v| v * v * v).collect(),
+                true,
+                vec![0.0; r],
+                phi.powi(3),
+            ),
+        ];
+        let steps = n_t - 1;
+        let index: Vec<u32> = (0..steps)
+            .map(|s| match s % 1500 {
+                40..=55 | 600..=800 => 1,
+                80 | 1000 => 2,
+                _ => 0,
+            })
+            .collect();
+        let w: Vec<f64> = (0..steps * r)
+            .map(|i| if (i / r) % 50 < 10 { 0.3 } else { 0.01 } * (1.0 + (i % r) as f64))
+            .collect();
+        let n = r + 1 + usize::from(lag);
+        let mut p = Problem {
+            order: r,
+            lag,
+            t_ref_c: 20.0,
+            transitions,
+            index: Cow::Owned(index),
+            w: Cow::Owned(w),
+            reading_c: Cow::Owned(vec![0.0; n_t]),
+            c_probe,
+            c_mean: vec![0.5, 0.2, 0.4],
+            c_nodes: vec![0.6, 0.3, 0.5, 0.4, 0.5, -0.2, 0.7, -0.1, 0.9],
+            x0: vec![0.0; n],
+            cov0: vec![0.0; n * n],
+            p_prior_unit: 300.0,
+        };
+        for i in 0..n {
+            p.cov0[i * n + i] = 0.5 + 0.1 * i as f64;
+            if i + 1 < n {
+                p.cov0[i * n + i + 1] = 0.05;
+                p.cov0[(i + 1) * n + i] = 0.05;
+            }
+        }
+        // readings of a truth stepped by the model, with an unexplained power of 2 W
+        let mut x = vec![0.0; n];
+        x[r] = 2.0;
+        let mut h = vec![0.0; n];
+        if lag {
+            h[r + 1] = 1.0;
+        } else {
+            h[..r].copy_from_slice(&p.c_probe);
+        }
+        for t in 0..n_t {
+            if t > 0 {
+                let f = dense_f(&p, p.index[t - 1] as usize);
+                let mut nx = vec![0.0; n];
+                for i in 0..n {
+                    nx[i] = dot(&f[i * n..(i + 1) * n], &x);
+                }
+                for i in 0..r {
+                    nx[i] += p.w[(t - 1) * r + i];
+                }
+                if lag {
+                    nx[r + 1] += p.transitions[p.index[t - 1] as usize].lag_b1
+                        * dot(&p.c_probe, &p.w[(t - 1) * r..t * r]);
+                }
+                x = nx;
+            }
+            let missing = (t % 1500 > 1480) || t % 1500 == 7;
+            p.reading_c.to_mut()[t] = if missing {
+                f64::NAN
+            } else {
+                dot(&h, &x) + p.t_ref_c + 0.05 * rng.normal()
+            };
+        }
+        p
+    }
+
+    struct Naive {
+        filtered: Estimates,
+        smoothed: Estimates,
+        innovation: Vec<f64>,
+        loglik: f64,
+    }
+
+    /// The textbook filter and Rauch-Tung-Striebel smoother with dense matrices and an
+    /// inverse, no freezing: what the kernel must equal.
+    fn naive(p: &Problem<'_>, noise: Noise) -> Naive {
+        let (r, n) = (p.order, p.n_state());
+        let n_t = p.reading_c.len();
+        let mut h = vec![0.0; n];
+        if p.lag {
+            h[r + 1] = 1.0;
+        } else {
+            h[..r].copy_from_slice(&p.c_probe);
+        }
+        let sw2 = noise.power_w_per_sqrt_s.powi(2);
+        let var_v = noise.measurement_k.powi(2);
+        let mut x = p.x0.clone();
+        let mut cov = p.cov0.clone();
+        cov[r * n + r] += sw2 * p.p_prior_unit;
+        let (mut xf, mut pf, mut xp, mut pp) = (vec![], vec![], vec![], vec![]);
+        let mut innovation = vec![f64::NAN; n_t];
+        let mut loglik = 0.0;
+        for t in 0..n_t {
+            if t > 0 {
+                let k = p.index[t - 1] as usize;
+                let f = dense_f(p, k);
+                let mut nx = vec![0.0; n];
+                for i in 0..n {
+                    nx[i] = dot(&f[i * n..(i + 1) * n], &x);
+                }
+                for i in 0..r {
+                    nx[i] += p.w[(t - 1) * r + i];
+                }
+                if p.lag {
+                    nx[r + 1] +=
+                        p.transitions[k].lag_b1 * dot(&p.c_probe, &p.w[(t - 1) * r..t * r]);
+                }
+                x = nx;
+                cov = matmul(&matmul(&f, &cov, n), &transpose(&f, n), n);
+                cov[r * n + r] += sw2 * p.transitions[k].q_unit;
+            }
+            xp.push(x.clone());
+            pp.push(cov.clone());
+            if p.reading_c[t].is_finite() {
+                let mut ph = vec![0.0; n];
+                for i in 0..n {
+                    ph[i] = dot(&cov[i * n..(i + 1) * n], &h);
+                }
+                let s = dot(&h, &ph) + var_v;
+                let nu = p.reading_c[t] - dot(&h, &x) - p.t_ref_c;
+                innovation[t] = nu;
+                loglik -= 0.5 * ((2.0 * std::f64::consts::PI * s).ln() + nu * nu / s);
+                for i in 0..n {
+                    x[i] += ph[i] / s * nu;
+                    for j in 0..n {
+                        cov[i * n + j] -= ph[i] * ph[j] / s;
+                    }
+                }
+            }
+            xf.push(x.clone());
+            pf.push(cov.clone());
+        }
+        let (mut xs, mut ps) = (xf.clone(), pf.clone());
+        for t in (0..n_t - 1).rev() {
+            let f = dense_f(p, p.index[t] as usize);
+            let g = matmul(
+                &matmul(&pf[t], &transpose(&f, n), n),
+                &inverse(&pp[t + 1], n),
+                n,
+            );
+            let dx: Vec<f64> = (0..n).map(|i| xs[t + 1][i] - xp[t + 1][i]).collect();
+            let dp: Vec<f64> = (0..n * n).map(|i| ps[t + 1][i] - pp[t + 1][i]).collect();
+            for i in 0..n {
+                xs[t][i] = xf[t][i] + dot(&g[i * n..(i + 1) * n], &dx);
+            }
+            let gdg = matmul(&matmul(&g, &dp, n), &transpose(&g, n), n);
+            for i in 0..n * n {
+                ps[t][i] = pf[t][i] + gdg[i];
+            }
+        }
+        let report = |xs: &[Vec<f64>], ps: &[Vec<f64>]| {
+            let mut e = Estimates::nan(n_t);
+            let pad = |c: &[f64]| {
+                let mut v = vec![0.0; n];
+                v[..r].copy_from_slice(c);
+                v
+            };
+            let quad = |c: &[f64], m: &[f64]| {
+                (0..n)
+                    .map(|i| c[i] * dot(&m[i * n..(i + 1) * n], c))
+                    .sum::<f64>()
+            };
+            for t in 0..n_t {
+                let cm = pad(&p.c_mean);
+                e.mean_c[t] = dot(&cm, &xs[t]) + p.t_ref_c;
+                e.mean_sd_k[t] = quad(&cm, &ps[t]).sqrt();
+                let (mut best, mut j) = (f64::NEG_INFINITY, 0);
+                for (jj, c) in p.c_nodes.chunks_exact(r).enumerate() {
+                    let v = dot(c, &xs[t][..r]);
+                    if v > best {
+                        (best, j) = (v, jj);
+                    }
+                }
+                e.max_c[t] = best + p.t_ref_c;
+                e.max_sd_k[t] = quad(&pad(&p.c_nodes[j * r..(j + 1) * r]), &ps[t]).sqrt();
+                e.power_w[t] = xs[t][r];
+                e.power_sd_w[t] = ps[t][r * n + r].sqrt();
+            }
+            e
+        };
+        Naive {
+            filtered: report(&xf, &pf),
+            smoothed: report(&xs, &ps),
+            innovation,
+            loglik,
+        }
+    }
+
+    fn assert_close(name: &str, a: &[f64], b: &[f64], tol: f64) {
+        assert_eq!(a.len(), b.len(), "{name}: lengths");
+        for (t, (x, y)) in a.iter().zip(b).enumerate() {
+            if x.is_nan() && y.is_nan() {
+                continue;
+            }
+            let scale = 1.0f64.max(x.abs()).max(y.abs());
+            assert!((x - y).abs() <= tol * scale, "{name}[{t}]: {x} vs {y}");
+        }
+    }
+
+    fn assert_estimates(what: &str, a: &Estimates, b: &Estimates, tol: f64) {
+        assert_close(&format!("{what} mean"), &a.mean_c, &b.mean_c, tol);
+        assert_close(&format!("{what} mean sd"), &a.mean_sd_k, &b.mean_sd_k, tol);
+        assert_close(&format!("{what} max"), &a.max_c, &b.max_c, tol);
+        assert_close(&format!("{what} max sd"), &a.max_sd_k, &b.max_sd_k, tol);
+        assert_close(&format!("{what} power"), &a.power_w, &b.power_w, tol);
+        assert_close(
+            &format!("{what} power sd"),
+            &a.power_sd_w,
+            &b.power_sd_w,
+            tol,
+        );
+    }
+
+    const NOISE: Noise = Noise {
+        measurement_k: 0.05,
+        power_w_per_sqrt_s: 0.3,
+    };
+
+    fn settings(tol: f64, block: usize) -> Settings {
+        Settings {
+            smooth: true,
+            steady_tolerance: tol,
+            smoother_tolerance: tol,
+            checkpoint_steps: block,
+            outputs: true,
+        }
+    }
+
+    #[test]
+    fn the_kernel_is_the_textbook_filter_and_smoother() {
+        for lag in [false, true] {
+            let p = problem(lag, 400, 7);
+            let reference = naive(&p, NOISE);
+            let out = run(&p, NOISE, &settings(0.0, 64)).unwrap();
+            assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
+            assert_estimates(
+                "smoothed",
+                out.smoothed.as_ref().unwrap(),
+                &reference.smoothed,
+                1e-8,
+            );
+            assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
+            assert!((out.log_likelihood - reference.loglik).abs() < 1e-8 * reference.loglik.abs());
+            assert!(out.updates > 300);
+        }
+    }
+
+    #[test]
+    fn steady_stretches_change_nothing_but_the_cost() {
+        for lag in [false, true] {
+            let p = problem(lag, 3000, 11);
+            let exact = run(&p, NOISE, &settings(0.0, 128)).unwrap();
+            let fast = run(&p, NOISE, &settings(1e-12, 128)).unwrap();
+            assert!(fast.frozen_steps > 1000, "{} frozen", fast.frozen_steps);
+            assert_estimates("filtered", &fast.filtered, &exact.filtered, 1e-9);
+            assert_estimates(
+                "smoothed",
+                fast.smoothed.as_ref().unwrap(),
+                exact.smoothed.as_ref().unwrap(),
+                1e-9,
+            );
+        }
+    }
+
+    #[test]
+    fn the_default_tolerances_move_estimates_by_nothing_that_matters() {
+        let p = problem(false, 3000, 5);
+        let exact = run(&p, NOISE, &settings(0.0, 128)).unwrap();
+        let mut s = settings(1e-8, 128);
+        s.smoother_tolerance = 1e-6;
+        let fast = run(&p, NOISE, &s).unwrap();
+        assert!(fast.frozen_steps > 1500 && fast.smoother_frozen_steps > 1000);
+        let (a, b) = (&fast.filtered, &exact.filtered);
+        assert_close("mean", &a.mean_c, &b.mean_c, 1e-7);
+        assert_close("power", &a.power_w, &b.power_w, 1e-6);
+        assert_close("mean sd", &a.mean_sd_k, &b.mean_sd_k, 1e-6);
+        let (a, b) = (fast.smoothed.unwrap(), exact.smoothed.unwrap());
+        assert_close("smoothed mean", &a.mean_c, &b.mean_c, 1e-7);
+        assert_close("smoothed mean sd", &a.mean_sd_k, &b.mean_sd_k, 1e-4);
+        assert_close("smoothed power sd", &a.power_sd_w, &b.power_sd_w, 1e-4);
+    }
+
+    #[test]
+    fn the_smoother_does_not_depend_on_its_blocks() {
+        let p = problem(true, 700, 3);
+        let one = run(&p, NOISE, &settings(1e-12, 700)).unwrap();
+        for block in [1, 5, 64] {
+            let other = run(&p, NOISE, &settings(1e-12, block)).unwrap();
+            assert_eq!(one.smoothed, other.smoothed, "block {block}");
+            assert_eq!(one.filtered, other.filtered);
+        }
+    }
+
+    #[test]
+    fn many_problems_at_once_are_each_alone() {
+        let problems = [problem(false, 300, 1), problem(true, 500, 2)];
+        let all = run_many(&problems, NOISE, &settings(1e-12, 64)).unwrap();
+        for (p, out) in problems.iter().zip(&all) {
+            let alone = run(p, NOISE, &settings(1e-12, 64)).unwrap();
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&out.innovation_k), bits(&alone.innovation_k));
+            assert_eq!(out.filtered, alone.filtered);
+            assert_eq!(out.smoothed, alone.smoothed);
+            assert_eq!(out.log_likelihood, alone.log_likelihood);
+        }
+    }
+
+    #[test]
+    fn bad_problems_are_errors() {
+        let mut p = problem(false, 50, 1);
+        p.index.to_mut()[3] = 9;
+        assert!(run(&p, NOISE, &settings(0.0, 8)).is_err());
+        let mut p = problem(false, 50, 1);
+        p.w.to_mut().pop();
+        assert!(run(&p, NOISE, &settings(0.0, 8)).is_err());
+        let p = problem(false, 50, 1);
+        let bad = Noise {
+            measurement_k: 0.0,
+            power_w_per_sqrt_s: 1.0,
+        };
+        assert!(run(&p, bad, &settings(0.0, 8)).is_err());
+    }
+}

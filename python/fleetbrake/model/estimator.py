@@ -1,0 +1,1283 @@
+"""The virtual sensor: the wheel-block contact temperature every second, with its uncertainty.
+
+A Kalman filter and a Rauch-Tung-Striebel smoother (in the modified Bryson-Frazier form,
+which needs no matrix inverse) on the reduced model's state, fed with the declared heat input of each second and updated with each
+valid thermistor reading; the heat that the declared inputs do not explain is estimated as
+an unknown input.
+
+::
+
+    from fleetbrake.model.estimator import EstimatorConfig, WagonSeries, estimate_contact
+
+    series = WagonSeries.of(time_s=t, p_bar=p, speed_kmh=v, ambient_c=air, reading_c=block)
+    est = estimate_contact(rom, wagon, series)       # filtered and smoothed, per logged second
+    est.contact_mean_c, est.contact_mean_lo_c, est.contact_mean_hi_c
+    est.smoothed_contact_max_c, est.unexplained_power_w, est.innovation_k
+
+    # many wagons (the Rust kernel runs them in parallel), the noise from fit days:
+    fit = fit_noise([prepare(rom, wagon, s) for s in fit_days])
+    config = EstimatorConfig(noise=fit.noise)
+    estimates = estimate([prepare(rom, wagon, s, config=config) for s in days], config=config)
+
+The outputs are the columns of ``v_contact_estimates`` (``shared/spec/interface.md``, v2):
+``contact_mean_c`` and its bounds, ``contact_max_c``/``contact_max_hi_c``, the smoothed
+mean and bounds, ``unexplained_power_w`` and bounds, ``innovation_k``.
+
+**State.** ``x = (ξ, P[, s])``: the reduced model's modal state ``ξ`` (``θ = T - T_ref`` in
+modal coordinates, r values, ``T_ref`` the first valid reading), the unexplained heat power
+``P`` (W) entering the block through its friction face, and, when the revision has a
+``sensor_lag``, the thermistor's lagged reading ``s``.
+
+**Process model** of one step ``t_n -> t_n+1``:
+
+* ``ξ' = A ξ + γ P + w``: ``A``, the reduced model's exact propagator at the step's
+  convection (diagonal at the nominal convection; one tabulated propagator per distinct,
+  quantised convection value and step length otherwise); ``w``, the response to the declared
+  inputs held over the step (the mean of the two bounding samples, exactly as
+  :func:`fleetbrake.model.timeline.simulate_timeline` drives the model: the declared force
+  chain and heat partition of ``model.physics``, the revision's effects, the ambient); ``γ``,
+  the response to 1 W of unexplained power on the friction face.
+* ``P' = φ P + ω``: a Gauss-Markov process (Ornstein-Uhlenbeck, ``dP = -P/τ dt + σ_w dW``)
+  with time constant ``τ = power_time_constant_s`` (1 h by default: a dragging or weak brake
+  persists for hours; without evidence the estimate returns to zero over an hour), discretised
+  exactly: ``φ = exp(-dt/τ)``, ``var ω = σ_w² τ/2 (1 - φ²)`` (≈ ``σ_w² dt`` per second).
+* ``s' = a s + (1 - a - c) T_seat' + c T_seat`` (the exact ramp response of
+  :func:`fleetbrake.model.rom.first_order_lag`) when the revision has a sensor lag.
+* Unlogged intervals longer than ``max_interpolated_gap_s``: the unit sleeps only when the
+  wagon stands (``fleet-data.md``), so the block cools at standstill with no friction heat,
+  declared or not: one exact step of the whole length, ``γ = 0``, ``P`` decaying by ``φ``
+  (its variance growing towards the stationary ``σ_w² τ/2``). Shorter gaps are filled by
+  linear interpolation of the inputs, second by second, with no reading.
+
+**Measurement.** ``y = T_seat + v`` (or ``s + v`` with a lag), ``var v = σ_v²``; a missing or
+faulty reading (NaN) skips the update.
+
+**Noise.** ``σ_v`` and ``σ_w`` are estimated together by maximum likelihood on the
+innovations (:func:`fit_noise`): ``log L = -1/2 Σ (log 2π S_n + ν_n²/S_n)`` over the readings
+of the fit data, maximised over ``(log σ_v, log σ_w)`` by Nelder-Mead. ``σ_w`` has a floor
+(``min_power_noise_w_per_sqrt_s``, 3 W/√s by default): on data where nothing unexplained
+happens the likelihood keeps rising as ``σ_w`` falls, and a filter tuned that way is
+overconfident when a dragging brake comes (at 1 W/√s the band held the truth for 81-91 % of
+a day with drags, at 3 W/√s for 90-96 %; ``docs/estimator.md`` has the evidence).
+
+**Prior.** ``θ`` uniform with standard deviation ``initial_temperature_sd_k`` around the first
+valid reading; ``P`` at its stationary distribution ``N(0, σ_w² τ/2)``.
+
+**Outputs** per logged second: filtered (live) and smoothed (after the fact) friction-face
+mean and maximum with their standard deviations and 95 % bounds, the unexplained power with
+its bounds, the innovation, its variance and the predicted reading. The face maximum is the
+largest of the reduced model's face-maximum nodes; its band is that node's.
+
+**Speed.** The covariance recursion depends only on the sequence of (propagator, reading or
+not): where that stays the same and the covariance has stopped changing (elementwise, relative
+to ``sqrt(Σ_ii Σ_jj)``, below ``steady_tolerance``), the filter keeps the steady-state gain and
+covariance and only the mean is stepped (standing, cruising, braking alike at the nominal
+convection); the smoother's backward information matrix is frozen the same way. The Rust
+kernel (``engine="rust"``) does this with structured (diagonal-plus-border) propagators and
+bounded memory; :func:`run_numpy` is the plain numpy implementation of the same algorithm,
+its reference in the tests and its peer in ``bench estimator``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from fleetbrake import _ext
+from fleetbrake.errors import FleetbrakeError
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.effects import DriveInputs, EffectSet, SensorLag
+from fleetbrake.model.rom import ReducedModel
+from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
+
+__all__ = [
+    "Z95",
+    "ContactEstimate",
+    "EstimatorConfig",
+    "EstimatorInputError",
+    "EstimatorNoise",
+    "EstimatorProblem",
+    "KernelOutputs",
+    "NoiseFit",
+    "WagonSeries",
+    "estimate",
+    "estimate_contact",
+    "fit_noise",
+    "prepare",
+    "run_numpy",
+    "rust_available",
+]
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+Engine = Literal["rust", "numpy"]
+
+Z95 = 1.959963984540054
+"""The two-sided 95 % quantile of the standard normal: bounds are mean ± Z95 sd."""
+
+
+class EstimatorInputError(FleetbrakeError, ValueError):
+    """A wagon's series the estimator cannot take (exit 1); the message names the wagon, the
+    column and the first row concerned."""
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration
+
+
+@dataclass(frozen=True)
+class EstimatorNoise:
+    """The two noise parameters that :func:`fit_noise` estimates."""
+
+    measurement_k: float = 0.1
+    """σ_v: standard deviation of the thermistor's reading noise, K."""
+    power_w_per_sqrt_s: float = 3.0
+    """σ_w: diffusion of the unexplained power, W/√s (its standard deviation grows by σ_w √t
+    over t seconds, for t well below the time constant). The default is the floor of
+    :func:`fit_noise`."""
+
+    def __post_init__(self) -> None:
+        for name in ("measurement_k", "power_w_per_sqrt_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(
+                    f"EstimatorNoise.{name} must be positive and finite, got {value!r}"
+                )
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Everything the estimator is set with (the noise usually from :func:`fit_noise`)."""
+
+    noise: EstimatorNoise = field(default_factory=EstimatorNoise)
+    power_time_constant_s: float = 3600.0
+    """τ of the unexplained power's Gauss-Markov process."""
+    initial_temperature_sd_k: float = 5.0
+    """Prior standard deviation of the block's (uniform) temperature at the first sample
+    around the first valid reading."""
+    dt_s: float = 1.0
+    """Sample period of the logs."""
+    max_interpolated_gap_s: float = 15.0
+    """Unlogged intervals up to this long are filled by interpolation (the wagon may be
+    moving); longer ones are a standstill (the unit sleeps only when the wagon stands)."""
+    steady_tolerance: float = 1e-8
+    """The filter's covariance counts as steady when no element changed in a step by more
+    than this times ``sqrt(Σ_ii Σ_jj)`` (0: only when unchanged). The steady gain then
+    differs from the exact one by about 50 times this, relatively: estimates move by
+    nanokelvins."""
+    smoother_tolerance: float = 1e-6
+    """The same for the smoother's information matrix, which only the smoothed standard
+    deviations use (the smoothed means do not depend on it)."""
+    checkpoint_steps: int = 256
+    """Rust kernel: seconds between the filter's checkpoints, which the smoother replays."""
+
+    def __post_init__(self) -> None:
+        for name in ("power_time_constant_s", "initial_temperature_sd_k", "dt_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(
+                    f"EstimatorConfig.{name} must be positive and finite, got {value!r}"
+                )
+        if not (math.isfinite(self.max_interpolated_gap_s) and self.max_interpolated_gap_s >= 0):
+            raise ValueError("EstimatorConfig.max_interpolated_gap_s must be >= 0 and finite")
+        for name in ("steady_tolerance", "smoother_tolerance"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"EstimatorConfig.{name} must be >= 0 and finite")
+        if self.checkpoint_steps < 1:
+            raise ValueError("EstimatorConfig.checkpoint_steps must be >= 1")
+
+
+@dataclass(frozen=True)
+class WagonSeries:
+    """One wagon's logged seconds, in time order: N samples. ``time_s`` in seconds (any
+    origin; steps of ``dt_s``, or gaps of whole multiples of it); ``reading_c`` NaN where the
+    reading is missing or faulty. Pressure, speed and ambient must be present (fill short gaps
+    first, e.g. with ``physics.fill_short_gaps``)."""
+
+    time_s: FloatArray
+    p_bar: FloatArray
+    speed_kmh: FloatArray
+    ambient_c: FloatArray
+    reading_c: FloatArray
+    wagon_id: str = ""
+
+    @classmethod
+    def of(
+        cls,
+        *,
+        time_s: ArrayLike,
+        p_bar: ArrayLike,
+        speed_kmh: ArrayLike,
+        ambient_c: float | ArrayLike,
+        reading_c: ArrayLike,
+        wagon_id: str = "",
+    ) -> WagonSeries:
+        """A series from array-likes (a number for a constant ambient)."""
+        t = np.asarray(time_s, dtype=np.float64).reshape(-1)
+        amb = np.asarray(ambient_c, dtype=np.float64)
+        return cls(
+            time_s=t,
+            p_bar=np.asarray(p_bar, dtype=np.float64).reshape(-1),
+            speed_kmh=np.asarray(speed_kmh, dtype=np.float64).reshape(-1),
+            ambient_c=np.full(t.size, float(amb)) if amb.ndim == 0 else amb.reshape(-1),
+            reading_c=np.asarray(reading_c, dtype=np.float64).reshape(-1),
+            wagon_id=wagon_id,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# The problem in arrays: what both kernels take
+
+
+@dataclass(frozen=True)
+class EstimatorProblem:
+    """One wagon's filtering problem as arrays, independent of the noise parameters.
+
+    The state has ``n = r + 1 (+ 1)`` entries: r modes, the unexplained power ``P``, the
+    lagged reading ``s`` if ``lag``. The time grid has N samples (the logged seconds and the
+    seconds filled into short gaps; ``logged`` marks the former); step n (n = 1 .. N-1) goes
+    from sample n-1 to n by transition ``index[n-1]``.
+
+    Transition k: modal propagator ``a[k]`` (r, r; diagonal where ``diagonal[k]``), the
+    power's column ``gamma[k]`` (r), its decay ``phi[k]`` and noise ``q_unit[k]`` (× σ_w²),
+    and for the lag, ``lag_a[k]``, ``lag_b1[k]`` (weight of the seat at the step's end),
+    ``lag_row[k]`` (r) and ``lag_power[k]`` (the lag's row of the transition matrix).
+    """
+
+    wagon_id: str
+    order: int
+    lag: bool
+    t_ref_c: float
+    time_s: FloatArray
+    logged: NDArray[np.bool_]
+    reading_c: FloatArray
+    index: NDArray[np.int64]
+    w: FloatArray
+    """(N-1, r): the modal response to the declared inputs of each step."""
+    a: FloatArray
+    diagonal: NDArray[np.bool_]
+    gamma: FloatArray
+    phi: FloatArray
+    q_unit: FloatArray
+    lag_a: FloatArray
+    lag_b1: FloatArray
+    lag_row: FloatArray
+    lag_power: FloatArray
+    c_probe: FloatArray
+    c_mean: FloatArray
+    c_nodes: FloatArray
+    """(m, r): the friction-face nodes whose maximum stands for the face's."""
+    x0: FloatArray
+    cov0: FloatArray
+    """Prior covariance without the power's share (added from σ_w: ``p_prior_unit``)."""
+    p_prior_unit: float
+    """The prior variance of P is σ_w² times this (τ/2: the stationary variance)."""
+
+    @property
+    def n_state(self) -> int:
+        return self.order + 1 + int(self.lag)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.reading_c.size)
+
+    def transition_matrix(self, k: int) -> FloatArray:
+        """The dense transition matrix F of transition ``k`` (n, n)."""
+        r, n = self.order, self.n_state
+        f = np.zeros((n, n))
+        f[:r, :r] = self.a[k]
+        f[:r, r] = self.gamma[k]
+        f[r, r] = self.phi[k]
+        if self.lag:
+            f[r + 1, :r] = self.lag_row[k]
+            f[r + 1, r] = self.lag_power[k]
+            f[r + 1, r + 1] = self.lag_a[k]
+        return f
+
+    def measurement_row(self) -> FloatArray:
+        """h: the reading is ``h x + T_ref``."""
+        h = np.zeros(self.n_state)
+        if self.lag:
+            h[self.order + 1] = 1.0
+        else:
+            h[: self.order] = self.c_probe
+        return h
+
+
+def _check_series(series: WagonSeries) -> None:
+    who = f"wagon {series.wagon_id!r}" if series.wagon_id else "the series"
+    n = series.time_s.size
+    if n < 1:
+        raise EstimatorInputError(f"{who}: no samples to estimate from")
+    for name in ("p_bar", "speed_kmh", "ambient_c", "reading_c"):
+        values = getattr(series, name)
+        if values.shape != (n,):
+            raise EstimatorInputError(
+                f"{who}: {name} has {values.size} values, time_s has {n} (one per sample)"
+            )
+    for name in ("time_s", "p_bar", "speed_kmh", "ambient_c"):
+        bad = np.flatnonzero(~np.isfinite(getattr(series, name)))
+        if bad.size:
+            raise EstimatorInputError(
+                f"{who}: {name} is missing or not finite in {bad.size} row(s), the first at "
+                f"row {int(bad[0])}; fill gaps in the inputs first"
+            )
+    negative = np.flatnonzero(series.speed_kmh < 0)
+    if negative.size:
+        raise EstimatorInputError(
+            f"{who}: speed_kmh is negative in row {int(negative[0])} "
+            f"({series.speed_kmh[negative[0]]!r})"
+        )
+    infinite = np.flatnonzero(np.isinf(series.reading_c))
+    if infinite.size:
+        raise EstimatorInputError(
+            f"{who}: reading_c is infinite in row {int(infinite[0])} (NaN marks no reading)"
+        )
+    steps = np.diff(series.time_s)
+    back = np.flatnonzero(steps <= 0)
+    if back.size:
+        raise EstimatorInputError(
+            f"{who}: time_s does not increase at row {int(back[0]) + 1} "
+            f"({series.time_s[back[0]]!r} then {series.time_s[back[0] + 1]!r})"
+        )
+
+
+def _grid(
+    series: WagonSeries, config: EstimatorConfig
+) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.bool_], dict[str, FloatArray]]:
+    """The time grid: logged samples plus the seconds filled into short gaps. Returns the
+    grid's times, which rows are logged, which steps are standstill gaps (N-1), and p,
+    speed, ambient, reading on the grid (inputs interpolated, readings NaN in the fills)."""
+    dt = config.dt_s
+    who = f"wagon {series.wagon_id!r}" if series.wagon_id else "the series"
+    ticks = (series.time_s - series.time_s[0]) / dt
+    whole = np.rint(ticks)
+    off = np.flatnonzero(np.abs(ticks - whole) > 1e-6)
+    if off.size:
+        raise EstimatorInputError(
+            f"{who}: time_s at row {int(off[0])} is not a whole number of {dt} s steps from "
+            "the first sample"
+        )
+    tick = whole.astype(np.int64)
+    jump = np.diff(tick)
+    fill = (jump > 1) & (jump * dt <= config.max_interpolated_gap_s)
+    # grid: each logged sample, then the filled seconds after it
+    extra = np.where(fill, jump - 1, 0)
+    n_grid = tick.size + int(extra.sum())
+    pos = np.arange(tick.size) + np.concatenate(([0], np.cumsum(extra)))
+    grid_tick = np.empty(n_grid, dtype=np.int64)
+    logged = np.zeros(n_grid, dtype=bool)
+    logged[pos] = True
+    grid_tick[pos] = tick
+    for i in np.flatnonzero(fill):
+        grid_tick[pos[i] + 1 : pos[i + 1]] = tick[i] + np.arange(1, jump[i])
+    values: dict[str, FloatArray] = {}
+    for name in ("p_bar", "speed_kmh", "ambient_c"):
+        values[name] = np.interp(grid_tick, tick, getattr(series, name))
+    reading = np.full(n_grid, np.nan)
+    reading[pos] = series.reading_c
+    values["reading_c"] = reading
+    gap = np.diff(grid_tick) > 1
+    return series.time_s[0] + grid_tick * dt, logged, gap, values
+
+
+def _drive_inputs(
+    wagon: WagonConfig,
+    rom: ReducedModel,
+    dt_s: float,
+    p_bar: FloatArray,
+    speed_kmh: FloatArray,
+    ambient_c: FloatArray,
+    h_w_m2k: Mapping[str, float | ArrayLike] | None,
+    effects: EffectSet,
+    contact_c: FloatArray | None,
+) -> DriveInputs:
+    """The declared loading at the samples (:func:`fleetbrake.model.timeline.drive_inputs`,
+    as ``simulate_timeline`` builds it), the effects applied with the friction face at
+    ``contact_c`` (a state-dependent effect's temperature)."""
+    base = drive_inputs(
+        rom,
+        wagon,
+        dt_s=dt_s,
+        p_bar=p_bar,
+        speed_kmh=speed_kmh,
+        ambient_c=ambient_c,
+        h_w_m2k=h_w_m2k,
+    )
+    return effects.apply_to_inputs(dataclasses.replace(base, contact_c=contact_c))
+
+
+@dataclass
+class _Transitions:
+    """The table of distinct transitions being built (keyed by convection and length)."""
+
+    rom: ReducedModel
+    c_probe: FloatArray
+    lag_tau_s: float
+    tau_p_s: float
+    area_m2: float
+    keys: dict[tuple[bytes, int, bool], int] = field(default_factory=dict)
+    a: list[FloatArray] = field(default_factory=list)
+    gmat: list[FloatArray | None] = field(default_factory=list)
+    g: list[FloatArray] = field(default_factory=list)
+    diagonal: list[bool] = field(default_factory=list)
+    gamma: list[FloatArray] = field(default_factory=list)
+    phi: list[float] = field(default_factory=list)
+    q_unit: list[float] = field(default_factory=list)
+    lag: list[tuple[float, float, FloatArray, float]] = field(default_factory=list)
+
+    def get(self, dh: FloatArray, steps: int, dt_s: float, gap: bool) -> int:
+        key = (np.ascontiguousarray(dh).tobytes(), steps, gap)
+        found = self.keys.get(key)
+        if found is not None:
+            return found
+        rom = self.rom
+        length_s = steps * dt_s
+        r = rom.order
+        if np.any(dh != 0.0):
+            op = np.diag(rom.lam) + np.tensordot(dh, rom.h_faces, axes=1)
+            lam, q = np.linalg.eigh(0.5 * (op + op.T))
+            e, g = _ext.rom_exact_propagator(np.ascontiguousarray(lam), float(length_s))
+            a = (q * e) @ q.T
+            gmat: FloatArray | None = (q * g) @ q.T
+            diagonal = False
+        else:
+            e, g = _ext.rom_exact_propagator(np.ascontiguousarray(rom.lam), float(length_s))
+            a = np.diag(e)
+            gmat = None
+            diagonal = True
+        if gap:
+            gamma = np.zeros(r)
+        else:
+            unit = rom.b_flux / self.area_m2  # 1 W over the friction face, in modal load
+            gamma = unit * g if gmat is None else gmat @ unit
+        phi = math.exp(-length_s / self.tau_p_s)
+        q_unit = 0.5 * self.tau_p_s * (1.0 - phi * phi)
+        if self.lag_tau_s > 0:
+            la = math.exp(-length_s / self.lag_tau_s)
+            c = self.lag_tau_s / length_s * (1.0 - la) - la
+            b1 = 1.0 - la - c
+            lag_row = b1 * (a.T @ self.c_probe) + c * self.c_probe
+            lag = (la, b1, lag_row, float(b1 * (self.c_probe @ gamma)))
+        else:
+            lag = (0.0, 0.0, np.zeros(r), 0.0)
+        self.keys[key] = len(self.a)
+        self.a.append(a)
+        self.gmat.append(gmat)
+        self.g.append(np.asarray(g, dtype=np.float64))
+        self.diagonal.append(diagonal)
+        self.gamma.append(gamma)
+        self.phi.append(phi)
+        self.q_unit.append(q_unit)
+        self.lag.append(lag)
+        return self.keys[key]
+
+
+def prepare(
+    rom: ReducedModel,
+    wagon: WagonConfig,
+    series: WagonSeries,
+    *,
+    effects: EffectSet = EffectSet(),  # noqa: B008 (immutable)
+    config: EstimatorConfig = EstimatorConfig(),
+    h_w_m2k: Mapping[str, float | ArrayLike] | None = None,
+    contact_c: ArrayLike | None = None,
+) -> EstimatorProblem:
+    """The filtering problem of one wagon's series under a model revision (``rom`` and
+    ``effects``; ``h_w_m2k`` the declared convection, None: the reduced model's nominal, as
+    in ``simulate_timeline``). ``contact_c`` (one per logged sample) feeds state-dependent
+    effects (:func:`estimate_contact` iterates on it)."""
+    _check_series(series)
+    dt = config.dt_s
+    grid_t, logged, gap, values = _grid(series, config)
+    n = grid_t.size
+    contact: FloatArray | None = None
+    if contact_c is not None:
+        logged_contact = np.asarray(contact_c, dtype=np.float64).reshape(-1)
+        if logged_contact.size != series.time_s.size:
+            raise EstimatorInputError(
+                f"wagon {series.wagon_id!r}: contact_c has {logged_contact.size} values, "
+                f"expected {series.time_s.size}"
+            )
+        contact = np.interp(grid_t, grid_t[logged], logged_contact)
+    inputs = _drive_inputs(
+        wagon,
+        rom,
+        dt,
+        values["p_bar"],
+        values["speed_kmh"],
+        values["ambient_c"],
+        h_w_m2k,
+        effects,
+        contact,
+    )
+    # the same samples at standstill (what a sleeping unit's wagon does in a long gap)
+    still = _drive_inputs(
+        wagon,
+        rom,
+        dt,
+        np.zeros(n),
+        np.zeros(n),
+        values["ambient_c"],
+        h_w_m2k,
+        effects,
+        contact,
+    )
+    reading = values["reading_c"]
+    valid = np.flatnonzero(np.isfinite(reading))
+    t_ref = float(reading[valid[0]]) if valid.size else float(values["ambient_c"][0])
+    faces = rom.face_names
+    unknown = set(inputs.h_w_m2k) - set(faces)
+    if unknown:
+        raise EstimatorInputError(
+            f"wagon {series.wagon_id!r}: convection for unknown face set(s) {sorted(unknown)}; "
+            f"the reduced model has {faces}"
+        )
+
+    def per_face(drive: DriveInputs) -> FloatArray:
+        return np.stack(
+            [np.asarray(drive.h_w_m2k.get(f, np.zeros(n)), dtype=np.float64) for f in faces],
+            axis=1,
+        )
+
+    h_samples = per_face(inputs)
+    h_still = per_face(still)
+    if np.any(~np.isfinite(h_samples)) or np.any(h_samples < 0):
+        raise EstimatorInputError(
+            f"wagon {series.wagon_id!r}: convection coefficients must be finite and >= 0"
+        )
+    # per step: the mean of the two bounding samples; at standstill gaps the still inputs
+    step_flux = 0.5 * (inputs.flux_w_m2[:-1] + inputs.flux_w_m2[1:])
+    step_amb = 0.5 * (inputs.ambient_c[:-1] + inputs.ambient_c[1:])
+    step_h = 0.5 * (h_samples[:-1] + h_samples[1:])
+    still_amb = 0.5 * (still.ambient_c[:-1] + still.ambient_c[1:])
+    still_h = 0.5 * (h_still[:-1] + h_still[1:])
+    step_flux = np.where(gap, 0.0, step_flux)
+    step_amb = np.where(gap, still_amb, step_amb)
+    step_h = np.where(gap[:, None], still_h, step_h)
+    for j in range(len(faces)):  # a varying coefficient is quantised (as the timeline does)
+        column = step_h[:, j]
+        if column.size and np.any(column != column[0]):
+            step_h[:, j] = np.round(column / H_QUANTUM_W_M2K) * H_QUANTUM_W_M2K
+    if not np.all(np.isfinite(step_flux)) or not np.all(np.isfinite(step_amb)):
+        raise EstimatorInputError(f"wagon {series.wagon_id!r}: heat input or ambient not finite")
+    h_nom = np.array([rom.h_nominal.get(f, 0.0) for f in faces])
+    dh = np.round(step_h - h_nom, 12)
+    steps_of = np.rint(np.diff(grid_t) / dt).astype(np.int64)
+    lag_effect = effects.get("sensor_lag")
+    lag_tau = lag_effect.tau_s if isinstance(lag_effect, SensorLag) else 0.0
+    c_probe = rom.c_out[0]  # the sensor seat: the first probe (output rows: probes, mean, nodes)
+    table = _Transitions(
+        rom=rom,
+        c_probe=c_probe,
+        lag_tau_s=float(lag_tau),
+        tau_p_s=config.power_time_constant_s,
+        area_m2=wagon.geometry.contact_area_m2,
+    )
+    # one transition per distinct (convection, length, standstill): integer codes per column,
+    # then one key per step (sorting floats row by row is slow)
+    codes = [np.unique(column, return_inverse=True) for column in dh.T]
+    key = np.rint(steps_of).astype(np.int64) * 2 + gap
+    for distinct, inverse_f in codes:
+        key = key * max(distinct.size, 1) + inverse_f.reshape(-1)
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    ids = np.array(
+        [table.get(dh[i], int(steps_of[i]), dt, bool(gap[i])) for i in first], dtype=np.int64
+    )
+    index = ids[inverse.reshape(-1)] if n > 1 else np.zeros(0, dtype=np.int64)
+    # the modal response to the declared inputs of each step
+    u = (
+        step_flux[:, None] * rom.b_flux[None, :]
+        + (step_h * (step_amb - t_ref)[:, None]) @ rom.b_faces
+    )
+    g_all = np.stack(table.g) if table.g else np.zeros((0, rom.order))
+    w = u * g_all[index] if n > 1 else u
+    for k in np.flatnonzero(~np.array(table.diagonal, dtype=bool)):
+        gmat = table.gmat[k]
+        rows = index == k
+        assert gmat is not None
+        w[rows] = u[rows] @ gmat.T
+    r = rom.order
+    lag = lag_tau > 0
+    n_state = r + 1 + int(lag)
+    # prior: a uniform offset of the whole block (and of the lagged reading)
+    b_air = h_nom @ rom.b_faces
+    uniform = np.zeros(n_state)
+    uniform[:r] = np.divide(b_air, rom.lam, out=np.zeros(r), where=rom.lam > 0)
+    if lag:
+        uniform[r + 1] = 1.0
+    sd0 = config.initial_temperature_sd_k
+    cov0 = sd0 * sd0 * np.outer(uniform, uniform)
+    lag_rows = table.lag
+    return EstimatorProblem(
+        wagon_id=series.wagon_id,
+        order=r,
+        lag=lag,
+        t_ref_c=t_ref,
+        time_s=grid_t,
+        logged=logged,
+        reading_c=reading,
+        index=index,
+        w=np.ascontiguousarray(w),
+        a=np.stack(table.a) if table.a else np.zeros((0, r, r)),
+        diagonal=np.array(table.diagonal, dtype=bool),
+        gamma=np.stack(table.gamma) if table.gamma else np.zeros((0, r)),
+        phi=np.array(table.phi),
+        q_unit=np.array(table.q_unit),
+        lag_a=np.array([v[0] for v in lag_rows]),
+        lag_b1=np.array([v[1] for v in lag_rows]),
+        lag_row=np.stack([v[2] for v in lag_rows]) if lag_rows else np.zeros((0, r)),
+        lag_power=np.array([v[3] for v in lag_rows]),
+        c_probe=np.ascontiguousarray(c_probe),
+        c_mean=np.ascontiguousarray(rom.c_out[rom.n_probes]),
+        c_nodes=np.ascontiguousarray(rom.c_out[rom.n_probes + 1 :]),
+        x0=np.zeros(n_state),
+        cov0=cov0,
+        p_prior_unit=0.5 * config.power_time_constant_s,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The kernels' outputs
+
+
+@dataclass(frozen=True)
+class KernelOutputs:
+    """What a kernel returns, on the problem's time grid (N rows). ``smoothed_*`` are None
+    when the smoother did not run. Standard deviations, not bounds."""
+
+    mean_c: FloatArray
+    mean_sd_k: FloatArray
+    max_c: FloatArray
+    max_sd_k: FloatArray
+    power_w: FloatArray
+    power_sd_w: FloatArray
+    innovation_k: FloatArray
+    innovation_var_k2: FloatArray
+    predicted_reading_c: FloatArray
+    log_likelihood: float
+    updates: int
+    frozen_steps: int
+    """Seconds at which the filter's covariance was steady (only the mean stepped)."""
+    final_state: FloatArray
+    final_cov: FloatArray
+    smoothed_mean_c: FloatArray | None = None
+    smoothed_mean_sd_k: FloatArray | None = None
+    smoothed_max_c: FloatArray | None = None
+    smoothed_max_sd_k: FloatArray | None = None
+    smoothed_power_w: FloatArray | None = None
+    smoothed_power_sd_w: FloatArray | None = None
+    smoother_frozen_steps: int = 0
+    """Seconds at which the smoother's information matrix was steady."""
+
+
+def _converged(new: FloatArray, old: FloatArray, tol: float) -> bool:
+    """Every element changed by at most ``tol sqrt(d_i d_j)`` (d the new diagonal)."""
+    d = np.sqrt(np.abs(np.diag(new)))
+    return bool(np.all(np.abs(new - old) <= tol * np.outer(d, d)))
+
+
+@dataclass
+class _Steady:
+    """The filter's covariance quantities while they are steady for one key."""
+
+    key: tuple[int, bool]
+    cov: FloatArray
+    gain: FloatArray
+    s_var: float
+    mean_var: float
+    node_var: FloatArray
+    power_var: float
+
+
+def run_numpy(
+    problem: EstimatorProblem,
+    noise: EstimatorNoise,
+    *,
+    smooth: bool = True,
+    steady_tolerance: float = 1e-8,
+    smoother_tolerance: float = 1e-6,
+    outputs: bool = True,
+) -> KernelOutputs:
+    """The filter (and smoother) in plain numpy: dense matrices, one step at a time, the
+    same algorithm as the Rust kernel (the same steady-state freezing), its reference."""
+    p = problem
+    r, n = p.order, p.n_state
+    ip = r
+    h = p.measurement_row()
+    var_v = noise.measurement_k**2
+    sw2 = noise.power_w_per_sqrt_s**2
+    mats = [p.transition_matrix(k) for k in range(p.phi.size)]
+    qp = p.q_unit * sw2
+    cm = np.zeros(n)
+    cm[:r] = p.c_mean
+    cn = np.zeros((p.c_nodes.shape[0], n))
+    cn[:, :r] = p.c_nodes
+    y = p.reading_c
+    n_t = y.size
+    x = p.x0.copy()
+    cov = p.cov0.copy()
+    cov[ip, ip] += sw2 * p.p_prior_unit
+    out = {
+        name: np.full(n_t, np.nan)
+        for name in (
+            "mean_c",
+            "mean_sd_k",
+            "max_c",
+            "max_sd_k",
+            "power_w",
+            "power_sd_w",
+            "innovation_k",
+            "innovation_var_k2",
+            "predicted_reading_c",
+        )
+    }
+    keep = smooth
+    xs = np.empty((n_t, n)) if keep else np.empty((0, n))
+    gains = np.zeros((n_t, n)) if keep else np.empty((0, n))
+    s_vars = np.zeros(n_t)
+    nus = np.zeros(n_t)
+    cov_of: list[FloatArray] = []  # filtered covariance of each step (shared while steady)
+    cache_of = np.full(n_t, -1, dtype=np.int64)
+    caches: list[_Steady] = []
+    steady: _Steady | None = None
+    prev_key: tuple[int, bool] | None = None
+    prev_cov = cov
+    loglik = 0.0
+    updates = 0
+    frozen_steps = 0
+    for t in range(n_t):
+        measured = bool(np.isfinite(y[t]))
+        k = int(p.index[t - 1]) if t > 0 else -1  # the transition into t
+        key = (k, measured) if t > 0 else None
+        if t > 0:
+            x_prior = mats[k] @ x
+            x_prior[:r] += p.w[t - 1]
+            if p.lag:
+                x_prior[r + 1] += p.lag_b1[k] * (p.c_probe @ p.w[t - 1])
+        else:
+            x_prior = x
+        if steady is not None and steady.key == key:
+            frozen_steps += 1
+            cov_f, gain, s_var = steady.cov, steady.gain, steady.s_var
+            mean_var, node_var, power_var = steady.mean_var, steady.node_var, steady.power_var
+            cache_of[t] = len(caches) - 1
+        else:
+            steady = None
+            if t > 0:
+                f = mats[k]
+                cov_pred = f @ cov @ f.T
+                cov_pred = 0.5 * (cov_pred + cov_pred.T)
+                cov_pred[ip, ip] += qp[k]
+            else:
+                cov_pred = cov
+            s_var = float(h @ cov_pred @ h) + var_v
+            if measured:
+                gain = cov_pred @ h / s_var
+                cov_f = cov_pred - np.outer(gain, gain) * s_var
+            else:
+                gain = np.zeros(n)
+                cov_f = cov_pred
+            mean_var = float(cm @ cov_f @ cm)
+            node_var = np.einsum("ij,jk,ik->i", cn, cov_f, cn)
+            power_var = float(cov_f[ip, ip])
+            if (
+                key is not None
+                and key == prev_key
+                and _converged(cov_f, prev_cov, steady_tolerance)
+            ):
+                steady = _Steady(key, cov_f, gain, s_var, mean_var, node_var, power_var)
+                caches.append(steady)
+        predicted = float(h @ x_prior) + p.t_ref_c
+        if measured:
+            nu = float(y[t]) - predicted
+            x = x_prior + gain * nu
+            loglik -= 0.5 * (math.log(2.0 * math.pi * s_var) + nu * nu / s_var)
+            updates += 1
+        else:
+            nu = 0.0
+            x = x_prior
+        cov = cov_f
+        prev_cov = cov_f
+        prev_key = key
+        if outputs:
+            nodes = cn @ x
+            j = int(np.argmax(nodes))
+            out["mean_c"][t] = cm @ x + p.t_ref_c
+            out["mean_sd_k"][t] = math.sqrt(max(mean_var, 0.0))
+            out["max_c"][t] = nodes[j] + p.t_ref_c
+            out["max_sd_k"][t] = math.sqrt(max(float(node_var[j]), 0.0))
+            out["power_w"][t] = x[ip]
+            out["power_sd_w"][t] = math.sqrt(max(power_var, 0.0))
+            out["innovation_k"][t] = nu if measured else np.nan
+            out["innovation_var_k2"][t] = s_var
+            out["predicted_reading_c"][t] = predicted
+        if keep:
+            xs[t] = x
+            gains[t] = gain
+            s_vars[t] = s_var
+            nus[t] = nu
+            cov_of.append(cov_f)
+    result: dict[str, object] = dict(out)
+    if keep:
+        result.update(
+            _smooth_numpy(
+                p, mats, h, cm, cn, xs, gains, s_vars, nus, cov_of, cache_of, smoother_tolerance
+            )
+        )
+    return KernelOutputs(
+        **result,  # type: ignore[arg-type]  # arrays by field name: checked by the dataclass
+        log_likelihood=loglik,
+        updates=updates,
+        frozen_steps=frozen_steps,
+        final_state=x.copy(),
+        final_cov=cov.copy(),
+    )
+
+
+def _smooth_numpy(
+    p: EstimatorProblem,
+    mats: Sequence[FloatArray],
+    h: FloatArray,
+    cm: FloatArray,
+    cn: FloatArray,
+    xs: FloatArray,
+    gains: FloatArray,
+    s_vars: FloatArray,
+    nus: FloatArray,
+    cov_of: Sequence[FloatArray],
+    cache_of: NDArray[np.int64],
+    tol: float,
+) -> dict[str, object]:
+    """The modified Bryson-Frazier smoother (the RTS smoother without inverses):
+    ``x_n|N = x_n|n - Σ_n|n λ_n``, ``Σ_n|N = Σ_n|n - Σ_n|n Λ_n Σ_n|n``, with
+    ``λ̃ = Ĉᵀ λ - hν/S``, ``Λ̃ = Ĉᵀ Λ Ĉ + hhᵀ/S`` (``Ĉ = I - K h``) at a reading and
+    ``λ_n-1 = Fᵀ λ̃``, ``Λ_n-1 = Fᵀ Λ̃ F``."""
+    n_t, n = xs.shape
+    ip = p.order
+    y = p.reading_c
+    lam = np.zeros(n)
+    big = np.zeros((n, n))
+    frozen: tuple[int, FloatArray, float, FloatArray, float] | None = None
+    frozen_steps = 0
+    out: dict[str, FloatArray] = {
+        name: np.empty(n_t)
+        for name in (
+            "smoothed_mean_c",
+            "smoothed_mean_sd_k",
+            "smoothed_max_c",
+            "smoothed_max_sd_k",
+            "smoothed_power_w",
+            "smoothed_power_sd_w",
+        )
+    }
+    for t in range(n_t - 1, -1, -1):
+        cov = cov_of[t]
+        cache = int(cache_of[t])
+        xs_t = xs[t] - cov @ lam
+        nodes = cn @ xs_t
+        j = int(np.argmax(nodes))
+        if frozen is not None and frozen[0] == cache:
+            frozen_steps += 1
+            mean_var, node_var, power_var = frozen[2], frozen[3], frozen[4]
+        else:
+            sc = cov @ cm
+            mean_var = float(cm @ cov @ cm - sc @ big @ sc)
+            snode = cov @ cn[j]
+            node_var_j = float(cn[j] @ cov @ cn[j] - snode @ big @ snode)
+            node_var = np.full(cn.shape[0], np.nan)
+            node_var[j] = node_var_j
+            sp = cov[:, ip]
+            power_var = float(cov[ip, ip] - sp @ big @ sp)
+        out["smoothed_mean_c"][t] = cm @ xs_t + p.t_ref_c
+        out["smoothed_mean_sd_k"][t] = math.sqrt(max(mean_var, 0.0))
+        out["smoothed_max_c"][t] = nodes[j] + p.t_ref_c
+        out["smoothed_max_sd_k"][t] = math.sqrt(max(float(node_var[j]), 0.0))
+        out["smoothed_power_w"][t] = xs_t[ip]
+        out["smoothed_power_sd_w"][t] = math.sqrt(max(power_var, 0.0))
+        if t == 0:
+            break
+        if np.isfinite(y[t]):
+            k, s_var = gains[t], s_vars[t]
+            lam_t = lam - h * (k @ lam) - h * (nus[t] / s_var)
+            u = big @ k
+            big_t = big - np.outer(h, u) - np.outer(u, h) + (k @ u + 1.0 / s_var) * np.outer(h, h)
+        else:
+            lam_t, big_t = lam, big
+        f = mats[int(p.index[t - 1])]
+        lam = f.T @ lam_t
+        if frozen is not None and frozen[0] == cache:
+            continue  # big stays the steady one
+        frozen = None
+        new = f.T @ big_t @ f
+        new = 0.5 * (new + new.T)
+        if cache >= 0 and _converged(new, big, tol):
+            cov_c = cov_of[t]
+            sc = cov_c @ cm
+            sn = cn @ cov_c  # (m, n)
+            sp = cov_c[:, ip]
+            frozen = (
+                cache,
+                new,
+                float(cm @ cov_c @ cm - sc @ new @ sc),
+                np.einsum("ij,ij->i", sn, cn) - np.einsum("ij,jk,ik->i", sn, new, sn),
+                float(cov_c[ip, ip] - sp @ new @ sp),
+            )
+        big = new
+    return {**out, "smoother_frozen_steps": frozen_steps}
+
+
+# --------------------------------------------------------------------------------------------
+# The Rust kernel
+
+
+def rust_available() -> bool:
+    """Whether the extension has the estimator kernel (``engine="rust"``)."""
+    return hasattr(_ext, "estimator_run")
+
+
+def _run_rust(
+    problems: Sequence[EstimatorProblem],
+    noise: EstimatorNoise,
+    *,
+    smooth: bool,
+    config: EstimatorConfig,
+    outputs: bool,
+) -> list[KernelOutputs]:
+    raw = _ext.estimator_run(
+        [_as_kernel_args(p) for p in problems],
+        float(noise.measurement_k),
+        float(noise.power_w_per_sqrt_s),
+        bool(smooth),
+        float(config.steady_tolerance),
+        float(config.smoother_tolerance),
+        int(config.checkpoint_steps),
+        bool(outputs),
+    )
+    return [KernelOutputs(**item) for item in raw]
+
+
+def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
+    c = np.ascontiguousarray
+    return {
+        "order": p.order,
+        "lag": p.lag,
+        "t_ref_c": p.t_ref_c,
+        "reading_c": c(p.reading_c),
+        "index": c(p.index.astype(np.uint32)),
+        "w": c(p.w.reshape(-1)),
+        "a": c(p.a.reshape(-1)),
+        "diagonal": [bool(v) for v in p.diagonal],
+        "gamma": c(p.gamma.reshape(-1)),
+        "phi": c(p.phi),
+        "q_unit": c(p.q_unit),
+        "lag_a": c(p.lag_a),
+        "lag_b1": c(p.lag_b1),
+        "lag_row": c(p.lag_row.reshape(-1)),
+        "lag_power": c(p.lag_power),
+        "c_probe": c(p.c_probe),
+        "c_mean": c(p.c_mean),
+        "c_nodes": c(p.c_nodes.reshape(-1)),
+        "x0": c(p.x0),
+        "cov0": c(p.cov0.reshape(-1)),
+        "p_prior_unit": float(p.p_prior_unit),
+    }
+
+
+def _run(
+    problems: Sequence[EstimatorProblem],
+    noise: EstimatorNoise,
+    *,
+    smooth: bool,
+    config: EstimatorConfig,
+    engine: Engine | None,
+    outputs: bool = True,
+) -> list[KernelOutputs]:
+    chosen = engine or ("rust" if rust_available() else "numpy")
+    if chosen == "rust":
+        if not rust_available():
+            raise EstimatorInputError(
+                "engine 'rust': this build of fleetbrake._ext has no estimator kernel"
+            )
+        return _run_rust(problems, noise, smooth=smooth, config=config, outputs=outputs)
+    if chosen != "numpy":
+        raise EstimatorInputError(f"unknown engine {chosen!r}; use 'rust' or 'numpy'")
+    return [
+        run_numpy(
+            p,
+            noise,
+            smooth=smooth,
+            steady_tolerance=config.steady_tolerance,
+            smoother_tolerance=config.smoother_tolerance,
+            outputs=outputs,
+        )
+        for p in problems
+    ]
+
+
+# --------------------------------------------------------------------------------------------
+# Estimates per logged second
+
+
+@dataclass(frozen=True)
+class ContactEstimate:
+    """The virtual sensor's estimate at each logged second of one wagon (N rows): filtered
+    (what was known at that second) and smoothed (knowing the whole series; None when not
+    smoothed). Temperatures in °C, standard deviations in K, power in W into the block's
+    friction face; ``*_lo_*``/``*_hi_*`` are the 95 % bounds."""
+
+    wagon_id: str
+    time_s: FloatArray
+    contact_mean_c: FloatArray
+    contact_mean_sd_k: FloatArray
+    contact_max_c: FloatArray
+    contact_max_sd_k: FloatArray
+    unexplained_power_w: FloatArray
+    unexplained_power_sd_w: FloatArray
+    innovation_k: FloatArray
+    """Reading minus predicted reading before the update; NaN without a valid reading."""
+    innovation_var_k2: FloatArray
+    predicted_reading_c: FloatArray
+    log_likelihood: float
+    noise: EstimatorNoise
+    frozen_fraction: float
+    """Share of the seconds at which the covariance was steady (the fast path)."""
+    final_state: FloatArray
+    final_cov: FloatArray
+    smoothed_contact_mean_c: FloatArray | None = None
+    smoothed_contact_mean_sd_k: FloatArray | None = None
+    smoothed_contact_max_c: FloatArray | None = None
+    smoothed_contact_max_sd_k: FloatArray | None = None
+    smoothed_unexplained_power_w: FloatArray | None = None
+    smoothed_unexplained_power_sd_w: FloatArray | None = None
+
+    @property
+    def contact_mean_lo_c(self) -> FloatArray:
+        return self.contact_mean_c - Z95 * self.contact_mean_sd_k
+
+    @property
+    def contact_mean_hi_c(self) -> FloatArray:
+        return self.contact_mean_c + Z95 * self.contact_mean_sd_k
+
+    @property
+    def contact_max_hi_c(self) -> FloatArray:
+        return self.contact_max_c + Z95 * self.contact_max_sd_k
+
+    @property
+    def unexplained_power_lo_w(self) -> FloatArray:
+        return self.unexplained_power_w - Z95 * self.unexplained_power_sd_w
+
+    @property
+    def unexplained_power_hi_w(self) -> FloatArray:
+        return self.unexplained_power_w + Z95 * self.unexplained_power_sd_w
+
+    @property
+    def innovation_normalised(self) -> FloatArray:
+        """ν / √S: standard normal while the model and the sensor behave."""
+        return self.innovation_k / np.sqrt(self.innovation_var_k2)
+
+    @property
+    def smoothed_contact_mean_lo_c(self) -> FloatArray | None:
+        return _bound(self.smoothed_contact_mean_c, self.smoothed_contact_mean_sd_k, -Z95)
+
+    @property
+    def smoothed_contact_mean_hi_c(self) -> FloatArray | None:
+        return _bound(self.smoothed_contact_mean_c, self.smoothed_contact_mean_sd_k, Z95)
+
+    @property
+    def smoothed_contact_max_hi_c(self) -> FloatArray | None:
+        return _bound(self.smoothed_contact_max_c, self.smoothed_contact_max_sd_k, Z95)
+
+    @property
+    def smoothed_unexplained_power_lo_w(self) -> FloatArray | None:
+        return _bound(self.smoothed_unexplained_power_w, self.smoothed_unexplained_power_sd_w, -Z95)
+
+    @property
+    def smoothed_unexplained_power_hi_w(self) -> FloatArray | None:
+        return _bound(self.smoothed_unexplained_power_w, self.smoothed_unexplained_power_sd_w, Z95)
+
+
+def _bound(mean: FloatArray | None, sd: FloatArray | None, z: float) -> FloatArray | None:
+    return None if mean is None or sd is None else mean + z * sd
+
+
+def _estimate_of(
+    problem: EstimatorProblem, raw: KernelOutputs, noise: EstimatorNoise
+) -> ContactEstimate:
+    rows = problem.logged
+
+    def pick(values: FloatArray | None) -> FloatArray | None:
+        return None if values is None else np.ascontiguousarray(values[rows])
+
+    steps = max(problem.n_samples, 1)
+    return ContactEstimate(
+        wagon_id=problem.wagon_id,
+        time_s=problem.time_s[rows],
+        contact_mean_c=raw.mean_c[rows],
+        contact_mean_sd_k=raw.mean_sd_k[rows],
+        contact_max_c=raw.max_c[rows],
+        contact_max_sd_k=raw.max_sd_k[rows],
+        unexplained_power_w=raw.power_w[rows],
+        unexplained_power_sd_w=raw.power_sd_w[rows],
+        innovation_k=raw.innovation_k[rows],
+        innovation_var_k2=raw.innovation_var_k2[rows],
+        predicted_reading_c=raw.predicted_reading_c[rows],
+        log_likelihood=raw.log_likelihood,
+        noise=noise,
+        frozen_fraction=raw.frozen_steps / steps,
+        final_state=raw.final_state,
+        final_cov=raw.final_cov,
+        smoothed_contact_mean_c=pick(raw.smoothed_mean_c),
+        smoothed_contact_mean_sd_k=pick(raw.smoothed_mean_sd_k),
+        smoothed_contact_max_c=pick(raw.smoothed_max_c),
+        smoothed_contact_max_sd_k=pick(raw.smoothed_max_sd_k),
+        smoothed_unexplained_power_w=pick(raw.smoothed_power_w),
+        smoothed_unexplained_power_sd_w=pick(raw.smoothed_power_sd_w),
+    )
+
+
+def estimate(
+    problems: Sequence[EstimatorProblem],
+    *,
+    config: EstimatorConfig = EstimatorConfig(),
+    smooth: bool = True,
+    engine: Engine | None = None,
+) -> list[ContactEstimate]:
+    """Filter (and smooth) prepared problems with ``config.noise``: the Rust kernel (wagons
+    in parallel) when the extension has it, else (or with ``engine="numpy"``) numpy."""
+    raws = _run(problems, config.noise, smooth=smooth, config=config, engine=engine)
+    return [_estimate_of(p, raw, config.noise) for p, raw in zip(problems, raws, strict=True)]
+
+
+def estimate_contact(
+    rom: ReducedModel,
+    wagon: WagonConfig,
+    series: WagonSeries,
+    *,
+    effects: EffectSet = EffectSet(),  # noqa: B008 (immutable)
+    config: EstimatorConfig = EstimatorConfig(),
+    h_w_m2k: Mapping[str, float | ArrayLike] | None = None,
+    smooth: bool = True,
+    engine: Engine | None = None,
+    tol_k: float = 1e-3,
+    max_iterations: int = 10,
+) -> ContactEstimate:
+    """The estimate of one wagon's series under a model revision. A state-dependent effect
+    (friction fade) is evaluated on the filtered contact temperature of the previous pass,
+    until that changes by less than ``tol_k`` (at most ``max_iterations`` passes)."""
+    contact: FloatArray | None = None
+    for _ in range(max_iterations if effects.state_dependent else 1):
+        problem = prepare(
+            rom, wagon, series, effects=effects, config=config, h_w_m2k=h_w_m2k, contact_c=contact
+        )
+        result = estimate([problem], config=config, smooth=smooth, engine=engine)[0]
+        if not effects.state_dependent:
+            return result
+        if contact is not None and float(np.max(np.abs(result.contact_mean_c - contact))) < tol_k:
+            return result
+        contact = result.contact_mean_c
+    logger.warning(
+        "wagon %s: the state-dependent effects' estimate still moved by more than %g K after "
+        "%d passes",
+        series.wagon_id,
+        tol_k,
+        max_iterations,
+    )
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# Noise by maximum likelihood
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """The maximum-likelihood noise parameters and how they were found."""
+
+    noise: EstimatorNoise
+    log_likelihood: float
+    evaluations: int
+    readings: int
+    power_noise_at_floor: bool
+    """σ_w ended at its floor: the data held nothing the floor could not follow."""
+
+
+def fit_noise(
+    problems: Sequence[EstimatorProblem],
+    *,
+    config: EstimatorConfig = EstimatorConfig(),
+    min_power_noise_w_per_sqrt_s: float = 3.0,
+    max_power_noise_w_per_sqrt_s: float = 1.0e4,
+    measurement_range_k: tuple[float, float] = (1e-3, 10.0),
+    engine: Engine | None = None,
+    tolerance: float = 0.005,
+) -> NoiseFit:
+    """σ_v and σ_w maximising the likelihood of the innovations of ``problems`` (the fit
+    data: filter only, all wagons together), by Nelder-Mead on ``(log σ_v, log σ_w)`` within
+    the bounds, to ``tolerance`` in the logarithms (0.5 %). Starts from ``config.noise``."""
+    from scipy.optimize import minimize
+
+    readings = int(sum(np.isfinite(p.reading_c).sum() for p in problems))
+    if readings < 10:
+        raise EstimatorInputError(
+            f"fit_noise: {readings} valid readings in the fit data; need at least 10"
+        )
+    lo = np.log([measurement_range_k[0], min_power_noise_w_per_sqrt_s])
+    hi = np.log([measurement_range_k[1], max_power_noise_w_per_sqrt_s])
+    start = np.clip(np.log([config.noise.measurement_k, config.noise.power_w_per_sqrt_s]), lo, hi)
+    evaluations = 0
+
+    def negative_loglik(z: FloatArray) -> float:
+        nonlocal evaluations
+        evaluations += 1
+        zc = np.clip(z, lo, hi)
+        noise = EstimatorNoise(float(np.exp(zc[0])), float(np.exp(zc[1])))
+        raws = _run(problems, noise, smooth=False, config=config, engine=engine, outputs=False)
+        return -float(sum(raw.log_likelihood for raw in raws))
+
+    result = minimize(
+        negative_loglik,
+        start,
+        method="Nelder-Mead",
+        bounds=list(zip(lo, hi, strict=True)),
+        options={"xatol": tolerance, "fatol": 1e-3, "initial_simplex": _simplex(start, lo, hi)},
+    )
+    z = np.clip(result.x, lo, hi)
+    noise = EstimatorNoise(float(np.exp(z[0])), float(np.exp(z[1])))
+    at_floor = bool(z[1] <= lo[1] + 2 * tolerance)
+    logger.info(
+        "noise by maximum likelihood over %d readings: sigma_v %.4g K, sigma_w %.4g W/sqrt(s)%s "
+        "(%d evaluations)",
+        readings,
+        noise.measurement_k,
+        noise.power_w_per_sqrt_s,
+        " (at its floor)" if at_floor else "",
+        evaluations,
+    )
+    return NoiseFit(
+        noise=noise,
+        log_likelihood=-float(result.fun),
+        evaluations=evaluations,
+        readings=readings,
+        power_noise_at_floor=at_floor,
+    )
+
+
+def _simplex(start: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """A first simplex a factor of 2 wide in each noise (inside the bounds)."""
+    step = math.log(2.0)
+    vertices = [start.copy()]
+    for i in range(start.size):
+        v = start.copy()
+        v[i] = v[i] + step if v[i] + step <= hi[i] else v[i] - step
+        vertices.append(np.clip(v, lo, hi))
+    return np.array(vertices)

@@ -1,0 +1,570 @@
+"""The virtual sensor (issue 14): the Kalman filter and smoother on the reduced model.
+
+The data are made by the FULL finite-element model (hex20 at refinement 0.4, a different
+mesh from the session's reduced model at 0.6, and integrated by Crank-Nicolson where the
+filter's model is exact in time): a wagon's 8 hours as the synthetic fleet's wagons run them
+(standing, trips with brakings and stops; the unit logging while the wagon moves, so the
+standstill between sessions is not logged), with dragging brakes of a power drawn at random
+in a physical range on cruising stretches with the cylinder released, read by a thermistor
+with 0.1 K of noise and a reading missing now and then. Seconds of one event are strongly
+correlated, so the assertions are per event (every braking, every drag), with the overall
+fractions beside them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.effects import ConvectionSpeed, EffectSet, FrictionTemperature, SensorLag
+from fleetbrake.model.estimator import (
+    Z95,
+    ContactEstimate,
+    EstimatorConfig,
+    EstimatorInputError,
+    EstimatorNoise,
+    EstimatorProblem,
+    WagonSeries,
+    estimate,
+    estimate_contact,
+    fit_noise,
+    prepare,
+    run_numpy,
+    rust_available,
+)
+from fleetbrake.model.physics import (
+    KMH_TO_M_S,
+    block_flux_w_m2,
+    block_force_n,
+    frictional_flux_w_m2,
+)
+from fleetbrake.model.rom import ReducedModel, first_order_lag
+from fleetbrake.model.thermal import BlockModel
+from fleetbrake.model.timeline import simulate_timeline
+from fleetbrake.synth.operation import operate, sessions
+
+WAGON = WagonConfig(wagon_id="TEST-0001")
+NOISE_K = 0.1
+HOURS = 8
+AMBIENT_C = 8.0
+START_C = 12.0
+DRAG_W = (250.0, 700.0)
+"""Heat into the block from a dragging brake: 0.25 of mu F v (alpha = 0.7455) for a block
+pressed with 0.6-1.5 kN at 50-90 km/h."""
+
+pytestmark = pytest.mark.skipif(not rust_available(), reason="the extension has no estimator")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    p_bar: np.ndarray
+    speed_kmh: np.ndarray
+    drags: list[tuple[int, int, float]]
+    """(first second, end second, heat into the block in W)."""
+    brakings: list[tuple[int, int]]
+    power_w: np.ndarray
+    """The unexplained (drag) power at each second."""
+    probe_c: np.ndarray
+    mean_c: np.ndarray
+    max_c: np.ndarray
+    logged: np.ndarray
+
+
+def declared_sample_flux(p_bar: np.ndarray, speed_kmh: np.ndarray) -> np.ndarray:
+    force = np.asarray(block_force_n(WAGON, p_bar), dtype=np.float64)
+    power = WAGON.friction_coefficient * force * speed_kmh * KMH_TO_M_S
+    return np.asarray(block_flux_w_m2(WAGON, frictional_flux_w_m2(WAGON, power)), dtype=np.float64)
+
+
+def drag_windows(
+    rng: np.random.Generator, p_bar: np.ndarray, speed_kmh: np.ndarray, count: int
+) -> list[tuple[int, int, float]]:
+    """Up to ``count`` stretches of 10-20 minutes cruising with the cylinder released, far
+    apart, each with a drag power drawn from ``DRAG_W``."""
+    quiet = (p_bar <= 0.05) & (speed_kmh > 20.0)
+    taken = np.zeros(p_bar.size, dtype=bool)
+    out: list[tuple[int, int, float]] = []
+    for _ in range(400 if count else 0):
+        length = int(rng.integers(600, 1200))
+        start = int(rng.integers(0, p_bar.size - length - 900))
+        if (
+            quiet[start : start + length].all()
+            and not taken[start - 1800 : start + length + 1800].any()
+        ):
+            out.append((start, start + length, float(rng.uniform(*DRAG_W))))
+            taken[start : start + length] = True
+            if len(out) == count:
+                break
+    return sorted(out)
+
+
+def make_scenario(full: BlockModel, seed: int, drags: int) -> Scenario:
+    n_s = HOURS * 3600
+    rng = np.random.default_rng(seed)
+    op = operate(rng, n_s, WAGON, 70_000.0, (45.0, 7.0, 300.0))
+    windows = drag_windows(rng, op.pressure_bar, op.speed_kmh, drags)
+    power = np.zeros(n_s)
+    for first, end, watts in windows:
+        power[first:end] = watts
+    flux = declared_sample_flux(op.pressure_bar, op.speed_kmh)
+    flux = flux + power / WAGON.geometry.contact_area_m2
+    result = full.simulate(
+        dt_s=1.0,
+        flux_w_m2=0.5 * (flux[:-1] + flux[1:]),
+        initial_c=START_C,
+        ambient_c=AMBIENT_C,
+        probes_m=[WAGON.sensor_point_m],
+    )
+    logged = np.zeros(n_s, dtype=bool)
+    for first, stop in sessions(op.speed_kmh, 600):
+        logged[first:stop] = True
+    return Scenario(
+        p_bar=op.pressure_bar,
+        speed_kmh=op.speed_kmh,
+        drags=windows,
+        brakings=[(c.command, c.release) for c in op.commands],
+        power_w=power,
+        probe_c=result.probe_c[:, 0],
+        mean_c=result.face_mean_c,
+        max_c=result.face_max_c,
+        logged=logged,
+    )
+
+
+def logged_series(
+    sc: Scenario, reading: np.ndarray, *, noise_k: float, missing: float, seed: int
+) -> WagonSeries:
+    rows = np.flatnonzero(sc.logged)
+    rng = np.random.default_rng(seed)
+    y = reading[rows] + (rng.normal(0.0, noise_k, rows.size) if noise_k else 0.0)
+    y[rng.random(rows.size) < missing] = np.nan
+    return WagonSeries.of(
+        time_s=rows,
+        p_bar=sc.p_bar[rows],
+        speed_kmh=sc.speed_kmh[rows],
+        ambient_c=AMBIENT_C,
+        reading_c=y,
+        wagon_id=WAGON.wagon_id,
+    )
+
+
+def inside(est: np.ndarray, sd: np.ndarray, truth: np.ndarray | float) -> np.ndarray:
+    return np.abs(est - truth) <= Z95 * sd
+
+
+def events(sc: Scenario, t: np.ndarray, after_s: int = 600) -> list[tuple[str, np.ndarray]]:
+    """Every braking and every drag as a mask of logged seconds (from its start until
+    ``after_s`` after it ends), the ones with logged seconds."""
+    spans = [("braking", a, b) for a, b in sc.brakings] + [("drag", a, b) for a, b, _ in sc.drags]
+    out = []
+    for kind, first, end in spans:
+        mask = (t >= first) & (t < end + after_s)
+        if mask.sum() > 30:
+            out.append((f"{kind} at {first} s", mask))
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# fixtures
+
+
+@pytest.fixture(scope="module")
+def rom(default_rom: ReducedModel) -> ReducedModel:
+    return default_rom
+
+
+@pytest.fixture(scope="module")
+def full() -> BlockModel:
+    return BlockModel(
+        WAGON.geometry,
+        WAGON.block_material,
+        element="hex20",
+        refinement=0.4,
+        sensor_m=WAGON.sensor_point_m,
+    )
+
+
+@pytest.fixture(scope="module")
+def dragging(full: BlockModel) -> Scenario:
+    sc = make_scenario(full, seed=7, drags=4)
+    assert len(sc.drags) == 4 and len(sc.brakings) >= 5
+    return sc
+
+
+@pytest.fixture(scope="module")
+def noisy(dragging: Scenario) -> WagonSeries:
+    return logged_series(dragging, dragging.probe_c, noise_k=NOISE_K, missing=0.002, seed=107)
+
+
+@pytest.fixture(scope="module")
+def problem(rom: ReducedModel, noisy: WagonSeries) -> EstimatorProblem:
+    return prepare(rom, WAGON, noisy)
+
+
+@pytest.fixture(scope="module")
+def fitted(problem: EstimatorProblem) -> EstimatorNoise:
+    """The noise by maximum likelihood on the innovations of the data themselves."""
+    return fit_noise([problem]).noise
+
+
+@pytest.fixture(scope="module")
+def estimated(problem: EstimatorProblem, fitted: EstimatorNoise) -> ContactEstimate:
+    return estimate([problem], config=EstimatorConfig(noise=fitted))[0]
+
+
+# ------------------------------------------------------------------------------------------
+# (a) identity
+
+
+def test_noise_free_readings_of_the_declared_model_give_the_models_prediction(
+    rom: ReducedModel, full: BlockModel
+) -> None:
+    """No unexplained heat: the estimate is the reduced model's open-loop prediction within
+    its band, at every second of every event, and the unexplained power stays within its
+    bounds of zero."""
+    sc = make_scenario(full, seed=7, drags=0)
+    series = logged_series(sc, sc.probe_c, noise_k=0.0, missing=0.0, seed=1)
+    est = estimate_contact(rom, WAGON, series)
+    rows = np.flatnonzero(sc.logged)
+    prediction = simulate_timeline(
+        rom,
+        WAGON,
+        dt_s=1.0,
+        p_bar=sc.p_bar,
+        speed_kmh=sc.speed_kmh,
+        ambient_c=AMBIENT_C,
+        initial_c=START_C,
+    )
+    mean, peak = prediction.contact_mean_c[rows], prediction.contact_max_c[rows]
+    assert est.smoothed_contact_mean_c is not None and est.smoothed_contact_mean_sd_k is not None
+    assert est.smoothed_unexplained_power_w is not None
+    assert est.smoothed_unexplained_power_sd_w is not None
+    checks = {
+        "filtered mean": inside(est.contact_mean_c, est.contact_mean_sd_k, mean),
+        "filtered max": inside(est.contact_max_c, est.contact_max_sd_k, peak),
+        "smoothed mean": inside(est.smoothed_contact_mean_c, est.smoothed_contact_mean_sd_k, mean),
+        "filtered power": inside(est.unexplained_power_w, est.unexplained_power_sd_w, 0.0),
+        "smoothed power": inside(
+            est.smoothed_unexplained_power_w, est.smoothed_unexplained_power_sd_w, 0.0
+        ),
+    }
+    found = events(sc, series.time_s)
+    assert len(found) >= 5
+    for name, ok in checks.items():
+        for event, mask in found:
+            assert ok[mask].all(), f"{name}: outside the band during the {event}"
+        assert ok.mean() >= 0.99, name
+    # the heating of the brakings is really there (the identity is not the trivial one)
+    assert mean.max() - mean.min() > 40.0
+
+
+# ------------------------------------------------------------------------------------------
+# (b) a dragging brake
+
+
+def test_a_dragging_brakes_peak_and_power_are_estimated(
+    dragging: Scenario, noisy: WagonSeries, estimated: ContactEstimate
+) -> None:
+    """Each drag: the peak contact temperature (mean and maximum of the friction face, live
+    and after the fact) within 10 % of the truth, also of its rise over the drag, and the
+    drag power within 20 % (after the fact over the drag; live over its second half, once
+    the heat has reached the thermistor)."""
+    t = noisy.time_s
+    est = estimated
+    assert est.smoothed_contact_mean_c is not None and est.smoothed_contact_max_c is not None
+    assert est.smoothed_unexplained_power_w is not None
+    for first, end, watts in dragging.drags:
+        window = (t >= first) & (t < end + 300)
+        during = (t >= first) & (t < end)
+        late = (t >= (first + end) // 2) & (t < end)
+        assert during.sum() > 500, "the drag is logged"
+        start_c = float(dragging.mean_c[int(t[window][0])])
+        for name, truth, live, after in (
+            ("mean", dragging.mean_c, est.contact_mean_c, est.smoothed_contact_mean_c),
+            ("max", dragging.max_c, est.contact_max_c, est.smoothed_contact_max_c),
+        ):
+            true_peak = float(truth[t[window].astype(int)].max())
+            for kind, values in (("live", live), ("after the fact", after)):
+                peak = float(values[window].max())
+                assert abs(peak - true_peak) <= 0.1 * true_peak, (name, kind, peak, true_peak)
+                rise, true_rise = peak - start_c, true_peak - start_c
+                assert abs(rise - true_rise) <= 0.1 * true_rise, (name, kind, rise, true_rise)
+        after_w = float(est.smoothed_unexplained_power_w[during].mean())
+        live_w = float(est.unexplained_power_w[late].mean())
+        assert abs(after_w - watts) <= 0.2 * watts, (after_w, watts)
+        assert abs(live_w - watts) <= 0.2 * watts, (live_w, watts)
+        # and nothing of the sort where nothing drags: the power away from every drag
+    away = np.ones(t.size, dtype=bool)
+    for first, end, _ in dragging.drags:
+        away &= (t < first - 600) | (t > end + 1800)
+    assert np.abs(est.smoothed_unexplained_power_w[away]).max() < 0.2 * DRAG_W[0]
+
+
+# ------------------------------------------------------------------------------------------
+# (c) the band
+
+
+def test_the_truth_is_inside_the_95_percent_band(
+    dragging: Scenario, noisy: WagonSeries, estimated: ContactEstimate
+) -> None:
+    """The true friction-face mean inside the 95 % band for 90-99 % of the seconds, filtered
+    and smoothed (neither overconfident nor useless), and for most of every event."""
+    t = noisy.time_s.astype(int)
+    truth = dragging.mean_c[t]
+    est = estimated
+    assert est.smoothed_contact_mean_c is not None and est.smoothed_contact_mean_sd_k is not None
+    for name, ok in (
+        ("filtered", inside(est.contact_mean_c, est.contact_mean_sd_k, truth)),
+        ("smoothed", inside(est.smoothed_contact_mean_c, est.smoothed_contact_mean_sd_k, truth)),
+    ):
+        assert 0.90 <= ok.mean() <= 0.99, (name, ok.mean())
+        for event, mask in events(dragging, noisy.time_s):
+            assert ok[mask].mean() >= 0.8, (name, event, ok[mask].mean())
+    power = inside(est.unexplained_power_w, est.unexplained_power_sd_w, dragging.power_w[t])
+    assert 0.90 <= power.mean() <= 0.99
+    # useless bands would pass too: the band is a few kelvin, not tens
+    assert np.median(est.contact_mean_sd_k) < 2.0
+
+
+def test_the_sensors_lag_is_part_of_the_measurement_model(
+    rom: ReducedModel, dragging: Scenario
+) -> None:
+    """A thermistor lagging its seat by 40 s: with the revision's ``sensor_lag`` in the
+    filter the band holds; without it the same readings put the truth far outside."""
+    lagged = first_order_lag(dragging.probe_c, 1.0, 40.0)
+    series = logged_series(dragging, lagged, noise_k=NOISE_K, missing=0.002, seed=11)
+    truth = dragging.mean_c[series.time_s.astype(int)]
+    config = EstimatorConfig(noise=EstimatorNoise(NOISE_K, 10.0))
+    with_lag = estimate_contact(
+        rom, WAGON, series, effects=EffectSet((SensorLag(tau_s=40.0),)), config=config
+    )
+    without = estimate_contact(rom, WAGON, series, config=config)
+    ok = inside(with_lag.contact_mean_c, with_lag.contact_mean_sd_k, truth)
+    assert 0.90 <= ok.mean() <= 0.99
+    assert inside(without.contact_mean_c, without.contact_mean_sd_k, truth).mean() < 0.8
+
+
+# ------------------------------------------------------------------------------------------
+# (d) Rust = numpy
+
+
+def _assert_same(a: ContactEstimate, b: ContactEstimate) -> None:
+    """Every output to 1e-9 of its size (at least 1 K or 1 W). A smoothed standard deviation
+    is the filtered variance less what the later data explain (``Σ - ΣΛΣ``): where the prior
+    dominates (the first seconds, the unexplained power's prior is a few hundred watts wide)
+    that subtraction cancels digits, so it is held to 1e-9 of the filtered one."""
+
+    def close(x: np.ndarray, y: np.ndarray, scale: np.ndarray | float, name: str) -> None:
+        assert np.array_equal(np.isnan(x), np.isnan(y)), name
+        excess = np.abs(x - y) - 1e-9 * np.maximum(1.0, np.abs(scale))
+        assert np.nanmax(excess) <= 0.0, (name, float(np.nanmax(np.abs(x - y))))
+
+    for name in (
+        "contact_mean_c",
+        "contact_mean_sd_k",
+        "contact_max_c",
+        "contact_max_sd_k",
+        "unexplained_power_w",
+        "unexplained_power_sd_w",
+        "innovation_k",
+        "innovation_var_k2",
+        "predicted_reading_c",
+        "smoothed_contact_mean_c",
+        "smoothed_contact_max_c",
+        "smoothed_unexplained_power_w",
+    ):
+        y = getattr(b, name)
+        close(getattr(a, name), y, y, name)
+    for smoothed, filtered in (
+        ("smoothed_contact_mean_sd_k", "contact_mean_sd_k"),
+        ("smoothed_contact_max_sd_k", "contact_max_sd_k"),
+        ("smoothed_unexplained_power_sd_w", "unexplained_power_sd_w"),
+    ):
+        close(getattr(a, smoothed), getattr(b, smoothed), getattr(b, filtered), smoothed)
+    assert a.log_likelihood == pytest.approx(b.log_likelihood, rel=1e-9)
+
+
+@pytest.mark.parametrize("steady", ["default", "exact"])
+def test_the_rust_kernel_is_the_numpy_reference(
+    problem: EstimatorProblem, fitted: EstimatorNoise, steady: str
+) -> None:
+    """To 1e-9 K, W (relative) on every output, with the steady-state shortcut and without."""
+    config = EstimatorConfig(noise=fitted)
+    if steady == "exact":
+        config = EstimatorConfig(noise=fitted, steady_tolerance=0.0, smoother_tolerance=0.0)
+    fast = estimate([problem], config=config, engine="rust")[0]
+    slow = estimate([problem], config=config, engine="numpy")[0]
+    _assert_same(fast, slow)
+    if steady == "default":
+        assert fast.frozen_fraction == slow.frozen_fraction > 0.3
+
+
+def test_rust_is_numpy_with_switching_convection_and_a_lag(
+    rom: ReducedModel, noisy: WagonSeries
+) -> None:
+    """Convection that varies with speed (a dense, tabulated propagator per value) and the
+    lag's state: the structured kernel and the dense reference still agree."""
+    part = WagonSeries.of(
+        time_s=noisy.time_s[:2500],
+        p_bar=noisy.p_bar[:2500],
+        speed_kmh=noisy.speed_kmh[:2500],
+        ambient_c=AMBIENT_C,
+        reading_c=noisy.reading_c[:2500],
+    )
+    effects = EffectSet((ConvectionSpeed(gain=2.0, exponent=0.8), SensorLag(tau_s=30.0)))
+    problem = prepare(rom, WAGON, part, effects=effects)
+    assert problem.lag and (~problem.diagonal).sum() > 10
+    fast = estimate([problem], engine="rust")[0]
+    slow = estimate([problem], engine="numpy")[0]
+    _assert_same(fast, slow)
+
+
+# ------------------------------------------------------------------------------------------
+# (e) the noise
+
+
+def test_the_measurement_noise_by_maximum_likelihood(
+    problem: EstimatorProblem, fitted: EstimatorNoise
+) -> None:
+    """σ_v within 20 % of the true 0.1 K; σ_w above its floor (the data drag)."""
+    assert abs(fitted.measurement_k - NOISE_K) <= 0.2 * NOISE_K
+    fit = fit_noise([problem])
+    assert not fit.power_noise_at_floor and fit.readings > 10_000
+    # the likelihood is lower either side of the estimate
+    for factor in (0.8, 1.25):
+        worse = EstimatorNoise(fitted.measurement_k * factor, fitted.power_w_per_sqrt_s)
+        other = estimate([problem], config=EstimatorConfig(noise=worse), smooth=False)[0]
+        assert other.log_likelihood < fit.log_likelihood
+
+
+# ------------------------------------------------------------------------------------------
+# the series and its gaps
+
+
+def test_gaps_missing_readings_and_the_logged_seconds(
+    rom: ReducedModel, noisy: WagonSeries, estimated: ContactEstimate, problem: EstimatorProblem
+) -> None:
+    """Estimates at the logged seconds only; a missing reading has no innovation; the
+    standstill between sessions is one exact step with no unexplained heat driving the
+    block; a short gap is filled second by second."""
+    assert estimated.time_s.size == noisy.time_s.size
+    np.testing.assert_array_equal(estimated.time_s, noisy.time_s)
+    missing = np.isnan(noisy.reading_c)
+    assert missing.sum() > 5
+    assert np.isnan(estimated.innovation_k[missing]).all()
+    assert np.isfinite(estimated.innovation_k[~missing]).all()
+    jumps = np.diff(noisy.time_s)
+    assert jumps.max() > EstimatorConfig().max_interpolated_gap_s  # two sessions
+    long_steps = problem.gamma[problem.index[np.diff(problem.time_s) > 1]]
+    assert long_steps.size and np.all(long_steps == 0.0)
+    # a 10-s hole in the log is filled with 9 seconds of interpolated inputs and no reading
+    t = noisy.time_s[:3000].copy()
+    keep = np.ones(t.size, dtype=bool)
+    keep[1000:1009] = False
+    holed = WagonSeries.of(
+        time_s=t[keep],
+        p_bar=noisy.p_bar[:3000][keep],
+        speed_kmh=noisy.speed_kmh[:3000][keep],
+        ambient_c=AMBIENT_C,
+        reading_c=noisy.reading_c[:3000][keep],
+    )
+    filled = prepare(rom, WAGON, holed)
+    assert filled.n_samples == t.size and filled.logged.sum() == keep.sum()
+    assert np.isnan(filled.reading_c[~filled.logged]).all()
+
+
+def _series(**changes: object) -> WagonSeries:
+    base: dict[str, object] = {
+        "time_s": np.arange(10.0),
+        "p_bar": np.zeros(10),
+        "speed_kmh": np.full(10, 50.0),
+        "ambient_c": 10.0,
+        "reading_c": np.full(10, 20.0),
+        "wagon_id": "W-9",
+    }
+    base.update(changes)
+    return WagonSeries.of(**base)  # type: ignore[arg-type]  # the test's values, any type
+
+
+@pytest.mark.parametrize(
+    ("changes", "words"),
+    [
+        ({"time_s": np.array([0, 1, 2, 2, 4, 5, 6, 7, 8, 9.0])}, ["W-9", "time_s", "row 3"]),
+        ({"time_s": np.arange(10.0) * 1.5}, ["W-9", "time_s", "row 1"]),
+        ({"p_bar": np.where(np.arange(10) == 4, np.nan, 0.0)}, ["W-9", "p_bar", "row 4"]),
+        ({"speed_kmh": np.where(np.arange(10) == 6, -1.0, 5.0)}, ["W-9", "speed_kmh", "row 6"]),
+        ({"reading_c": np.full(9, 20.0)}, ["W-9", "reading_c", "9 values"]),
+        ({"reading_c": np.where(np.arange(10) == 2, np.inf, 20.0)}, ["W-9", "reading_c", "row 2"]),
+    ],
+)
+def test_a_series_the_estimator_cannot_take_is_named(
+    rom: ReducedModel, changes: dict[str, object], words: list[str]
+) -> None:
+    with pytest.raises(EstimatorInputError) as info:
+        prepare(rom, WAGON, _series(**changes))
+    for word in words:
+        assert word in str(info.value)
+    assert info.value.exit_code == 1
+
+
+def test_fit_noise_needs_readings(rom: ReducedModel) -> None:
+    problem = prepare(rom, WAGON, _series(reading_c=np.full(10, np.nan)))
+    with pytest.raises(EstimatorInputError, match="valid readings"):
+        fit_noise([problem])
+
+
+def test_a_state_dependent_effect_is_evaluated_on_the_estimate(
+    rom: ReducedModel, noisy: WagonSeries, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Friction fade with the face temperature: evaluated on the previous pass's filtered
+    contact temperature until it settles; the declared heat falls as the face heats, so the
+    filter explains part of the same readings by unexplained power instead."""
+    part = WagonSeries.of(
+        time_s=noisy.time_s[:4000],
+        p_bar=noisy.p_bar[:4000],
+        speed_kmh=noisy.speed_kmh[:4000],
+        ambient_c=AMBIENT_C,
+        reading_c=noisy.reading_c[:4000],
+    )
+    calls: list[int] = []
+    real: Callable[..., EstimatorProblem] = prepare
+
+    def counting(*args: object, **kwargs: object) -> EstimatorProblem:
+        calls.append(1)
+        return real(*args, **kwargs)  # type: ignore[arg-type]  # passed through unchanged
+
+    monkeypatch.setattr("fleetbrake.model.estimator.prepare", counting)
+    faded = estimate_contact(
+        rom, WAGON, part, effects=EffectSet((FrictionTemperature(fade_per_k=2e-3),))
+    )
+    monkeypatch.undo()
+    plain = estimate_contact(rom, WAGON, part)
+    assert 2 <= len(calls) < 10
+    assert np.isfinite(faded.contact_mean_c).all()
+    braking = part.p_bar > 0.3
+    assert braking.any()
+    assert faded.unexplained_power_w[braking].mean() > plain.unexplained_power_w[braking].mean()
+
+
+def test_numpy_reference_alone_and_engines_are_named(problem: EstimatorProblem) -> None:
+    with pytest.raises(EstimatorInputError, match="unknown engine"):
+        estimate([problem], engine="fortran")  # type: ignore[arg-type]  # the wrong value tested
+    short = run_numpy(problem, EstimatorNoise(), smooth=False, outputs=False)
+    assert short.smoothed_mean_c is None and short.updates > 10_000
+
+
+def test_the_benchmark_runs_both_engines_on_the_same_inputs(rom: ReducedModel) -> None:
+    """``bench estimator`` on two wagon-days: both engines ran on the same problems and gave
+    the same estimates; the rates are what the clock said (not restated here)."""
+    from fleetbrake.bench.estimator import bench_estimator
+
+    lines: list[str] = []
+    figures = bench_estimator(wagons=2, numpy_wagons=1, rom=rom, echo=lines.append)
+    assert figures["wagon_seconds"] > figures["numpy_wagon_seconds"] > 10_000
+    assert figures["max_difference_k"] <= 1e-9
+    assert figures["rust_wagon_seconds_per_s"] > 0 and figures["numpy_wagon_seconds_per_s"] > 0
+    assert any("rust" in line and "numpy" in line for line in lines)
