@@ -108,6 +108,31 @@ def bench_rom_command(
     report(run_rom_benchmark(events, full_events, refinement), json_out)
 
 
+@bench_app.command("estimator")
+def bench_estimator_command(
+    json_out: JsonFlag = False,
+    wagons: Annotated[
+        int, typer.Option("--wagons", help="Wagon-days run through the Rust kernel.")
+    ] = 100,
+    numpy_wagons: Annotated[
+        int,
+        typer.Option("--numpy-wagons", help="Of those, run also by the plain numpy filter."),
+    ] = 1,
+    refinement: RefinementOption = 1.0,
+) -> None:
+    """The virtual sensor (Kalman filter and smoother): wagon-seconds per second of the Rust
+    kernel beside a plain numpy implementation of the same filter, in the same run."""
+    import json
+
+    from fleetbrake.bench.estimator import bench_estimator
+
+    figures = bench_estimator(
+        wagons=wagons, numpy_wagons=numpy_wagons, refinement=refinement, echo=typer.echo
+    )
+    if json_out:
+        typer.echo(json.dumps(figures))
+
+
 @bench_app.command("fleet")
 def bench_fleet_command(
     ctx: typer.Context,
