@@ -47,10 +47,10 @@ test-rust:  ## Rust unit and integration tests
 	$(TEST_ENV) cargo test --release --workspace --exclude fleetbrake_py
 
 test-python: build wheel  ## Python tests, slow ones skipped (the wheel test included)
-	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(WHEEL_DIR)/fleetbrake-*.whl)" $(PY) -m pytest -m "not slow" -n 2 -q
+	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(abspath $(WHEEL_DIR))/fleetbrake-*.whl)" $(PY) -m pytest -m "not slow" -n 2 -q
 
 test-all: build wheel test-rust  ## every test, slow ones included
-	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(WHEEL_DIR)/fleetbrake-*.whl)" $(PY) -m pytest -n 2 -q
+	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(abspath $(WHEEL_DIR))/fleetbrake-*.whl)" $(PY) -m pytest -n 2 -q
 
 lint: setup  ## rustfmt, clippy, ruff, mypy and the layer contract (import-linter), as CI runs them
 	cargo fmt --all -- --check

@@ -37,7 +37,7 @@ def _clean_env(home: Path | None = None) -> dict[str, str]:
 def _wheel(out_dir: Path) -> Path:
     given = os.environ.get("FLEETBRAKE_TEST_WHEEL")
     if given:
-        path = Path(given)
+        path = Path(given).resolve()  # pip runs elsewhere: a relative path would not hold
         assert path.is_file(), f"$FLEETBRAKE_TEST_WHEEL={given} is not a file"
         return path
     maturin = shutil.which("maturin", path=str(Path(sys.executable).parent)) or "maturin"
