@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pickle
 from collections.abc import Callable, Iterable, Iterator
 from typing import Protocol, TypeVar
 
@@ -12,6 +13,7 @@ __all__ = [
     "Engine",
     "EngineConfigError",
     "PartitionError",
+    "call_in_worker",
     "default_workers",
     "partition_error",
 ]
@@ -106,3 +108,16 @@ class Engine(Protocol):
     def __enter__(self) -> Engine: ...
 
     def __exit__(self, exc_type: object, *rest: object) -> None: ...
+
+
+def call_in_worker(fn: Callable[[T], R], item: T) -> R:
+    """``fn(item)`` in a worker process or task; an exception that would not reach the parent
+    intact (it does not pickle) is replaced by a RuntimeError saying what it was."""
+    try:
+        return fn(item)
+    except Exception as error:
+        try:
+            pickle.loads(pickle.dumps(error))
+        except Exception:
+            raise RuntimeError(f"{type(error).__name__}: {error}") from None
+        raise

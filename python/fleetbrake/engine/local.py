@@ -18,7 +18,6 @@ import importlib
 import logging
 import multiprocessing
 import os
-import pickle
 import signal
 import sys
 from collections import deque
@@ -26,7 +25,12 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import TypeVar
 
-from fleetbrake.engine.base import EngineConfigError, default_workers, partition_error
+from fleetbrake.engine.base import (
+    EngineConfigError,
+    call_in_worker,
+    default_workers,
+    partition_error,
+)
 
 __all__ = ["WORKER_THREAD_ENV", "LocalEngine"]
 
@@ -57,19 +61,6 @@ def _init_worker(env: dict[str, str], preload: tuple[str, ...]) -> None:
 
 def _ready() -> int:
     return os.getpid()
-
-
-def _call(fn: Callable[[T], R], item: T) -> R:
-    """``fn(item)`` in a worker; an exception that would not reach the parent intact (it
-    does not pickle) is replaced by a RuntimeError saying what it was."""
-    try:
-        return fn(item)
-    except Exception as error:
-        try:
-            pickle.loads(pickle.dumps(error))
-        except Exception:
-            raise RuntimeError(f"{type(error).__name__}: {error}") from None
-        raise
 
 
 class LocalEngine:
@@ -132,7 +123,7 @@ class LocalEngine:
         queue = iter(items)
         try:
             for item in queue:
-                pending.append((pool.submit(_call, fn, item), item))
+                pending.append((pool.submit(call_in_worker, fn, item), item))
                 if len(pending) >= self.in_flight:
                     break
             while pending:
@@ -142,7 +133,7 @@ class LocalEngine:
                 except Exception as error:
                     raise partition_error(item, None, name, error) from error  # type: ignore[arg-type]
                 for following in queue:
-                    pending.append((pool.submit(_call, fn, following), following))
+                    pending.append((pool.submit(call_in_worker, fn, following), following))
                     break
                 yield result
         except KeyboardInterrupt:
@@ -161,7 +152,7 @@ class LocalEngine:
 
         def submit_next() -> None:
             for key, item in queue:
-                pending[pool.submit(_call, fn, item)] = (key, item)
+                pending[pool.submit(call_in_worker, fn, item)] = (key, item)
                 return
 
         try:

@@ -19,12 +19,16 @@ from __future__ import annotations
 import importlib
 import logging
 import os
-import pickle
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
-from fleetbrake.engine.base import EngineConfigError, default_workers, partition_error
+from fleetbrake.engine.base import (
+    EngineConfigError,
+    call_in_worker,
+    default_workers,
+    partition_error,
+)
 from fleetbrake.engine.local import WORKER_THREAD_ENV
 
 __all__ = ["RAY_MISSING", "RayEngine", "import_ray"]
@@ -48,19 +52,6 @@ def import_ray() -> Any:
         return importlib.import_module("ray")
     except ImportError:
         raise EngineConfigError(RAY_MISSING) from None
-
-
-def _call(fn: Callable[[T], R], item: T) -> R:
-    """``fn(item)`` in a task; an exception that would not reach the caller intact (it does
-    not pickle) is replaced by a RuntimeError saying what it was."""
-    try:
-        return fn(item)
-    except Exception as error:
-        try:
-            pickle.loads(pickle.dumps(error))
-        except Exception:
-            raise RuntimeError(f"{type(error).__name__}: {error}") from None
-        raise
 
 
 class RayEngine:
@@ -118,7 +109,7 @@ class RayEngine:
                 self.in_flight = 2 * self._workers
         env = dict(WORKER_THREAD_ENV)
         env.update({k: os.environ[k] for k in _PASSED_ENV if k in os.environ})
-        self._remote = ray.remote(_call).options(
+        self._remote = ray.remote(call_in_worker).options(
             num_cpus=1, max_retries=0, runtime_env={"env_vars": env}
         )
         logger.info("ray engine: %d workers, %s", self._workers, self.address or "local cluster")
