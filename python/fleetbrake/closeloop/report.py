@@ -1,8 +1,12 @@
 """The close-loop report for people: Markdown with plots (residual before and after, per
-wagon, per phase), written beside the JSON report."""
+wagon, per phase), written beside the JSON report. Its first line is the verdict
+(:func:`verdict`): ``found: ...``, ``partly explained: ...`` or ``nothing added ...``; then the
+sensor noise, whether the new revision is adequate and what is left unexplained, and each
+fitted parameter with its 95 % interval (``parameter_intervals``)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -72,13 +76,57 @@ def plot_residual_by_phase(frame: pl.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
-def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> None:
-    revisions = [report["baseline_revision"]]
+def _k(value: Any) -> str:
+    return "-" if value is None else f"{float(value):.3g}"
+
+
+def verdict(report: Mapping[str, Any]) -> str:
+    """The report in one line: ``found: X ...`` (an effect added and the model adequate),
+    ``partly explained: X explains 76 % of the residual; 1.2 K remains, correlated with
+    speed ...`` (added, not adequate), or ``nothing added ...``. Reports without the v2
+    adequacy fields read as adequate when an effect was added."""
+    fit = report.get("fit", {})
+    before, after = fit.get("rmse_before_k"), fit.get("rmse_after_k")
+    noise = report.get("noise_k")
+    noise_part = f", sensor noise {_k(noise)} K" if noise is not None else ""
+    unexplained = report.get("unexplained")
+    adequate = report.get("adequate")
     if report.get("new_revision"):
-        revisions.append(report["new_revision"])
-    frame = _residuals(wh, revisions)
-    stem = path.with_suffix("")
+        effect = report.get("effect")
+        if adequate is False:
+            if unexplained:
+                return str(unexplained)
+            share = ""
+            if before and after is not None:
+                share = (
+                    f" explains {100 * max(1 - (after / before) ** 2, 0.0):.0f} % of the residual;"
+                )
+            return f"partly explained: {effect}{share} {_k(after)} K remains{noise_part}"
+        hold = report.get("holdout", {})
+        held = ""
+        if hold.get("rmse_before_k") is not None:
+            held = f"; holdout {_k(hold['rmse_before_k'])} -> {_k(hold.get('rmse_after_k'))} K"
+        return f"found: {effect} (fit RMSE {_k(before)} -> {_k(after)} K{noise_part}{held})"
+    line = (
+        "nothing added: no candidate effect explains a significant part of the residual "
+        f"(fit RMSE {_k(before)} K{noise_part})"
+    )
+    if adequate is False and unexplained:
+        line += f"; {unexplained}"
+    elif adequate is True:
+        line += "; the baseline revision is adequate"
+    return line
+
+
+def render_markdown(
+    report: Mapping[str, Any], frame: pl.DataFrame | None = None, stem: Path | None = None
+) -> str:
+    """The Markdown report of a JSON report dict (keys as in ``interface.md``), its first line
+    the :func:`verdict`. With ``frame`` (the residuals of the baseline and new revision) and
+    ``stem`` (the report's path without suffix), the residual plots are drawn beside it."""
     lines = [
+        verdict(report),
+        "",
         "# Closed loop",
         "",
         f"Baseline revision `{report['baseline_revision']}`; "
@@ -91,6 +139,26 @@ def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> 
         "",
         f"Evidence: {report['evidence']}.",
         "",
+    ]
+    if "adequate" in report or "noise_k" in report:
+        adequate = report.get("adequate")
+        lines += [
+            "| adequacy | |",
+            "|---|---|",
+            f"| sensor noise (K, from the residual) | {_k(report.get('noise_k'))} |",
+            f"| adequate | {'-' if adequate is None else ('yes' if adequate else 'no')} |",
+        ]
+        if report.get("unexplained"):
+            lines.append(f"| unexplained | {report['unexplained']} |")
+        lines.append("")
+    intervals = report.get("parameter_intervals") or {}
+    if intervals:
+        values = report.get("parameters") or {}
+        lines += ["| parameter | value | 95 % low | 95 % high |", "|---|---|---|---|"]
+        for name, (lo, hi) in intervals.items():
+            lines.append(f"| {name} | {_k(values.get(name))} | {_k(lo)} | {_k(hi)} |")
+        lines.append("")
+    lines += [
         "| events | count | RMSE before (K) | RMSE after (K) |",
         "|---|---|---|---|",
     ]
@@ -116,13 +184,14 @@ def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> 
     lines += ["", "## Candidates", "", "| effect | score | RMSE fit (K) | RMSE holdout (K) |"]
     lines.append("|---|---|---|---|")
     for c in report["candidates"]:
-        hold = c["rmse_holdout_k"]
         lines.append(
-            f"| {c['effect']} | {c['score']:.1f} | {c['rmse_fit_k']:.3f} | "
-            f"{'-' if hold is None else f'{hold:.3f}'} |"
+            f"| {c['effect']} | {c['score']:.1f} | {cell(c.get('rmse_fit_k'))} | "
+            f"{cell(c.get('rmse_holdout_k'))} |"
         )
-    lines += ["", report["selection"], ""]
-    if frame.height:
+    if report.get("selection"):
+        lines += ["", report["selection"]]
+    lines.append("")
+    if frame is not None and frame.height and stem is not None:
         by_wagon = stem.parent / f"{stem.name}-by-wagon.png"
         by_phase = stem.parent / f"{stem.name}-by-phase.png"
         plot_residual_by_wagon(frame, by_wagon)
@@ -137,4 +206,13 @@ def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> 
             f"![residual per phase]({by_phase.name})",
             "",
         ]
-    path.write_text("\n".join(lines), encoding="utf-8")
+    return "\n".join(lines)
+
+
+def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> None:
+    revisions = [report["baseline_revision"]]
+    if report.get("new_revision"):
+        revisions.append(report["new_revision"])
+    frame = _residuals(wh, revisions)
+    text = render_markdown(report, frame, path.with_suffix(""))
+    path.write_text(text, encoding="utf-8")

@@ -1,0 +1,334 @@
+"""The close loop's statistics (``fleetbrake.closeloop.selection``) on synthetic arrays whose
+answers are known: white and AR(1) noise, a linear model with correlated noise, a smooth
+leftover driven by a known input; and the Markdown report's verdict line
+(``fleetbrake.closeloop.report``) from report dicts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fleetbrake.closeloop.report import render_markdown, verdict
+from fleetbrake.closeloop.selection import (
+    SelectionError,
+    adequacy,
+    block_folds,
+    blocked_cv_rmse,
+    distinguishable_from_null,
+    effective_sample_size,
+    held_out_residual,
+    improves_held_out,
+    information_criterion,
+    intervals_for_json,
+    noise_from_residual,
+    parameter_intervals,
+    refusal,
+)
+
+
+def ar1(n: int, rho: float, rng: np.random.Generator, sigma: float = 1.0) -> np.ndarray:
+    """A stationary AR(1) series with innovation scale ``sigma``."""
+    e = rng.normal(scale=sigma, size=n)
+    x = np.empty(n)
+    x[0] = e[0] / np.sqrt(1.0 - rho * rho)
+    for i in range(1, n):
+        x[i] = rho * x[i - 1] + e[i]
+    return x
+
+
+def blocked_ar1(n_blocks: int, length: int, rho: float, rng, sigma: float = 1.0) -> np.ndarray:
+    return np.concatenate([ar1(length, rho, rng, sigma) for _ in range(n_blocks)])
+
+
+# ---------------------------------------------------------------------------- n_eff
+def test_white_noise_is_worth_every_second():
+    rng = np.random.default_rng(0)
+    blocks = np.repeat(np.arange(20), 2000)
+    n_eff = effective_sample_size(rng.normal(size=blocks.size), blocks)
+    assert n_eff == pytest.approx(blocks.size, rel=0.05)
+
+
+@pytest.mark.parametrize("rho", [0.5, 0.95])
+def test_ar1_is_worth_n_one_minus_rho_over_one_plus_rho(rho):
+    rng = np.random.default_rng(1)
+    blocks = np.repeat(np.arange(20), 3000)
+    r = blocked_ar1(20, 3000, rho, rng)
+    expected = blocks.size * (1 - rho) / (1 + rho)
+    assert effective_sample_size(r, blocks) == pytest.approx(expected, rel=0.2)
+
+
+def test_correlation_is_never_taken_across_blocks():
+    """Blocks in any order, interleaved: the same n_eff as the blocks laid end to end; and a
+    per-block offset (perfect correlation within a block) leaves about one sample per block."""
+    rng = np.random.default_rng(2)
+    blocks = np.repeat(np.arange(10), 1000)
+    r = blocked_ar1(10, 1000, 0.9, rng)
+    shuffled = rng.permutation(10)[blocks]
+    interleaved = np.argsort(np.tile(np.arange(1000), 10), kind="stable")
+    ordered = effective_sample_size(r, blocks)
+    assert effective_sample_size(r, shuffled) == pytest.approx(ordered, rel=1e-9)
+    assert effective_sample_size(r[interleaved], blocks[interleaved]) == pytest.approx(
+        ordered, rel=1e-9
+    )
+    labels = np.array([f"SGG-{b:04d}/2026-11-0{b % 3}" for b in blocks], dtype=object)
+    assert effective_sample_size(r, labels) == pytest.approx(ordered, rel=1e-9)
+    offsets = np.repeat(rng.normal(size=10), 1000) + 1e-3 * rng.normal(size=10_000)
+    assert 10 <= effective_sample_size(offsets, blocks) < 30
+
+
+def test_criterion_on_fewer_samples_refuses_a_small_gain():
+    """A 2 % cut of the mean square buys a parameter on 300 000 seconds, not on their n_eff."""
+    rng = np.random.default_rng(3)
+    r_a = rng.normal(size=300_000)
+    r_b = r_a * np.sqrt(0.98)
+    n = r_a.size
+    assert information_criterion(r_b, 1, n) < information_criterion(r_a, 0, n)
+    assert information_criterion(r_b, 1, 200.0) > information_criterion(r_a, 0, 200.0)
+
+
+# ---------------------------------------------------------------------------- folds
+def test_folds_hold_whole_blocks_and_cover_every_second_once():
+    rng = np.random.default_rng(4)
+    blocks = rng.permutation(np.repeat(np.arange(23), rng.integers(50, 400, size=23)))
+    folds = block_folds(blocks, 5, seed=7)
+    assert len(folds) == 5
+    stacked = np.vstack(folds)
+    assert (stacked.sum(axis=0) == 1).all()
+    for mask in folds:
+        assert mask.any()
+        inside = set(blocks[mask].tolist())
+        assert not inside & set(blocks[~mask].tolist())
+    sizes = stacked.sum(axis=1)
+    assert sizes.max() < 1.5 * sizes.min()
+    again = block_folds(blocks, 5, seed=7)
+    assert all((a == b).all() for a, b in zip(folds, again, strict=True))
+    assert len(block_folds(blocks, 50)) == 23
+    with pytest.raises(SelectionError, match="2 blocks"):
+        block_folds(np.zeros(100, dtype=int), 5)
+
+
+def linear_case(rng, n_blocks=12, length=400, rho=0.9, sigma=0.05):
+    """y = 1 + 0.3 x1 + correlated noise; x1 a slow driver, x2 an unrelated slow input."""
+    blocks = np.repeat(np.arange(n_blocks), length)
+    t = np.tile(np.arange(length), n_blocks)
+    phase = np.repeat(rng.uniform(0, 2 * np.pi, size=n_blocks), length)
+    x1 = np.sin(2 * np.pi * t / length + phase)
+    x2 = np.cos(2 * np.pi * t / (0.7 * length) + 2 * phase)
+    y = 1.0 + 0.3 * x1 + blocked_ar1(n_blocks, length, rho, rng, sigma)
+    return blocks, x1, x2, y
+
+
+def ls_fit(design: np.ndarray, y: np.ndarray, train: np.ndarray | None = None):
+    """Residual y - X b (every second) and its Jacobian -X, b fitted on ``train``."""
+    use = np.ones(y.size, dtype=bool) if train is None else train
+    b = np.linalg.lstsq(design[use], y[use], rcond=None)[0]
+    return y - design @ b, -design, b
+
+
+def test_held_out_residual_is_exact_for_a_linear_model():
+    rng = np.random.default_rng(5)
+    blocks, x1, _, y = linear_case(rng)
+    design = np.column_stack([np.ones_like(x1), x1])
+    folds = block_folds(blocks, 4, seed=1)
+    r, jac, _ = ls_fit(design, y)
+    held = held_out_residual(r, jac, folds)
+    refit = blocked_cv_rmse(lambda train: ls_fit(design, y, train)[0], folds)
+    assert np.sqrt(np.mean(held**2)) == pytest.approx(refit, rel=1e-9)
+    for mask in folds:
+        assert held[mask] == pytest.approx(ls_fit(design, y, ~mask)[0][mask], abs=1e-10)
+    # held out, a fit does worse than on the seconds it saw
+    assert np.mean(held**2) > np.mean(r**2)
+
+
+def test_a_real_driver_improves_the_held_out_blocks_a_spurious_one_does_not():
+    rng = np.random.default_rng(6)
+    blocks, x1, x2, y = linear_case(rng)
+    ones = np.ones_like(x1)
+    folds = block_folds(blocks, 5)
+    r_a, j_a, _ = ls_fit(ones[:, None], y)
+    r_b, j_b, _ = ls_fit(np.column_stack([ones, x1]), y)
+    r_c, j_c, _ = ls_fit(np.column_stack([ones, x1, x2]), y)
+    real = improves_held_out(r_a, j_a, r_b, j_b, folds, margin=0.05)
+    assert real.improves and real.gain > 0.5 and real.folds_improved == 5
+    spurious = improves_held_out(r_b, j_b, r_c, j_c, folds, margin=0.05)
+    assert not spurious.improves, spurious.describe()
+    assert spurious.gain < 0.05
+    # the fit RMSE alone would always prefer the richer model
+    assert np.mean(r_c**2) < np.mean(r_b**2)
+
+
+# ---------------------------------------------------------------------------- intervals
+def test_intervals_cover_the_truth_with_correlated_noise_and_ols_would_not():
+    rng = np.random.default_rng(7)
+    n_blocks, length, rho = 10, 600, 0.95
+    blocks = np.repeat(np.arange(n_blocks), length)
+    t = np.tile(np.arange(length), n_blocks)
+    design = np.column_stack(
+        [
+            np.ones(blocks.size),
+            np.sin(2 * np.pi * t / length) + 0.3 * np.repeat(rng.normal(size=n_blocks), length),
+        ]
+    )
+    beta = np.array([1.0, 0.5])
+    draws = 200
+    covered = np.zeros(2)
+    covered_ols = np.zeros(2)
+    for _ in range(draws):
+        y = design @ beta + blocked_ar1(n_blocks, length, rho, rng, 0.1)
+        r, jac, b = ls_fit(design, y)
+        n_eff = effective_sample_size(r, blocks)
+        ours = parameter_intervals(jac, r, b, ["a", "b"], n_eff)
+        ols = parameter_intervals(jac, r, b, ["a", "b"], float(r.size))
+        covered += [ours[k][0] <= v <= ours[k][1] for k, v in zip("ab", beta, strict=True)]
+        covered_ols += [ols[k][0] <= v <= ols[k][1] for k, v in zip("ab", beta, strict=True)]
+    assert ((covered / draws > 0.88) & (covered / draws < 0.995)).all(), covered / draws
+    assert (covered_ols / draws < 0.5).all(), covered_ols / draws
+
+
+def test_distinguishable_from_null():
+    intervals = {"scale": (0.2, 0.6), "exponent": (-0.1, 0.4)}
+    assert distinguishable_from_null(intervals, {"scale": 0.0})
+    assert not distinguishable_from_null(intervals, {"scale": 0.0, "exponent": 0.0})
+    assert not distinguishable_from_null(intervals, {"lag_s": 0.0})
+    assert distinguishable_from_null(intervals, {})
+
+
+def test_an_undetermined_parameter_has_an_unbounded_interval():
+    rng = np.random.default_rng(8)
+    r = rng.normal(size=200)
+    jac = np.column_stack([np.ones(200), np.ones(200)])
+    out = parameter_intervals(jac, r, np.array([1.0, 2.0]), ["a", "b"], 200.0)
+    assert not distinguishable_from_null(out, {"a": 0.0})
+    assert intervals_for_json(out) == {"a": [None, None], "b": [None, None]}
+    assert intervals_for_json({"a": (0.123456789, 2.0)}) == {"a": [0.123457, 2.0]}
+
+
+def test_refusal_says_why_a_candidate_does_not_enter():
+    rng = np.random.default_rng(12)
+    blocks, x1, x2, y = linear_case(rng)
+    ones = np.ones_like(x1)
+    folds = block_folds(blocks, 5)
+    r_b, j_b, b_b = ls_fit(np.column_stack([ones, x1]), y)
+    r_c, j_c, b_c = ls_fit(np.column_stack([ones, x1, x2]), y)
+    n_eff = effective_sample_size(r_c, blocks)
+    names = ["level", "gain", "spurious"]
+    intervals = parameter_intervals(j_c, r_c, b_c, names, n_eff)
+    why = refusal(improves_held_out(r_b, j_b, r_c, j_c, folds), intervals, {"spurious": 0.0})
+    assert why is not None
+    assert "held-out RMSE" in why and "spurious = 0 within" in why
+    r_a, j_a, _ = ls_fit(ones[:, None], y)
+    good = parameter_intervals(j_b, r_b, b_b, names[:2], effective_sample_size(r_b, blocks))
+    assert refusal(improves_held_out(r_a, j_a, r_b, j_b, folds), good, {"gain": 0.0}) is None
+
+
+# ---------------------------------------------------------------------------- noise
+def test_noise_from_residual_ignores_a_smooth_model_error_and_its_turns():
+    rng = np.random.default_rng(9)
+    blocks = np.repeat(np.arange(30), 1200)
+    t = np.tile(np.arange(1200.0), 30)
+    smooth = 1.5 * np.sin(t / 80.0) + np.where(t > 300, 0.02 * (t - 300), 0.0)  # a kink
+    r = 0.1 * rng.normal(size=t.size) + smooth
+    assert noise_from_residual(r, blocks) == pytest.approx(0.1, rel=0.05)
+    # a gap in time is not a step: with the times given, the jump across it is not counted
+    jumpy = r.copy()
+    jumpy[t >= 600] += 5.0
+    t_gap = np.where(t >= 600, t + 3600.0, t)
+    assert noise_from_residual(jumpy, blocks, t_gap) == pytest.approx(0.1, rel=0.05)
+    # today's estimate, std(diff) / sqrt(2), is pulled up by the model error's slope
+    assert np.std(np.diff(r)) / np.sqrt(2) > 0.11
+
+
+# ---------------------------------------------------------------------------- adequacy
+def test_white_noise_at_the_noise_level_is_adequate():
+    rng = np.random.default_rng(10)
+    blocks = np.repeat(np.arange(20), 1500)
+    r = 0.1 * rng.normal(size=blocks.size)
+    speed = np.abs(np.tile(np.sin(np.arange(1500) / 200.0), 20)) * 100
+    noise = noise_from_residual(r, blocks)
+    out = adequacy(r, blocks, noise, {"speed": speed}, before_rmse_k=0.8, effect="sensor_lag")
+    assert out.adequate and out.unexplained is None
+    assert out.ratio == pytest.approx(1.0, abs=0.1)
+    assert out.whiteness > 0.8
+    assert out.explained_fraction == pytest.approx(1 - (out.rmse_k / 0.8) ** 2)
+    assert abs(out.correlations["speed"]) < 0.05
+
+
+def test_a_smooth_leftover_is_not_adequate_and_names_its_driver():
+    rng = np.random.default_rng(11)
+    blocks = np.repeat(np.arange(20), 1500)
+    t = np.tile(np.arange(1500.0), 20)
+    speed = 60 + 50 * np.sin(t / 150.0 + np.repeat(rng.uniform(0, 6, 20), 1500))
+    hour = (t / 3600.0 + np.repeat(rng.uniform(0, 24, 20), 1500)) % 24
+    r = 0.1 * rng.normal(size=t.size) + 0.02 * (speed - 60)  # ~0.7 K rms leftover
+    noise = noise_from_residual(r, blocks)
+    assert noise == pytest.approx(0.1, rel=0.1)
+    out = adequacy(
+        r,
+        blocks,
+        noise,
+        {"speed": speed, "hour of day": hour},
+        before_rmse_k=2.0,
+        effect="friction_speed",
+    )
+    assert not out.adequate
+    assert out.ratio > 1.5
+    assert out.whiteness < 0.2
+    assert out.correlations["speed"] > 0.9
+    assert out.unexplained is not None
+    assert out.unexplained.startswith("partly explained: friction_speed explains 8")
+    assert "correlated with speed (r = +0.99)" in out.unexplained
+    assert "hour of day" not in out.unexplained
+    nothing = adequacy(r, blocks, noise, {"speed": speed})
+    assert nothing.unexplained is not None and nothing.unexplained.startswith("not explained")
+
+
+# ---------------------------------------------------------------------------- report
+def report_dict(**changes):
+    report = {
+        "baseline_revision": "declared",
+        "new_revision": "r1-convection_speed",
+        "effect": "convection_speed",
+        "parameters": {"h_speed": 1.2},
+        "evidence": "residual correlates with speed",
+        "fit": {"events": 40, "rmse_before_k": 1.31, "rmse_after_k": 0.118},
+        "holdout": {"events": 10, "rmse_before_k": 1.40, "rmse_after_k": 0.121},
+        "candidates": [
+            {
+                "effect": "convection_speed",
+                "parameters": {"convection_speed": {"h_speed": 1.2}},
+                "rmse_fit_k": 0.118,
+                "rmse_holdout_k": 0.121,
+                "score": 310.5,
+            }
+        ],
+        "parameter_intervals": {"h_speed": [1.1, 1.3]},
+        "noise_k": 0.1,
+        "adequate": True,
+        "unexplained": None,
+        "selection": "blocked cross-validation",
+    }
+    report.update(changes)
+    return report
+
+
+def test_report_first_line_is_the_verdict():
+    found = render_markdown(report_dict()).splitlines()
+    assert found[0].startswith("found: convection_speed")
+    assert "| h_speed | 1.2 | 1.1 | 1.3 |" in found
+    assert any("adequate" in line and "yes" in line for line in found)
+    partly = (
+        "partly explained: friction_speed explains 76 % of the residual; 1.2 K remains "
+        "against 0.1 K of sensor noise, correlated with speed (r = +0.41)"
+    )
+    text = render_markdown(report_dict(adequate=False, unexplained=partly, effect="friction_speed"))
+    assert text.splitlines()[0] == partly
+    assert "| adequate | no |" in text
+    nothing = report_dict(new_revision=None, effect=None, parameters={}, parameter_intervals={})
+    assert verdict(nothing).startswith("nothing added")
+    assert verdict(nothing).endswith("the baseline revision is adequate")
+    assert render_markdown(nothing).splitlines()[0].startswith("nothing added")
+    # a report of the first contract version (no adequacy fields) still renders
+    old = report_dict()
+    for key in ("parameter_intervals", "noise_k", "adequate", "unexplained"):
+        del old[key]
+    assert render_markdown(old).splitlines()[0].startswith("found: convection_speed")
