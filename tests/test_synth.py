@@ -24,14 +24,23 @@ from typer.testing import CliRunner
 from fleetbrake.cli.main import app
 from fleetbrake.fleet import logfile
 from fleetbrake.fleet.registry import load_registry
-from fleetbrake.model.effects import EffectSet, SensorLag
+from fleetbrake.model.effects import (
+    EFFECT_ORDER,
+    ConvectionFlatPlate,
+    EffectSet,
+    FrictionSpeed,
+    SensorLag,
+)
 from fleetbrake.model.physics import block_force_n
+from fleetbrake.synth.config import draw_effect
 from fleetbrake.synth.generator import (
     SENSOR_FAULT_SUBTYPES,
     FleetTruth,
     SynthConfig,
     generate_fleet,
     load_truth,
+    solar_rise_k,
+    summary,
 )
 
 TIME_RE = re.compile(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ")
@@ -668,3 +677,95 @@ def test_a_model_of_the_other_solver_is_refused(tmp_path, reduced_model_for):
         generate_fleet(tmp_path, config, rom=reduced_model_for)
     with pytest.raises(ValueError, match="solver"):
         SynthConfig(solver="fem")  # type: ignore[arg-type]
+
+
+# --------------------------------------------------------------------------------------------
+# The laws drawn, and an effect outside the vocabulary
+
+
+def test_drawn_effects_are_the_close_loops_laws_within_their_ranges():
+    physical = [cls for cls in EFFECT_ORDER if not cls.fallback]
+    for cls in physical:
+        text = f"{cls.name}:law={cls.law}"
+        draws = [draw_effect(text, seed) for seed in range(40)]
+        assert all(type(e) is cls for e in draws), text
+        assert draw_effect(text, 3) == draws[3]  # the seed decides
+        for key, (low, high) in cls.PARAMETER_RANGES.items():
+            values = np.array([e.parameters[key] for e in draws])
+            assert np.all((values >= low) & (values <= high)), (text, key)
+            # the draws cover the range, every parameter of the law (level, scales, ...)
+            assert values.max() - values.min() > 0.6 * (high - low), (text, key)
+    # the name alone: the family's first law; another index, another draw
+    assert type(draw_effect("friction_speed", 0)) is FrictionSpeed
+    assert set(draw_effect("friction_speed", 0).parameters) == {
+        "level",
+        "speed_scale_kmh",
+        "force_scale_kn",
+    }
+    assert draw_effect("sensor_lag", 0, 0) != draw_effect("sensor_lag", 0, 1)
+    with pytest.raises(ValueError, match="not drawn"):
+        draw_effect("empirical", 0)
+    with pytest.raises(ValueError, match="unknown law"):
+        draw_effect("convection_speed:law=cylinder", 0)
+    with pytest.raises(ValueError, match="only law"):
+        draw_effect("convection_speed:gain=2", 0)
+
+
+def test_solar_rise_follows_the_hour_of_day():
+    hours = np.array([0.0, 5.0, 6.0, 9.0, 12.0, 15.0, 18.0, 21.0, 36.0])
+    rise = solar_rise_k(150.0, hours)
+    expected = 150.0 / 10.0 * np.array([0, 0, 0, np.sin(np.pi / 4), 1, np.sin(np.pi / 4), 0, 0, 1])
+    np.testing.assert_allclose(rise, expected, atol=1e-12)
+    config = SynthConfig(solar_heating_w_m2=150.0)
+    assert SynthConfig.from_dict(config.to_dict()) == config
+    assert SynthConfig.from_dict({"wagons": 2}).solar_heating_w_m2 == 0.0  # written before it
+    with pytest.raises(ValueError, match="solar_heating_w_m2"):
+        SynthConfig(solar_heating_w_m2=-1.0)
+
+
+def test_solar_heating_warms_the_block_by_day_only(tmp_path, reduced_model_for):
+    base = SynthConfig.clean(wagons=1, days=1, seed=5)
+    plain = generate_fleet(tmp_path / "plain", base, rom=reduced_model_for)
+    sunny = generate_fleet(
+        tmp_path / "sunny",
+        dataclass_replace(base, solar_heating_w_m2=100.0),
+        rom=reduced_model_for,
+    )
+    a, b = plain.series("SGG-0001"), sunny.series("SGG-0001")
+    # the operation and the logged air are the same; the effects of the vocabulary are none
+    np.testing.assert_array_equal(a["brake_pressure_bar"], b["brake_pressure_bar"])
+    np.testing.assert_array_equal(a["ambient_c"], b["ambient_c"])
+    assert sunny.effects == EffectSet() and sunny.events == plain.events
+    assert load_truth(tmp_path / "sunny").config.solar_heating_w_m2 == 100.0
+    warmer = (b["seat_c"] - a["seat_c"]).to_numpy()
+    hour = np.arange(warmer.size) / 3600.0
+    peak_rise = 100.0 / 10.0
+    # nothing before sunrise; by the afternoon a good part of the sol-air rise, never more
+    assert np.abs(warmer[hour < 6.0]).max() < 1e-3
+    afternoon = warmer[(hour >= 13.0) & (hour < 16.0)]
+    assert afternoon.min() > 0.3 * peak_rise
+    assert warmer.max() < peak_rise + 0.01
+    assert 12.0 <= hour[int(np.argmax(warmer))] <= 20.0
+    assert "solar heating" in summary(sunny)
+
+
+def test_command_line_draws_laws_and_adds_the_sun(
+    tmp_path, monkeypatch, rom_cache_dir, rom_refinement, default_rom
+):
+    monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", os.environ.get("OPENBLAS_NUM_THREADS", "1"))
+    runner = CliRunner()
+    shown = runner.invoke(app, ["synth", "--help"], terminal_width=200)
+    assert "--random-effect" in shown.output and "--solar-heating" in shown.output
+    out = tmp_path / "fleet"
+    args = ["synth", str(out), "--wagons", "1", "--days", "1", "--seed", "8"]
+    args += ["--no-anomalies", "--no-imperfections", "--refinement", str(rom_refinement)]
+    args += ["--random-effect", "convection_speed:law=flat_plate", "--solar-heating", "60"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    truth = load_truth(out)
+    assert truth.effects == EffectSet((draw_effect("convection_speed:law=flat_plate", 8, 0),))
+    assert isinstance(truth.effects.get("convection_speed"), ConvectionFlatPlate)
+    assert truth.config.solar_heating_w_m2 == 60.0
+    refused = runner.invoke(app, ["synth", str(tmp_path / "e"), "--random-effect", "empirical"])
+    assert refused.exit_code == 2 and "not drawn" in refused.output

@@ -276,6 +276,7 @@ def drive_inputs(
         alpha=alpha,
         ambient_c=ambient,
         h_w_m2k=h,
+        friction_coefficient=float(wagon.friction_coefficient),
     )
     return base
 

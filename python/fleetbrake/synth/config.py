@@ -16,10 +16,10 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from fleetbrake.model.effects import EffectSet
+from fleetbrake.model.effects import Effect, EffectSet, find_law
 from fleetbrake.model.rom import DEFAULT_REFINEMENT
 
-__all__ = ["SENSOR_FAULT_SUBTYPES", "SOLVERS", "Solver", "SynthConfig", "stream"]
+__all__ = ["SENSOR_FAULT_SUBTYPES", "SOLVERS", "Solver", "SynthConfig", "draw_effect", "stream"]
 
 SENSOR_FAULT_SUBTYPES: tuple[str, ...] = ("open", "frozen", "loose", "drift")
 
@@ -84,6 +84,13 @@ class SynthConfig:
     refinement: float = DEFAULT_REFINEMENT
     """Mesh refinement of the model (1.0: the default mesh, about 21,000 nodes). The reduced
     and full models are meshed by the same code, so one value gives them one mesh."""
+    solar_heating_w_m2: float = 0.0
+    """An effect OUTSIDE the vocabulary, for testing that the close loop says "not adequate":
+    sunshine absorbed by the block's air-cooled surfaces, peak W/m^2 at solar noon (12:00
+    UTC), ``peak max(0, sin(pi (hour - 6) / 12))``: a heat input that depends on the hour of
+    day. It enters as the sol-air temperature of those surfaces (``air + q / h0``, h0 the
+    declared 10 W/m^2 K; ASHRAE Fundamentals, ch. 18), so the block sees a warmer air by
+    day while the logged air temperature stays the air's. 0: none."""
 
     def __post_init__(self) -> None:
         if isinstance(self.start, dt.datetime) or not isinstance(self.start, dt.date):
@@ -120,6 +127,10 @@ class SynthConfig:
             raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if not self.refinement > 0:
             raise ValueError(f"refinement must be > 0, got {self.refinement!r}")
+        if not 0.0 <= self.solar_heating_w_m2 <= 1500.0:
+            raise ValueError(
+                f"solar_heating_w_m2 must be in [0, 1500], got {self.solar_heating_w_m2!r}"
+            )
 
     @classmethod
     def clean(cls, **changes: Any) -> SynthConfig:
@@ -178,6 +189,7 @@ _PURPOSES = {
     "anomalies": 5,
     "bad_files": 6,
     "wagon": 7,
+    "effects": 8,
 }
 
 
@@ -187,3 +199,21 @@ def stream(seed: int, purpose: str, index: int = 0) -> np.random.Generator:
     return np.random.default_rng(
         np.random.SeedSequence(seed, spawn_key=(_PURPOSES[purpose], index))
     )
+
+
+def draw_effect(text: str, seed: int, index: int = 0) -> Effect:
+    """An effect of the vocabulary, ``NAME`` or ``NAME:law=LAW``, with every parameter drawn
+    uniformly from its law's ``PARAMETER_RANGES`` (the same laws the close loop fits, so a
+    drawn fleet is no easier than the world), from the stream of ``seed`` and ``index``.
+    ``empirical`` (a fitting device, not physics) is never drawn."""
+    name, _, rest = text.strip().partition(":")
+    name, law = name.strip(), None
+    for item in filter(None, (part.strip() for part in rest.split(","))):
+        key, sep, value = item.partition("=")
+        if key.strip() != "law" or not sep:
+            raise ValueError(f"{text!r}: a drawn effect takes only law=LAW, got {item!r}")
+        law = value.strip()
+    cls = find_law(name, law)
+    if cls.fallback:
+        raise ValueError(f"{name}: a data-driven correction, not drawn into a fleet")
+    return cls.random(stream(seed, "effects", index))

@@ -55,6 +55,10 @@ block force at 40-60 % of the declared for one UTC day), and sensor faults in si
 ``open`` (reads far out of range), ``frozen``, ``loose`` (relaxes towards ambient), ``drift``
 (a growing offset).
 
+**Outside the vocabulary** (``solar_heating_w_m2`` > 0): sunshine on the block's air-cooled
+surfaces by the hour of day (:func:`solar_rise_k`), an effect no law of
+``fleetbrake.model.effects`` describes: a fleet the close loop should call not adequate.
+
 Everything is drawn from ``numpy`` generators seeded from ``seed`` and a fixed purpose code,
 so the same configuration writes byte-identical files.
 """
@@ -107,6 +111,7 @@ __all__ = [
     "WagonTruth",
     "generate_fleet",
     "load_truth",
+    "solar_rise_k",
     "summary",
 ]
 
@@ -128,6 +133,19 @@ so the full model costs half as much."""
 
 ASLEEP_MIN_S = 1800
 """Sleep shorter than this is simulated at 1 Hz (not worth a segment of its own)."""
+
+SOL_AIR_H_W_M2K = 10.0
+"""The declared convection coefficient (block-model.md) that turns absorbed sunshine into a
+sol-air temperature rise (``SynthConfig.solar_heating_w_m2``)."""
+
+
+def solar_rise_k(peak_w_m2: float, hour_utc: np.ndarray) -> np.ndarray:
+    """The sol-air rise (K) of the block's air-cooled surfaces at each hour of the day:
+    ``q / h0`` with ``q = peak max(0, sin(pi (hour - 6) / 12))`` (daylight 06-18 UTC, noon
+    peak); an effect outside the vocabulary (``SynthConfig.solar_heating_w_m2``)."""
+    hour = np.asarray(hour_utc, dtype=np.float64) % 24.0
+    q = peak_w_m2 * np.maximum(np.sin(np.pi * (hour - 6.0) / 12.0), 0.0)
+    return q / SOL_AIR_H_W_M2K
 
 
 # --------------------------------------------------------------------------------------------
@@ -325,9 +343,13 @@ def generate_fleet(
         # the block, continuously
         model = model_of(wagon)
         model_info = _model_info(model, config)
-        result = _simulate_block(
-            model, wagon, config, op, ambient_truth, drag_force, efficiency, awake
-        )
+        # the air the block exchanges heat with: the air, plus the sunshine outside the
+        # vocabulary when asked for (the truth's ambient_c stays the air's)
+        block_air = ambient_truth
+        if config.solar_heating_w_m2 > 0:
+            hours = (start_utc.hour + np.arange(n_s) / 3600.0) % 24.0
+            block_air = ambient_truth + solar_rise_k(config.solar_heating_w_m2, hours)
+        result = _simulate_block(model, wagon, config, op, block_air, drag_force, efficiency, awake)
         series_rel = f"{SERIES_DIR}/{plan.wagon_id}.parquet"
         times = pl.Series(
             "time_utc",
@@ -773,6 +795,11 @@ def summary(truth: FleetTruth) -> str:
         f"braking events: {len(truth.events)} ({sum(e.recorded for e in truth.events)} recorded)",
         f"effects: {truth.effects}",
     ]
+    if truth.config.solar_heating_w_m2 > 0:
+        lines.append(
+            f"outside the vocabulary: solar heating, {truth.config.solar_heating_w_m2:g} W/m^2 "
+            "at noon UTC"
+        )
     for a in truth.anomalies:
         kind = a.kind + (f" ({a.subtype})" if a.subtype else "")
         lines.append(
