@@ -89,6 +89,40 @@ def test_map_consumes_its_items_lazily(local: LocalEngine) -> None:
     results.close()
 
 
+def _identity(x: int) -> int:
+    return x
+
+
+@pytest.mark.parametrize("kind", ["inline", "threads", "local", "local-unordered"])
+def test_the_results_ahead_of_the_caller_stay_bounded_whatever_the_items(
+    kind: str, local: LocalEngine
+) -> None:
+    """Backpressure, counted: over a long stream, the items taken but not yet handed to the
+    caller (the single writer) never exceed the engine's bound, so memory holds a few
+    partitions, never the fleet's, however slowly the caller writes."""
+    threads = InlineEngine(threads=2)
+    engine = {"inline": InlineEngine(), "threads": threads}.get(kind, local)
+    bound = {"inline": 0, "threads": 2 * threads.threads}.get(kind, local.in_flight)
+    taken = 0
+
+    def items() -> Iterator[int]:
+        nonlocal taken
+        for i in range(60):
+            taken += 1
+            yield i
+
+    if kind == "local-unordered":
+        results: Iterator[object] = local.map_unordered(_identity, ((i, i) for i in items()))
+    else:
+        results = engine.map(_identity, items())
+    ahead = []
+    for handed, _ in enumerate(results, start=1):
+        ahead.append(taken - handed)
+    assert len(ahead) == 60
+    assert max(ahead) <= bound
+    assert max(ahead) == bound or kind == "inline"  # the bound is used: work runs ahead
+
+
 @pytest.mark.parametrize("kind", ["inline", "threads", "local"])
 def test_an_error_names_its_partition(kind: str, local: LocalEngine) -> None:
     engine = {"local": local, "inline": InlineEngine(), "threads": InlineEngine(threads=2)}[kind]

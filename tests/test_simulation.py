@@ -623,3 +623,99 @@ def test_the_flags_judge_their_wagons_on_an_engine_as_inline(
     assert inline.flags, "the fleet has anomalies: some flags expected"
     assert spread.flags == inline.flags
     assert spread.notes == inline.notes and spread.wagons == inline.wagons
+
+
+def test_wagons_without_stored_rows_are_only_inserted_and_stray_rows_still_replaced(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The stage skips the deletes (each a scan of a table that grows with the fleet) for a
+    batch of wagons holding no rows of the revision, and stores what a replacement does; a
+    wagon with rows but no ``simulated_wagons`` entry still has them replaced, not doubled."""
+    import fleetbrake.simulation.predictions as predictions
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    deletes: list[bool] = []
+    real = predictions.replace_wagons
+
+    def recorded(wh: Any, revision: str, wagons: Any, *, delete: bool = True) -> None:
+        deletes.append(delete)
+        real(wh, revision, wagons, delete=delete)
+
+    monkeypatch.setattr(predictions, "replace_wagons", recorded)
+    with open_warehouse(fleet.db) as wh:
+        rev = current_revision(wh, refinement=fleet.config.refinement)
+        wagons = sorted(fleet.registry.wagons)
+        simulate_events(wh, fleet.registry, rev, fleet.config, wagons=wagons, progress=False)
+        replaced = _stored_rows(wh)
+        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
+            wh.con.execute(f"DELETE FROM {table} WHERE model_revision = 'declared'")
+        deletes.clear()
+        simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
+        assert deletes == [False]  # nothing stored: only inserted
+        for table, frame in _stored_rows(wh).items():
+            assert frame.height > 0 and frame.equals(replaced[table]), table
+        wh.con.execute("DELETE FROM simulated_wagons WHERE model_revision = 'declared'")
+        deletes.clear()
+        simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
+        assert deletes == [True]  # its rows are there: deleted first
+        for table, frame in _stored_rows(wh).items():
+            assert frame.equals(replaced[table]), table
+
+
+def test_the_prediction_rows_are_built_as_one_row_per_window_second(fleet: Fleet) -> None:
+    """The predictions' frame (built column by column, its strings gathered once per window)
+    equals the rows written out one by one from the event windows: every column, every
+    value, the nulls where a reading is missing."""
+    from fleetbrake.simulation.batched import simulate_span_batched
+    from fleetbrake.simulation.predictions import (
+        _PREDICTION_SCHEMA,
+        Revision,
+        _prediction_frame,
+        load_wagon,
+        model_for,
+    )
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    rev = Revision("rows-test")
+    compared = 0
+    with open_warehouse(fleet.db) as wh:
+        for wagon in fleet.registry.wagons.values():
+            data = load_wagon(wh, wagon, fleet.config)
+            model = model_for(wagon, rev.solver, fleet.config.refinement)
+            windows = []
+            for series in data.spans:
+                result = simulate_span_batched(
+                    series, wagon, model, rev.effects, fleet.config.chain
+                )
+                windows += [(series, w, result.speed_kmh) for w in result.windows]
+            if not windows:
+                continue
+            rows = []
+            for series, w, speed in windows:
+                for i, k in enumerate(range(w.start, w.stop + 1)):
+                    measured = float(series.measured_c[k])
+                    rows.append(
+                        {
+                            "event_id": w.event_id,
+                            "wagon_id": wagon.wagon_id,
+                            "time_utc": series.utc(k),
+                            "model_revision": rev.name,
+                            "phase": "heating" if k <= w.release else "cooling",
+                            "measured_sensor_c": None if np.isnan(measured) else measured,
+                            "predicted_sensor_c": float(w.sensor_c[i]),
+                            "predicted_contact_mean_c": float(w.contact_mean_c[i]),
+                            "predicted_contact_max_c": float(w.contact_max_c[i]),
+                            "speed_kmh": float(speed[k]),
+                            "brake_pressure_bar": float(series.pressure_bar[k]),
+                            "ambient_c": float(series.ambient_c[k]),
+                            "flux_w_m2": float(w.flux_w_m2[i]),
+                        }
+                    )
+            want = pl.DataFrame(rows, schema=_PREDICTION_SCHEMA)
+            got = _prediction_frame(wagon.wagon_id, rev.name, windows)
+            assert got.schema == want.schema
+            assert got.equals(want)
+            assert got["measured_sensor_c"].null_count() == want["measured_sensor_c"].null_count()
+            compared += got.height
+    assert compared > 10_000

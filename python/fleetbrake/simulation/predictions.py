@@ -72,6 +72,8 @@ from fleetbrake.simulation.store import (
     forget_wagon,
     replace_wagons,
     simulated_wagons,
+    stored_wagon_ids,
+    table_rows,
     utc_now,
     wagon_events,
     wagon_samples,
@@ -393,13 +395,15 @@ def _prediction_frame(
     if not windows:
         return pl.DataFrame(schema=_PREDICTION_SCHEMA)
     columns: dict[str, list[np.ndarray]] = {name: [] for name in _PREDICTION_SCHEMA}
-    for series, w, speed in windows:
+    window_of: list[np.ndarray] = []  # each row's window (index into ``windows``)
+    heating: list[np.ndarray] = []
+    for i, (series, w, speed) in enumerate(windows):
         k = np.arange(w.start, w.stop + 1)
         assert w.sensor_c is not None and w.contact_mean_c is not None
         assert w.contact_max_c is not None and w.flux_w_m2 is not None
-        columns["event_id"].append(np.full(k.size, w.event_id, dtype=object))
+        window_of.append(np.full(k.size, i, dtype=np.uint32))
+        heating.append(k <= w.release)
         columns["time_utc"].append(_times(series, k))
-        columns["phase"].append(np.where(k <= w.release, "heating", "cooling").astype(object))
         columns["measured_sensor_c"].append(series.measured_c[k])
         columns["predicted_sensor_c"].append(w.sensor_c)
         columns["predicted_contact_mean_c"].append(w.contact_mean_c)
@@ -408,13 +412,24 @@ def _prediction_frame(
         columns["brake_pressure_bar"].append(series.pressure_bar[k])
         columns["ambient_c"].append(series.ambient_c[k])
         columns["flux_w_m2"].append(w.flux_w_m2)
+    # the strings made by polars from one value per window, not one Python object per row
+    event_ids = pl.Series("event_id", [w.event_id for _, w, _ in windows], dtype=pl.String)
+    strings = {
+        "event_id": event_ids.gather(np.concatenate(window_of)),
+        "phase": pl.Series("phase", ["cooling", "heating"], dtype=pl.String).gather(
+            np.concatenate(heating).astype(np.uint32)
+        ),
+    }
     constant = {"wagon_id": wagon_id, "model_revision": rev}
     frame = pl.DataFrame(
-        {
-            name: pl.Series(name, np.concatenate(parts), dtype=_PREDICTION_SCHEMA[name])
-            for name, parts in columns.items()
-            if name not in constant
-        }
+        [
+            *strings.values(),
+            *(
+                pl.Series(name, np.concatenate(parts), dtype=_PREDICTION_SCHEMA[name])
+                for name, parts in columns.items()
+                if parts
+            ),
+        ]
     )
     return frame.with_columns(
         *(pl.lit(value, dtype=pl.String).alias(name) for name, value in constant.items()),
@@ -558,9 +573,9 @@ class WagonResult:
     skipped: list[str]
 
     def rows(self) -> WagonRows:
-        return WagonRows(
-            _frame(self.predictions), _frame(self.timeline), _frame(self.segments), self.events
-        )
+        """The rows to write, the Arrow tables as they came (DuckDB inserts them as they
+        are)."""
+        return WagonRows(self.predictions, self.timeline, self.segments, self.events)
 
 
 def _frame(table: pa.Table) -> pl.DataFrame:
@@ -701,31 +716,36 @@ def simulate_events(
         for wagon, data_key, model_key in todo
     )
     results = map(simulate_wagon, tasks) if engine is None else engine.map(simulate_wagon, tasks)
+    holding = stored_wagon_ids(wh, rev.name)  # the others' rows are only inserted
+
+    def write(batch: list[WagonWrite]) -> None:
+        replace_wagons(wh, rev.name, batch, delete=any(w.wagon_id in holding for w in batch))
+
     pending: list[WagonWrite] = []
     pending_rows = 0
     with Progress(disable=not show, transient=True) as bar:
         task = bar.add_task("simulating wagons", total=len(todo))
         for result in results:
             written = result.rows()
-            write = WagonWrite(result.wagon_id, written, result.data_key, result.model_key)
-            if pending and pending_rows + write.row_count > config.batch_rows:
-                replace_wagons(wh, rev.name, pending)  # whole wagons per transaction
+            wagon_write = WagonWrite(result.wagon_id, written, result.data_key, result.model_key)
+            if pending and pending_rows + wagon_write.row_count > config.batch_rows:
+                write(pending)  # whole wagons per transaction
                 bar.advance(task, len(pending))
                 pending, pending_rows = [], 0
-            pending.append(write)
-            pending_rows += write.row_count
+            pending.append(wagon_write)
+            pending_rows += wagon_write.row_count
             logger.info(
                 "wagon %s: %d events and %d timeline seconds simulated with revision %s",
                 result.wagon_id,
                 result.events,
-                written.timeline.height,
+                table_rows(written.timeline),
                 result.revision,
             )
             report.wagons_simulated.append(result.wagon_id)
             report.events_simulated += result.events
-            report.prediction_rows += written.predictions.height
-            report.timeline_rows += written.timeline.height
+            report.prediction_rows += table_rows(written.predictions)
+            report.timeline_rows += table_rows(written.timeline)
             report.skipped += result.skipped
-        replace_wagons(wh, rev.name, pending)
+        write(pending)
         bar.advance(task, len(pending))
     return report

@@ -104,7 +104,9 @@ class WagonSeries:
             if events is not None:
                 own = events.filter((pl.col("start_utc") >= t0) & (pl.col("start_utc") <= t1))
             out.append(
-                cls.from_frame(wagon_id, part, ambient_default_c=ambient_default_c, events=own)
+                cls.from_frame(
+                    wagon_id, part, ambient_default_c=ambient_default_c, events=own, ordered=True
+                )
             )
         return out
 
@@ -116,15 +118,21 @@ class WagonSeries:
         *,
         ambient_default_c: float,
         events: pl.DataFrame | None = None,
+        ordered: bool = False,
     ) -> WagonSeries:
         """From ``samples`` rows (``time_utc``, ``speed_kmh``, ``brake_pressure_bar``,
         ``block_temp_c``, optional ``block_temp_fault``, ``block_temp_raw_c``,
         ``ambient_temp_c``) and optional ``events`` (``event_id``, ``start_utc``,
-        ``end_utc``, optional ``complete``)."""
+        ``end_utc``, optional ``complete``). ``ordered``: the rows are already sorted by
+        time, one row per time (as :meth:`spans_from_frame` cuts them), so not sorted again."""
         if samples.height == 0:
             raise ValueError(f"wagon {wagon_id}: no samples")
-        frame = samples.sort("time_utc", maintain_order=True).unique(
-            "time_utc", keep="first", maintain_order=True
+        frame = (
+            samples
+            if ordered
+            else samples.sort("time_utc", maintain_order=True).unique(
+                "time_utc", keep="first", maintain_order=True
+            )
         )
         t0 = frame["time_utc"][0]
         k = (frame["time_utc"] - t0).dt.total_seconds().to_numpy().astype(np.int64)

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import polars as pl
+import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.warehouse.connection import Warehouse, sql
 
@@ -37,6 +38,8 @@ __all__ = [
     "replace_wagons",
     "simulated_wagons",
     "stored_timeline",
+    "stored_wagon_ids",
+    "table_rows",
     "utc_now",
     "wagon_events",
     "wagon_samples",
@@ -58,14 +61,20 @@ class SimulatedWagon:
     simulated_utc: dt.datetime
 
 
+def table_rows(table: pl.DataFrame | pa.Table) -> int:
+    """Rows of a polars frame or an Arrow table."""
+    return int(table.height if isinstance(table, pl.DataFrame) else table.num_rows)
+
+
 @dataclass
 class WagonRows:
     """Everything one wagon's simulation with one revision stores (polars frames with the
-    columns of the tables)."""
+    columns of the tables, or Arrow tables as a worker handed them back: DuckDB inserts
+    those as they are, a fifth cheaper than polars frames)."""
 
-    predictions: pl.DataFrame
-    timeline: pl.DataFrame
-    segments: pl.DataFrame
+    predictions: pl.DataFrame | pa.Table
+    timeline: pl.DataFrame | pa.Table
+    segments: pl.DataFrame | pa.Table
     events: int = 0
 
 
@@ -127,7 +136,8 @@ class WagonWrite:
 
     @property
     def row_count(self) -> int:
-        return self.rows.predictions.height + self.rows.timeline.height + self.rows.segments.height
+        rows = self.rows
+        return table_rows(rows.predictions) + table_rows(rows.timeline) + table_rows(rows.segments)
 
 
 def replace_wagon(
@@ -144,10 +154,22 @@ def replace_wagon(
     replace_wagons(wh, revision, [WagonWrite(wagon_id, rows, data_key, model_key)])
 
 
-def replace_wagons(wh: Warehouse, revision: str, wagons: Sequence[WagonWrite]) -> None:
+def stored_wagon_ids(wh: Warehouse, revision: str) -> set[str]:
+    """The wagons holding rows of ``revision`` in any table of the stage: the ones
+    :func:`replace_wagons` must delete before it inserts."""
+    rows = wh.con.execute(sql("q_simulation_stored_wagon_ids"), {"revision": revision}).fetchall()
+    return {str(r[0]) for r in rows}
+
+
+def replace_wagons(
+    wh: Warehouse, revision: str, wagons: Sequence[WagonWrite], *, delete: bool = True
+) -> None:
     """Replace the rows of ``revision`` of every wagon of ``wagons`` in every table of the
     stage, all in one transaction (each wagon whole-old or whole-new whatever happens), one
-    bulk delete and one bulk insert per table, recording the keys each was simulated from."""
+    bulk delete and one bulk insert per table, recording the keys each was simulated from.
+
+    ``delete=False``: none of the wagons holds rows of ``revision`` (:func:`stored_wagon_ids`),
+    so the deletes, each a scan of its whole table (which grows with the fleet), are skipped."""
     if not wagons:
         return
     if len({w.wagon_id for w in wagons}) != len(wagons):
@@ -161,13 +183,13 @@ def replace_wagons(wh: Warehouse, revision: str, wagons: Sequence[WagonWrite]) -
     now = utc_now()
     with wh.transaction() as con:
         for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
-            con.execute(sql(f"q_simulation_delete_{table}_wagons"), key)
+            if delete:
+                con.execute(sql(f"q_simulation_delete_{table}_wagons"), key)
         for name, attribute, statement in batches:
-            frames = [frame for w in wagons if (frame := getattr(w.rows, attribute)).height]
+            frames = [frame for w in wagons if table_rows(frame := getattr(w.rows, attribute))]
             if not frames:
                 continue
-            frame = frames[0] if len(frames) == 1 else pl.concat(frames, how="vertical")
-            con.register(name, frame)
+            con.register(name, _concat(frames))
             try:
                 con.execute(sql(statement))
             finally:
@@ -184,6 +206,20 @@ def replace_wagons(wh: Warehouse, revision: str, wagons: Sequence[WagonWrite]) -
                     "simulated_utc": now,
                 },
             )
+
+
+def _concat(tables: list[pl.DataFrame | pa.Table]) -> pl.DataFrame | pa.Table:
+    """The tables one under the other: Arrow if all are (no copy), else a polars frame."""
+    if len(tables) == 1:
+        return tables[0]
+    if all(isinstance(t, pa.Table) for t in tables):
+        return pa.concat_tables(tables)
+    frames = []
+    for table in tables:
+        frame = table if isinstance(table, pl.DataFrame) else pl.from_arrow(table)
+        assert isinstance(frame, pl.DataFrame)
+        frames.append(frame)
+    return pl.concat(frames, how="vertical")
 
 
 def forget_wagon(wh: Warehouse, wagon_id: str, revision: str) -> None:
