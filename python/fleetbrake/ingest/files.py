@@ -14,7 +14,9 @@ ignored: they are temporary files of copies in progress):
 
 * **Identity.** A file is its path (relative to the fleet directory) and the sha256 of its bytes.
   A path already recorded with the same size and mtime is not read again (``verify_hashes``
-  reads it anyway); one with other bytes replaces its earlier row and samples. A re-run adds
+  reads it anyway); one with other bytes replaces its earlier row and samples; one with the
+  same bytes under another size or mtime (copied, touched) keeps its row and samples, and the
+  row takes the new size and mtime (so it is not read again). A re-run adds
   nothing; a late file (older than files already ingested) is taken when it comes.
 * **Atomicity.** A file's ``files`` row, its samples and the time range whose events must be
   recomputed (``event_dirty``) are always in the same transaction; whole partitions (a wagon
@@ -63,9 +65,10 @@ import os
 import sys
 import time
 import zlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
+from stat import S_ISDIR
 from typing import Any
 
 import duckdb
@@ -112,6 +115,7 @@ __all__ = [
     "read_log",
     "run_ingest",
     "scan_logs",
+    "stat_logs",
 ]
 
 REGISTRY_FILE = "fleet.toml"
@@ -234,6 +238,10 @@ class FileResult:
     replaced: bool = False
     """The path was recorded before: with other bytes, or quarantined for a cause that is
     judged again at every run (registry, unreadable, reader error)."""
+    size_bytes: int | None = None
+    mtime_ns: int | None = None
+    """The size and modification time the ledger recorded for it (as stat saw the file
+    before it was read: a file written meanwhile has others now)."""
 
 
 @dataclass
@@ -654,6 +662,31 @@ def scan_logs(fleet_dir: Path) -> list[LogEntry]:
     return entries
 
 
+def stat_logs(fleet_dir: Path, relpaths: Iterable[str]) -> list[LogEntry]:
+    """The files ``relpaths`` (relative to the fleet directory, ``/``-separated) as
+    :func:`scan_logs` would list them, and nothing else under ``logs/``: those that are gone,
+    are not files, or are not names :func:`scan_logs` lists (outside ``logs/``, hidden) are
+    left out. Sorted by path."""
+    entries: list[LogEntry] = []
+    for relpath in sorted(set(relpaths)):
+        parts = PurePosixPath(relpath).parts
+        if (
+            len(parts) < 2
+            or parts[0] != LOGS_DIR
+            or any(p.startswith(".") or p == ".." for p in parts[1:])
+            or PurePosixPath(relpath).as_posix() != relpath
+        ):
+            continue
+        path = fleet_dir / relpath
+        try:
+            stat = path.stat()
+        except OSError:
+            continue  # gone (or unreachable) since it was handed over
+        if not S_ISDIR(stat.st_mode):
+            entries.append(LogEntry(relpath, path, stat.st_size, stat.st_mtime_ns))
+    return entries
+
+
 @dataclass(frozen=True)
 class _Known:
     """What the warehouse already holds about a path."""
@@ -817,6 +850,11 @@ _DIRTY_SCHEMA = pl.Schema(
     }
 )
 
+_REFRESH_SCHEMA = pl.Schema(
+    {"file_id": pl.Int64(), "size_bytes": pl.Int64(), "mtime_ns": pl.Int64()}
+)
+"""Columns of a ledger refresh (:meth:`_Batch.refresh`)."""
+
 
 def _file_row(prepared: _Prepared, file_id: int) -> dict[str, object]:
     """The ``files`` row of a prepared file."""
@@ -870,6 +908,7 @@ class _Batch:
         self._samples: list[pl.DataFrame] = []
         self._dirty: list[dict[str, object]] = []
         self._replaced: list[int] = []
+        self._refreshed: list[dict[str, object]] = []
         self._rows = 0
 
     def add(self, prepared: _Prepared, known: _Known | None, file_id: int) -> FileResult:
@@ -902,7 +941,25 @@ class _Batch:
             reason=row["reason"],  # type: ignore[arg-type]
             repairs=row["repairs"],  # type: ignore[arg-type]
             replaced=known is not None,
+            size_bytes=prepared.entry.size_bytes,
+            mtime_ns=prepared.entry.mtime_ns,
         )
+
+    def refresh(self, prepared: _Prepared, known: _Known | None) -> None:
+        """The file is recorded with these bytes (:func:`_unchanged`): its ledger row takes
+        the size and modification time it has now, if they differ."""
+        entry = prepared.entry
+        if known is not None and (known.size_bytes, known.mtime_ns) != (
+            entry.size_bytes,
+            entry.mtime_ns,
+        ):
+            self._refreshed.append(
+                {
+                    "file_id": known.file_id,
+                    "size_bytes": entry.size_bytes,
+                    "mtime_ns": entry.mtime_ns,
+                }
+            )
 
     def end_partition(self) -> None:
         """A partition's files are queued: flush when the batch is full. A partition is never
@@ -913,23 +970,27 @@ class _Batch:
 
     def flush(self) -> None:
         """Write the queued files in one transaction."""
-        if not self._files:
+        if not self._files and not self._refreshed:
             return
         began = time.perf_counter()
         con = self._wh.con
         files = pl.DataFrame(self._files, schema=_FILES_SCHEMA, orient="row")
         dirty = pl.DataFrame(self._dirty, schema=_DIRTY_SCHEMA, orient="row")
+        refreshed = pl.DataFrame(self._refreshed, schema=_REFRESH_SCHEMA, orient="row")
         samples = pl.concat(self._samples) if self._samples else None
         with self._wh.transaction():
             if self._replaced:
                 ids = {"ids": self._replaced}
                 con.execute(sql("q_ingest_delete_samples"), ids)
                 con.execute(sql("q_ingest_delete_files"), ids)
-            _insert(con, "file_batch", files, sql("q_insert_files"))
+            if files.height:
+                _insert(con, "file_batch", files, sql("q_insert_files"))
             if samples is not None:
                 _insert(con, "sample_batch", samples, sql("q_insert_samples"))
             if dirty.height:
                 _insert(con, "dirty_batch", dirty, sql("q_insert_event_dirty"))
+            if refreshed.height:
+                _insert(con, "refresh_batch", refreshed, sql("q_ingest_refresh_files"))
         self._clear()
         self.write_s += time.perf_counter() - began
 
@@ -1031,8 +1092,15 @@ def ingest_fleet(
     config: IngestConfig | None = None,
     progress: bool | None = None,
     engine: Engine | None = None,
+    files: Iterable[str] | None = None,
 ) -> IngestReport:
     """Ingest every file of ``fleet_dir`` that the warehouse does not hold yet.
+
+    ``files``: only these paths (relative to the fleet directory, as ``v_files.path``; see
+    :func:`stat_logs`) are looked at, instead of every file under ``logs/`` (a unit of
+    ``fleetbrake watch``: a file that lands meanwhile is not read). A file the warehouse holds
+    with the same bytes under another size or modification time (copied, touched) is not
+    stored again, but its ledger row takes the new ones, so that it is not read again.
 
     ``registry`` defaults to the fleet's ``fleet.toml`` (see :func:`load_fleet_registry` for
     what raises); bad files never raise (they are quarantined). ``progress=None`` shows a
@@ -1057,7 +1125,7 @@ def ingest_fleet(
         db_path=wh.path,
         registry_problems=[str(p) for p in registry.problems],
     )
-    entries = scan_logs(fleet_dir)
+    entries = scan_logs(fleet_dir) if files is None else stat_logs(fleet_dir, files)
     report.files_seen = len(entries)
     known = _known_files(wh)
     todo = [e for e in entries if _needs_reading(e, known.get(e.relpath), config)]
@@ -1088,13 +1156,14 @@ def ingest_fleet(
                     before = known.get(prepared.entry.relpath)
                     if _unchanged(prepared, before):
                         report.files_unchanged += 1
+                        batch.refresh(prepared, before)
                     else:
                         report.results.append(batch.add(prepared, before, next_id))
                         next_id += 1
                     bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
                 batch.end_partition()
         report.write_s = batch.write_s
-        if report.results:
+        if report.results:  # (a ledger refresh alone writes too little to checkpoint)
             began = time.perf_counter()
             wh.con.execute("CHECKPOINT")  # while the memory is bounded, not at close
             report.write_s += time.perf_counter() - began
