@@ -149,7 +149,14 @@ def test_run_prints_a_json_summary_of_what_it_stored(fleet: Fleet) -> None:
     assert summary["events_simulated"] == simulated
     assert summary["prediction_rows"] == predictions
     assert summary["flags"] == flags
-    assert set(summary["stage_s"]) == {"ingest", "write", "events", "simulate", "flags"}
+    assert set(summary["stage_s"]) == {
+        "ingest",
+        "write",
+        "events",
+        "simulate",
+        "estimate",
+        "flags",
+    }
     # stdout is not a terminal here: no progress bars
     assert fleet.run_calls[0]["progress"] is False
 

@@ -44,7 +44,7 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
     let order: usize = item(d, "order")?.extract()?;
     let diagonal: Vec<bool> = item(d, "diagonal")?.extract()?;
     let (a, gamma, lag_row) = (floats(d, "a")?, floats(d, "gamma")?, floats(d, "lag_row")?);
-    let (phi, q_unit) = (floats(d, "phi")?, floats(d, "q_unit")?);
+    let (phi, q_unit, q_gap) = (floats(d, "phi")?, floats(d, "q_unit")?, floats(d, "q_gap")?);
     let (lag_a, lag_b1, lag_power) = (
         floats(d, "lag_a")?,
         floats(d, "lag_b1")?,
@@ -58,6 +58,7 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
         lag_row.len() == k * r,
         phi.len() == k,
         q_unit.len() == k,
+        q_gap.len() == k,
         lag_a.len() == k,
         lag_b1.len() == k,
         lag_power.len() == k,
@@ -77,6 +78,7 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
                 gamma: gamma[t * r..(t + 1) * r].to_vec(),
                 phi: phi[t],
                 q_unit: q_unit[t],
+                q_gap: q_gap[t],
                 lag_a: lag_a[t],
                 lag_b1: lag_b1[t],
                 lag_row: lag_row[t * r..(t + 1) * r].to_vec(),
@@ -98,6 +100,7 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
         x0: floats(d, "x0")?,
         cov0: floats(d, "cov0")?,
         p_prior_unit: item(d, "p_prior_unit")?.extract()?,
+        gap_dir: floats(d, "gap_dir")?,
     })
 }
 

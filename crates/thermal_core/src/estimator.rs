@@ -9,6 +9,7 @@
 //! ```text
 //!     ξ' = A ξ + γ P + w        A diagonal (nominal convection) or dense
 //!     P' = φ P + ω              var ω = σ_w² q_unit
+//!     (ξ, s) += u ε             var ε = q_gap (an unlogged interval: the block's offset)
 //!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
 //! ```
 //!
@@ -46,6 +47,9 @@ pub struct Transition {
     pub phi: f64,
     /// Variance of the power's increment per unit σ_w².
     pub q_unit: f64,
+    /// Variance (K²) added over the step to the block's uniform offset (`Problem::gap_dir`):
+    /// what an unlogged interval may have done to the block that the model does not know.
+    pub q_gap: f64,
     /// Decay of the lagged reading.
     pub lag_a: f64,
     /// Weight of the seat temperature at the step's end in the lagged reading.
@@ -78,6 +82,9 @@ pub struct Problem<'a> {
     /// (n, n) row-major, without the power's prior (added as σ_w² `p_prior_unit`).
     pub cov0: Vec<f64>,
     pub p_prior_unit: f64,
+    /// (n): the state of a uniform 1 K offset of the block (and of the lagged reading), the
+    /// direction of the `q_gap` noise.
+    pub gap_dir: Vec<f64>,
 }
 
 /// The noise parameters.
@@ -179,6 +186,7 @@ impl Problem<'_> {
             ("estimator c_mean", self.c_mean.len(), r),
             ("estimator x0", self.x0.len(), n),
             ("estimator cov0", self.cov0.len(), n * n),
+            ("estimator gap_dir", self.gap_dir.len(), n),
         ] {
             if len != expected {
                 return mismatch(name, expected, len);
@@ -197,6 +205,13 @@ impl Problem<'_> {
                 if len != expected {
                     return mismatch(&format!("{name} of transition {k}"), expected, len);
                 }
+            }
+            if !(t.q_gap.is_finite() && t.q_gap >= 0.0) {
+                return Err(ThermalError::InvalidParameter {
+                    name: format!("estimator q_gap of transition {k}"),
+                    value: t.q_gap,
+                    reason: "must be a variance (finite, >= 0)".to_string(),
+                });
             }
         }
         if let Some(&bad) = self
@@ -767,6 +782,19 @@ impl<'a> Kernel<'a> {
             let acc = fused.then(|| (&self.h[..r], &mut *ph));
             tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc);
             pred[r * n + r] = madd::<FMA>(self.sw2, tr.q_unit, pred[r * n + r]);
+            if tr.q_gap > 0.0 {
+                // q_gap u uᵀ (and its share u (u·h) of Σh when that was summed above)
+                let u = &self.p.gap_dir;
+                for (row, &ui) in pred.chunks_exact_mut(n).zip(u) {
+                    if ui != 0.0 {
+                        axpy::<FMA>(tr.q_gap * ui, u, row);
+                    }
+                }
+                if fused {
+                    let hu = dot::<FMA>(&self.h[..r], &u[..r]);
+                    axpy::<FMA>(tr.q_gap * hu, u, ph);
+                }
+            }
         } else {
             pred.copy_from_slice(prev);
         }
@@ -1520,6 +1548,7 @@ mod tests {
                 gamma,
                 phi,
                 q_unit: 0.5 * 600.0 * (1.0 - phi * phi),
+                q_gap: 0.0,
                 lag_a: if lag { lag_a } else { 0.0 },
                 lag_b1: if lag { lag_b1 } else { 0.0 },
                 lag_row,
@@ -1542,7 +1571,7 @@ mod tests {
             }
         }
         let phi = (-1.0f64 / 600.0).exp();
-        let transitions = vec![
+        let mut transitions = vec![
             make(diag.clone(), true, vec![0.02, 0.01, -0.005], phi),
             make(dense, false, vec![0.015, 0.012, -0.004], phi),
             make(
@@ -1552,6 +1581,7 @@ mod tests {
                 phi.powi(3),
             ),
         ];
+        transitions[2].q_gap = 0.4; // the "gap" transition: the block's offset uncertain
         let steps = n_t - 1;
         let index: Vec<u32> = (0..steps)
             .map(|s| match s % 1500 {
@@ -1578,7 +1608,12 @@ mod tests {
             x0: vec![0.0; n],
             cov0: vec![0.0; n * n],
             p_prior_unit: 300.0,
+            gap_dir: vec![0.0; n],
         };
+        p.gap_dir[..r].copy_from_slice(&[0.3, -0.2, 0.5]);
+        if lag {
+            p.gap_dir[r + 1] = 1.0;
+        }
         for i in 0..n {
             p.cov0[i * n + i] = 0.5 + 0.1 * i as f64;
             if i + 1 < n {
@@ -1665,6 +1700,11 @@ mod tests {
                 x = nx;
                 cov = matmul(&matmul(&f, &cov, n), &transpose(&f, n), n);
                 cov[r * n + r] += sw2 * p.transitions[k].q_unit;
+                for i in 0..n {
+                    for j in 0..n {
+                        cov[i * n + j] += p.transitions[k].q_gap * p.gap_dir[i] * p.gap_dir[j];
+                    }
+                }
             }
             xp.push(x.clone());
             pp.push(cov.clone());

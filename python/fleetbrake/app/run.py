@@ -8,12 +8,13 @@ import contextlib
 import logging
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fleetbrake.engine import Engine, make_engine
+from fleetbrake.simulation.estimates import EstimationConfig, EstimationReport, estimate_wagons
 from fleetbrake.simulation.predictions import (
     SimulationConfig,
     SimulationReport,
@@ -28,17 +29,39 @@ if TYPE_CHECKING:
     from fleetbrake.ingest.files import IngestReport
     from fleetbrake.warehouse.connection import Warehouse
 
-__all__ = ["RunReport", "default_db_path", "run_fleet"]
+__all__ = [
+    "STAGE_MODULES",
+    "WRITER_MEMORY_LIMIT",
+    "WRITER_THREADS",
+    "RunReport",
+    "default_db_path",
+    "run_fleet",
+]
 
 logger = logging.getLogger(__name__)
 
 
-_STAGE_MODULES = (
+STAGE_MODULES = (
     "fleetbrake.ingest.files",
     "fleetbrake.simulation.predictions",
+    "fleetbrake.simulation.estimates",
     "fleetbrake.flags.judge",
 )
-"""What the engine's workers run: imported as they start."""
+"""What the engine's workers run: imported as they start (``run``'s engine, and the one
+``fleetbrake watch`` keeps for its life)."""
+
+
+WRITER_MEMORY_LIMIT = "256MB"
+"""DuckDB's buffer pool in the writer during a run (the ingestion lowers it further for its
+own stage). The buffer pool keeps the blocks the run writes and reads: left at the
+connection's 1 GB it grew with the fleet (the writer's peak 448, 619, 1,029 MB at 30, 100,
+300 wagon-days); bounded, the writer holds a partition's data and this cache, whatever the
+fleet (``docs/benchmarks.md``)."""
+
+WRITER_THREADS = 2
+"""DuckDB's threads in the writer: its bulk inserts and per-wagon reads use two; more would
+only contend with the engine's workers for the same cores, and each holds its own buffers
+under the memory limit."""
 
 
 def default_db_path() -> Path:
@@ -53,16 +76,28 @@ class RunReport:
     simulation: SimulationReport
     revision: str
     flags: FlagReport | None = None
+    estimation: EstimationReport | None = None
+    """The estimation stage (the virtual sensor, ``v_contact_estimates``)."""
     stage_s: dict[str, float] = field(default_factory=dict)
     """Wall-clock seconds of each stage: ``ingest`` (reading and parsing the files, as the
     writer waits for them), ``write`` (the ingestion's transactions), ``events``,
-    ``simulate``, ``flags``; disjoint."""
+    ``simulate``, ``estimate`` (the virtual sensor), ``flags``; disjoint."""
     engine: str = ""
     """The engine the stages ran on (``LocalEngine(workers=2)``)."""
 
 
+class _StageSeconds(dict[str, float]):
+    """Seconds per stage, and whom to tell when a stage begins (``run_fleet(on_stage=)``)."""
+
+    def __init__(self, on_stage: Callable[[str], None] | None = None) -> None:
+        super().__init__()
+        self.on_stage = on_stage
+
+
 @contextlib.contextmanager
 def _clock(stage_s: dict[str, float], stage: str) -> Iterator[None]:
+    if isinstance(stage_s, _StageSeconds) and stage_s.on_stage is not None:
+        stage_s.on_stage(stage)
     began = time.perf_counter()
     try:
         yield
@@ -83,6 +118,9 @@ def run_fleet(
     engine: Engine | str = "local",
     workers: int | None = None,
     address: str | None = None,
+    files: Collection[str] | None = None,
+    on_stage: Callable[[str], None] | None = None,
+    estimation: EstimationConfig | None = None,
 ) -> RunReport:
     """``fleetbrake run``: ingest the files not yet ingested, detect events, simulate every
     new event with the current model revision, raise flags; one writer at a time.
@@ -97,6 +135,16 @@ def run_fleet(
     and, for ``ray``, the cluster's ``address``;
     made once here, handed to every stage, closed at the end) or an engine the caller made
     and closes. The tables are the same with any engine.
+
+    ``on_stage``: called with a stage's name as it begins (``bench fleet`` samples the
+    memory per stage with it).
+
+    ``estimation``: how the virtual sensor's stage estimates (default: ``EstimationConfig``
+    with the simulation's chain numbers; :mod:`fleetbrake.simulation.estimates`).
+
+    ``files``: ingest only these paths (relative to ``fleet_dir``, as ``v_files.path``)
+    instead of scanning ``logs/`` (a unit of ``fleetbrake watch``); the later stages are
+    the same as without it.
     """
     from fleetbrake.flags import FlagConfig, load_flag_config
     from fleetbrake.ingest.files import load_fleet_registry
@@ -106,15 +154,27 @@ def run_fleet(
     with contextlib.ExitStack() as owned:
         if isinstance(engine, str):  # a bad name or count: refused before anything is read
             engine = owned.enter_context(
-                make_engine(engine, workers, preload=_STAGE_MODULES, address=address)
+                make_engine(engine, workers, preload=STAGE_MODULES, address=address)
             )
             engine.start()  # the workers import the stages while the files are scanned
         registry = load_fleet_registry(fleet_dir)
         flag_config = load_flag_config(flag_config_path) if flag_config_path else FlagConfig()
         logger.info("engine: %r", engine)
-        with open_warehouse(db_path, wait_s=wait_s) as wh:
+        with open_warehouse(
+            db_path, wait_s=wait_s, memory_limit=WRITER_MEMORY_LIMIT, threads=WRITER_THREADS
+        ) as wh:
             return _stages(
-                wh, db_path, fleet_dir, registry, simulation, flag_config, progress, engine
+                wh,
+                db_path,
+                fleet_dir,
+                registry,
+                simulation,
+                flag_config,
+                progress,
+                engine,
+                files,
+                on_stage,
+                estimation,
             )
     raise AssertionError("unreachable")  # ExitStack may swallow exceptions, for mypy
 
@@ -128,6 +188,9 @@ def _stages(
     flag_config: FlagConfig,
     progress: bool,
     engine: Engine,
+    files: Collection[str] | None = None,
+    on_stage: Callable[[str], None] | None = None,
+    estimation: EstimationConfig | None = None,
 ) -> RunReport:
     """The stages of :func:`run_fleet` on an open warehouse, each on ``engine``."""
     import duckdb
@@ -137,11 +200,11 @@ def _stages(
     from fleetbrake.ingest.files import ingest_fleet
     from fleetbrake.warehouse.connection import WarehouseError
 
-    stage_s: dict[str, float] = {}
+    stage_s: dict[str, float] = _StageSeconds(on_stage)
     try:
         with _clock(stage_s, "ingest"):
             ingest = ingest_fleet(
-                fleet_dir, wh, registry=registry, progress=progress, engine=engine
+                fleet_dir, wh, registry=registry, progress=progress, engine=engine, files=files
             )
         stage_s["ingest"] -= ingest.write_s  # the writer's share, apart
         stage_s["write"] = ingest.write_s
@@ -152,6 +215,15 @@ def _stages(
             declared = simulation or SimulationConfig()
             rev = current_revision(wh, declared.solver, declared.refinement)
             sim = simulate_events(wh, registry, rev, simulation, progress=progress, engine=engine)
+        with _clock(stage_s, "estimate"):
+            estimated = estimate_wagons(
+                wh,
+                registry,
+                rev,
+                estimation or EstimationConfig(chain=declared.chain),
+                progress=progress,
+                engine=engine,
+            )
         with _clock(stage_s, "flags"):
             flags = raise_flags(wh, registry, rev.name, flag_config, engine=engine)
     except duckdb.Error as error:
@@ -161,6 +233,7 @@ def _stages(
         simulation=sim,
         revision=rev.name,
         flags=flags,
-        stage_s=stage_s,
+        estimation=estimated,
+        stage_s=dict(stage_s),
         engine=repr(engine),
     )

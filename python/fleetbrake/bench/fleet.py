@@ -14,18 +14,27 @@ unless given; the generator and the run use the same model. The run uses the loc
 of ``--workers`` processes (default: the cores; 1: everything in this process), or with
 ``--engine ray`` Ray tasks (a local Ray instance of ``--workers`` CPUs, or the cluster at
 ``--address``): run both on the same ``--fleet`` to print them side by side. On Ray,
-``peak_rss_workers_mb`` is not the tasks' (Ray's workers are not this process's children:
-it is the largest of the local instance's own processes, 0 with ``--address``), and a local
-instance's start-up is inside the run's seconds (``other_s``).
+``peak_rss_workers_mb`` is the largest process of the local instance this process started
+(its workers and its own services; 0 with ``--address``, whose processes are not this
+process's descendants), and a local instance's start-up is inside the run's seconds
+(``other_s``).
 
 Memory: ``peak_rss_mb`` is the peak resident set of this process (the writer) during the
 run: the generation runs first in this process, so its peak is reset before the clock starts
 (``/proc/self/clear_refs``, then ``VmHWM``; where Linux does not allow it,
 ``getrusage(RUSAGE_SELF)``, generation included: ``peak_rss_self_source`` says which).
-``peak_rss_workers_mb`` is the largest of the engine's worker processes
-(``getrusage(RUSAGE_CHILDREN)``: the workers are joined when the run ends; 0 with one
-worker, which runs inline). The figures carry the machine's CPU count and load average:
-other processes on the machine slow them down.
+``peak_rss_workers_mb`` is the largest resident set of any of this process's descendants
+(the engine's workers; 0 with one worker, which runs inline), sampled every
+``SAMPLE_S`` by psutil, as is ``peak_rss_by_stage_mb`` (each stage's largest writer and
+worker resident sets: the stage that holds more than a partition shows there). Not
+``getrusage(RUSAGE_CHILDREN)``: Linux hands a child that ``exec``s the high-water mark of
+the process it was started from, so every worker looked as large as the writer was when the
+pool started. ``cpu_s`` is the processor time of the writer and of its descendants (the
+workers, and a local Ray instance's processes; sampled with the memory, so what a process
+spends in its last ``SAMPLE_S`` is missed), ``cpu_s_by_stage`` the same per stage:
+figures a loaded machine distorts far less than the seconds. The figures
+carry the machine's CPU count and load average: other processes on the machine slow them
+down.
 """
 
 from __future__ import annotations
@@ -36,6 +45,7 @@ import resource
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -44,7 +54,85 @@ from typing import Any
 from fleetbrake.app.progress import generation_bar
 from fleetbrake.bench import BenchConfigError, require_extra
 
-__all__ = ["bench_fleet", "print_figures"]
+__all__ = ["SAMPLE_S", "bench_fleet", "print_figures"]
+
+SAMPLE_S = 0.05
+"""How often the memory sampler reads the resident sets (seconds)."""
+
+
+class _MemorySampler:
+    """Samples the resident set of this process and of its descendants every ``SAMPLE_S``
+    on a thread, keeping each stage's peaks (``run_fleet(on_stage=)`` names the stage)."""
+
+    def __init__(self) -> None:
+        import psutil
+
+        self._me = psutil.Process()
+        self._error = psutil.Error
+        self.stage = "start"
+        self.peaks: dict[str, list[float]] = {}
+        self.cpu_s: dict[str, list[float]] = {}
+        """Processor seconds of the writer and of the workers (alive then) in each stage."""
+        self._cpu_mark: tuple[float, float] | None = None
+        self._child_cpu: dict[int, float] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
+
+    def _sample(self) -> None:
+        try:
+            mine = self._me.memory_info().rss / 2**20
+            children = self._me.children(recursive=True)
+        except self._error:
+            return
+        largest = 0.0
+        for child in children:
+            try:
+                largest = max(largest, child.memory_info().rss / 2**20)
+                times = child.cpu_times()
+            except self._error:  # ended since it was listed
+                continue
+            self._child_cpu[child.pid] = times.user + times.system
+        peak = self.peaks.setdefault(self.stage, [0.0, 0.0])
+        peak[0], peak[1] = max(peak[0], mine), max(peak[1], largest)
+
+    def _run(self) -> None:
+        while not self._stop.wait(SAMPLE_S):
+            self._sample()
+
+    @property
+    def workers_cpu_s(self) -> float:
+        """The descendants' processor seconds as last sampled, each process's (alive or
+        ended since: the engine's workers once it closed; what a process spent after its
+        last sample, at most ``SAMPLE_S`` ago, is not counted)."""
+        return sum(list(self._child_cpu.values()))  # a copy: the sampler thread adds
+
+    def on_stage(self, stage: str) -> None:
+        """The stage before ends, ``stage`` begins (``run_fleet(on_stage=)``)."""
+        self._sample()
+        writer, workers = _cpu_s(resource.RUSAGE_SELF), self.workers_cpu_s
+        if self._cpu_mark is not None:
+            before = self.cpu_s.setdefault(self.stage, [0.0, 0.0])
+            before[0] += writer - self._cpu_mark[0]
+            before[1] += workers - self._cpu_mark[1]
+        self._cpu_mark = (writer, workers)
+        self.stage = stage
+
+    def __enter__(self) -> _MemorySampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    @property
+    def workers_mb(self) -> float:
+        return max((peak[1] for peak in self.peaks.values()), default=0.0)
+
+
+def _cpu_s(who: int) -> float:
+    usage = resource.getrusage(who)
+    return usage.ru_utime + usage.ru_stime
 
 
 def _reset_peak_rss() -> bool:
@@ -63,11 +151,6 @@ def _peak_rss_self_mb(reset: bool) -> float:
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return peak / (1 << 20) if sys.platform == "darwin" else peak / 1024
-
-
-def _peak_rss_children_mb() -> float:
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return peak / (1 << 20) if sys.platform == "darwin" else peak / 1024
 
 
@@ -136,19 +219,26 @@ def bench_fleet(
         db = tmp / "fleet.duckdb"
         reset = _reset_peak_rss()
         load = os.getloadavg()[0]
+        cpu_self = _cpu_s(resource.RUSAGE_SELF)
         began = time.perf_counter()
-        report = run_fleet(
-            fleet,
-            db,
-            simulation=SimulationConfig(refinement=refinement),
-            progress=show,
-            engine=engine,
-            workers=workers,
-            address=address,
-        )
-        seconds = time.perf_counter() - began
+        with _MemorySampler() as sampler:
+            report = run_fleet(
+                fleet,
+                db,
+                simulation=SimulationConfig(refinement=refinement),
+                progress=show,
+                engine=engine,
+                workers=workers,
+                address=address,
+                on_stage=sampler.on_stage,
+            )
+            seconds = time.perf_counter() - began
+            sampler.on_stage("end")
         peak_self_mb = _peak_rss_self_mb(reset)
-        peak_workers_mb = _peak_rss_children_mb()
+        cpu_s = {
+            "writer": round(_cpu_s(resource.RUSAGE_SELF) - cpu_self, 1),
+            "workers": round(sampler.workers_cpu_s, 1),
+        }
         stages = report.stage_s
         ingest: Any = report.ingest
         sim = report.simulation
@@ -166,6 +256,7 @@ def bench_fleet(
             "events": events,
             "events_simulated": sim.events_simulated,
             "prediction_rows": sim.prediction_rows,
+            "estimated_wagon_seconds": report.estimation.rows if report.estimation else None,
             "flags": len(flag_report.flags) if flag_report is not None else None,
             "seconds": round(seconds, 2),
             "events_per_s": round(sim.events_simulated / seconds, 1) if seconds else None,
@@ -180,7 +271,16 @@ def bench_fleet(
             "load_avg_1min_at_start": round(load, 2),
             "rss_end_mb": round(psutil.Process().memory_info().rss / 2**20),
             "peak_rss_mb": round(peak_self_mb),
-            "peak_rss_workers_mb": round(peak_workers_mb),
+            "peak_rss_workers_mb": round(sampler.workers_mb),
+            "peak_rss_by_stage_mb": {
+                stage: [round(writer), round(worker)]
+                for stage, (writer, worker) in sampler.peaks.items()
+            },
+            "cpu_s": cpu_s,
+            "cpu_s_by_stage": {
+                stage: [round(writer, 1), round(worker, 1)]
+                for stage, (writer, worker) in sampler.cpu_s.items()
+            },
             "peak_rss_self_source": "VmHWM after reset" if reset else "ru_maxrss",
             "date_utc": dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         }
@@ -211,3 +311,16 @@ def print_figures(figures: dict[str, Any], echo: Callable[[str], None] = print) 
         f"peak {figures['peak_rss_mb']} MB (writer), {figures['peak_rss_workers_mb']} MB "
         "(largest worker)"
     )
+    by_stage = ", ".join(
+        f"{stage} {writer}/{worker}"
+        for stage, (writer, worker) in figures["peak_rss_by_stage_mb"].items()
+    )
+    echo(
+        f"peak RSS by stage, writer/largest worker MB: {by_stage}; processor time: writer "
+        f"{figures['cpu_s']['writer']} s, workers {figures['cpu_s']['workers']} s"
+    )
+    cpu = ", ".join(
+        f"{stage} {writer}/{worker}"
+        for stage, (writer, worker) in figures["cpu_s_by_stage"].items()
+    )
+    echo(f"processor seconds by stage, writer/workers: {cpu}")

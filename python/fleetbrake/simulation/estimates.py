@@ -1,0 +1,758 @@
+"""The estimation stage of ``fleetbrake run`` and ``close-loop``: the virtual sensor's contact
+temperature at every logged second of every wagon (``v_contact_estimates``, interface v2).
+
+::
+
+    from fleetbrake.simulation.estimates import estimate_wagons, wagon_estimates
+
+    report = estimate_wagons(wh, registry, rev, engine=engine)   # what changed, re-estimated
+    frame = wagon_estimates(wh, "SGG-0001", rev.name)            # one wagon's rows, polars
+
+Per wagon, with :mod:`fleetbrake.model.estimator` (a Kalman filter and Rauch-Tung-Striebel
+smoother on the reduced model's state, augmented with the unexplained friction-face heat
+power; ``docs/estimator.md``), over every logged second of the wagon's whole data as one
+series: the declared inputs are the simulation's (the same 1 Hz grid, the speed's running
+median of :class:`~fleetbrake.simulation.chains.ChainParams`), the revision's effects
+applied; missing and faulty readings skip the update; an unlogged interval longer than
+``max_interpolated_gap_s`` is a standstill.
+
+Stored (``warehouse/sql/schema_estimates.sql``):
+
+* ``contact_estimates`` (behind ``v_contact_estimates``): one row per wagon, logged second and
+  revision, the filtered and smoothed estimates with their 95 % bounds, the innovation, and
+  for the flags and recordings the smoothed maximum and power and the innovation's sd;
+* ``estimated_wagons``: the keys each wagon was estimated from, and the noise it was
+  estimated with. A wagon whose data (its files and samples: ``q_estimates_wagon_data.sql``),
+  registry entry, revision, the revision's σ_w and configuration are unchanged is not
+  estimated again (a second ``run`` adds nothing); a late file re-estimates its wagon only,
+  whose rows are replaced whole in one transaction (several wagons per transaction, never
+  splitting one);
+* ``estimator_noise``: a revision's σ_w fitted by maximum likelihood on the innovations of
+  the close loop's fit days (:func:`fit_revision_noise`, called by the close loop when it
+  makes a revision).
+
+The noise (``docs/estimator.md``): a wagon's results are a function of its own data and the
+revision only. σ_v is the **wagon's**, from its own readings (:func:`wagon_noise`: the median
+absolute deviation of their second differences); σ_w is the **revision's**: fitted when the
+close loop makes it, else the documented default ``EstimationConfig.power_noise_w_per_sqrt_s``.
+``EstimationConfig.noise`` gives both instead (method ``given``).
+
+The wagon is the unit of work: the parent reads its samples as Arrow (:func:`estimate_task`),
+:func:`estimate_wagon` (pure, picklable, no database) estimates it and returns the rows as
+Arrow, the parent writes them (the single writer). ``engine``: the builtin ``map`` by default,
+an engine's workers otherwise; the rows are the same either way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import hashlib
+import json
+import logging
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import polars as pl
+import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
+
+from fleetbrake.fleet.registry import Registry, WagonConfig
+from fleetbrake.model.estimator import (
+    ContactEstimate,
+    EstimatorConfig,
+    EstimatorNoise,
+    NoiseFit,
+    estimate_contact,
+    fit_noise,
+    measurement_noise,
+    prepare,
+)
+from fleetbrake.model.estimator import WagonSeries as EstimatorSeries
+from fleetbrake.model.rom import ReducedModel
+from fleetbrake.simulation.chains import ChainParams
+from fleetbrake.simulation.predictions import Mapper, Revision
+from fleetbrake.simulation.series import WagonSeries, running_median
+from fleetbrake.simulation.store import utc_now
+from fleetbrake.warehouse.connection import Warehouse, sql
+
+__all__ = [
+    "DEFAULT_POWER_NOISE_W_PER_SQRT_S",
+    "ESTIMATE_SCHEMA",
+    "EstimateResult",
+    "EstimateTask",
+    "EstimatedWagon",
+    "EstimationConfig",
+    "EstimationReport",
+    "StoredNoise",
+    "estimate_task",
+    "estimate_wagon",
+    "estimate_wagons",
+    "estimated_wagons",
+    "estimation_data_keys",
+    "estimator_series",
+    "fit_revision_noise",
+    "replace_estimates",
+    "revision_power_noise",
+    "stored_noise",
+    "wagon_estimates",
+    "wagon_noise",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_POWER_NOISE_W_PER_SQRT_S = 3.0
+"""σ_w of a revision the close loop did not fit (``docs/estimator.md``: the evidence)."""
+
+
+@dataclass(frozen=True)
+class EstimationConfig:
+    """How the stage estimates (everything it is set with; the estimator's own numbers in
+    ``estimator``, whose ``noise`` is replaced by the revision's)."""
+
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    chain: ChainParams = field(default_factory=ChainParams)
+    """The simulation's numbers the declared inputs are built with (the speed's running
+    median, the spans): pass the simulation's, so the estimate is driven as the prediction."""
+    noise: EstimatorNoise | None = None
+    """None: σ_v per wagon from its readings, σ_w the revision's (stored by
+    :func:`fit_revision_noise`, else ``power_noise_w_per_sqrt_s``); else these for every wagon
+    (method ``given``)."""
+    power_noise_w_per_sqrt_s: float = DEFAULT_POWER_NOISE_W_PER_SQRT_S
+    """σ_w of a revision without a fitted one (the declared revision): the documented default
+    (``docs/estimator.md``: the maximum-likelihood fits on generated fleets behind it)."""
+    min_measurement_noise_k: float = 0.02
+    """σ_v's floor (a sensor whose log is rounded, or nearly noise-free, still has this)."""
+    noise_fit_wagons: int = 5
+    """:func:`fit_revision_noise`: how many wagons σ_w is fitted on (spread over the sorted
+    ids of the wagons with fit days), each on its own; the revision's is the median."""
+    noise_fit_s: float = 21_600.0
+    """:func:`fit_revision_noise`: the first this many seconds of each fit wagon's fit days."""
+    min_power_noise_w_per_sqrt_s: float = 3.0
+    """σ_w's floor in the fit (``docs/estimator.md``: why)."""
+    batch_rows: int = 500_000
+    """Several wagons per transaction, up to about this many rows (a wagon never split)."""
+    kernel: str | None = None
+    """The estimator's kernel: None (Rust when built), ``rust`` or ``numpy``."""
+
+    def __post_init__(self) -> None:
+        if self.noise_fit_wagons < 1:
+            raise ValueError("EstimationConfig.noise_fit_wagons must be >= 1")
+        if not self.noise_fit_s > 0:
+            raise ValueError("EstimationConfig.noise_fit_s must be > 0")
+        if not (self.power_noise_w_per_sqrt_s > 0 and self.min_measurement_noise_k > 0):
+            raise ValueError(
+                "EstimationConfig.power_noise_w_per_sqrt_s and min_measurement_noise_k must be > 0"
+            )
+        if self.batch_rows < 1:
+            raise ValueError("EstimationConfig.batch_rows must be >= 1")
+        if self.kernel not in (None, "rust", "numpy"):
+            raise ValueError(f"EstimationConfig.kernel: unknown {self.kernel!r}")
+
+
+@dataclass
+class EstimationReport:
+    wagons_estimated: list[str] = field(default_factory=list)
+    rows: int = 0
+    """Rows written to ``contact_estimates``."""
+    power_noise_w_per_sqrt_s: float | None = None
+    """The revision's σ_w (None when there was nothing to estimate)."""
+    noise_method: str | None = None
+    """Where σ_w came from: ``default``, ``ml`` (fitted by the close loop) or ``given``."""
+    skipped: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class EstimatedWagon:
+    """A row of ``estimated_wagons``."""
+
+    wagon_id: str
+    data_key: str
+    model_key: str
+    seconds: int
+    created_utc: dt.datetime
+    measurement_k: float | None = None
+    """σ_v it was estimated with (the wagon's own unless given)."""
+    power_w_per_sqrt_s: float | None = None
+    """σ_w it was estimated with (the revision's)."""
+
+
+@dataclass(frozen=True)
+class StoredNoise:
+    """A row of ``estimator_noise``."""
+
+    noise: EstimatorNoise
+    method: str
+    fit_wagons: str | None
+    fit_readings: int | None
+    log_likelihood: float | None
+    at_floor: bool | None
+
+
+ESTIMATE_SCHEMA = pl.Schema(
+    {
+        "wagon_id": pl.String(),
+        "time_utc": pl.Datetime("us"),
+        "model_revision": pl.String(),
+        "contact_mean_c": pl.Float64(),
+        "contact_mean_lo_c": pl.Float64(),
+        "contact_mean_hi_c": pl.Float64(),
+        "contact_max_c": pl.Float64(),
+        "contact_max_hi_c": pl.Float64(),
+        "smoothed_contact_mean_c": pl.Float64(),
+        "smoothed_contact_mean_lo_c": pl.Float64(),
+        "smoothed_contact_mean_hi_c": pl.Float64(),
+        "unexplained_power_w": pl.Float64(),
+        "unexplained_power_lo_w": pl.Float64(),
+        "unexplained_power_hi_w": pl.Float64(),
+        "innovation_k": pl.Float64(),
+        "innovation_sd_k": pl.Float64(),
+        "smoothed_contact_max_c": pl.Float64(),
+        "smoothed_contact_max_hi_c": pl.Float64(),
+        "smoothed_unexplained_power_w": pl.Float64(),
+        "smoothed_unexplained_power_lo_w": pl.Float64(),
+        "smoothed_unexplained_power_hi_w": pl.Float64(),
+    }
+)
+"""The columns of ``contact_estimates`` (those of ``v_contact_estimates`` first)."""
+
+
+# --------------------------------------------------------------------------------------------
+# One wagon
+
+
+_MIN_FIT_READINGS = 100
+"""A wagon's fit data need at least this many valid readings to take part in the noise fit."""
+
+_ROMS: dict[tuple[object, ...], ReducedModel] = {}
+_ROMS_KEPT = 16
+
+
+def _rom(wagon: WagonConfig, refinement: float) -> ReducedModel:
+    """The wagon's reduced model (the estimator's process model, whatever the revision's
+    solver), made or read from the cache once per process."""
+    key = (wagon.geometry, wagon.block, wagon.sensor_point_m, refinement)
+    rom = _ROMS.get(key)
+    if rom is None:
+        if len(_ROMS) >= _ROMS_KEPT:
+            _ROMS.clear()
+        rom = _ROMS[key] = ReducedModel.for_wagon(wagon, refinement=refinement)
+    return rom
+
+
+def estimator_series(
+    wagon: WagonConfig,
+    samples: pl.DataFrame,
+    chain: ChainParams,
+    *,
+    max_s: float | None = None,
+) -> tuple[EstimatorSeries, dt.datetime | None]:
+    """The wagon's logged seconds as the estimator's series (seconds since the first
+    sample, returned with it; None without samples): the simulation's 1 Hz grid per span
+    (:meth:`WagonSeries.spans_from_frame`), its interpolated pressure and air, the running
+    median of its speed, the valid readings (NaN where missing or faulty), at the seconds with
+    a sample row. ``max_s``: only the first this many seconds."""
+    spans = WagonSeries.spans_from_frame(
+        wagon.wagon_id,
+        samples,
+        ambient_default_c=float(wagon.ambient_temp_c),
+        bridge_max_s=chain.bridge_max_s,
+    )
+    if not spans:
+        empty = np.zeros(0)
+        return EstimatorSeries(empty, empty, empty, empty, empty, wagon.wagon_id), None
+    t0 = spans[0].t0
+    parts: dict[str, list[np.ndarray]] = {
+        name: [] for name in ("time_s", "p_bar", "speed_kmh", "ambient_c", "reading_c")
+    }
+    for span in spans:
+        k = np.flatnonzero(span.present)
+        offset = int((span.t0 - t0).total_seconds())
+        parts["time_s"].append((offset + k).astype(np.float64))
+        parts["p_bar"].append(span.pressure_bar[k])
+        parts["speed_kmh"].append(running_median(span.speed_kmh, chain.speed_median_samples)[k])
+        parts["ambient_c"].append(span.ambient_c[k])
+        parts["reading_c"].append(span.measured_c[k])
+    values = {name: np.concatenate(p) for name, p in parts.items()}
+    if max_s is not None:
+        keep = values["time_s"] < max_s
+        values = {name: v[keep] for name, v in values.items()}
+    return EstimatorSeries(wagon_id=wagon.wagon_id, **values), t0
+
+
+def _model_key(wagon: WagonConfig, rev: Revision, config: EstimationConfig, power: float) -> str:
+    """What a wagon's stored estimates depend on besides its data (its σ_v is a function of
+    its data, or given)."""
+    estimator = dataclasses.asdict(config.estimator)
+    estimator.pop("noise")
+    text = json.dumps(
+        {
+            "wagon": asdict(wagon),
+            "effects": rev.effects.to_list(),
+            "refinement": rev.refinement,
+            "estimator": estimator,
+            "power_noise_w_per_sqrt_s": power,
+            "given_noise": None if config.noise is None else dataclasses.asdict(config.noise),
+            "min_measurement_noise_k": config.min_measurement_noise_k,
+            "speed_median_samples": config.chain.speed_median_samples,
+            "bridge_max_s": config.chain.bridge_max_s,
+            "kernel": config.kernel,
+        },
+        sort_keys=True,
+        default=str,
+    )
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class EstimateTask:
+    """One wagon's partition of the estimation stage: everything :func:`estimate_wagon`
+    reads (picklable: an engine ships it to a worker)."""
+
+    wagon: WagonConfig
+    samples: pa.Table
+    """The wagon's samples (``q_simulation_wagon_samples.sql``)."""
+    rev: Revision
+    config: EstimationConfig
+    power_noise_w_per_sqrt_s: float
+    """The revision's σ_w (σ_v is the wagon's, :func:`wagon_noise`)."""
+    data_key: str
+    model_key: str
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        return f"wagon {self.wagon.wagon_id}"
+
+
+@dataclass(frozen=True)
+class EstimateResult:
+    """What :func:`estimate_wagon` hands back for the parent to write."""
+
+    wagon_id: str
+    revision: str
+    data_key: str
+    model_key: str
+    rows: pa.Table
+    """The rows of ``contact_estimates`` (:data:`ESTIMATE_SCHEMA`)."""
+    frozen_fraction: float
+    """Share of the seconds the filter ran at its steady state (the fast path)."""
+    noise: EstimatorNoise | None = None
+    """The noise it was estimated with (None: no seconds)."""
+
+    @property
+    def seconds(self) -> int:
+        return int(self.rows.num_rows)
+
+
+def estimate_task(
+    wh: Warehouse,
+    wagon: WagonConfig,
+    rev: Revision,
+    config: EstimationConfig,
+    power_noise_w_per_sqrt_s: float,
+    *,
+    data_key: str,
+    model_key: str,
+) -> EstimateTask:
+    """The wagon's partition, read from the warehouse by the parent."""
+    samples = wh.con.sql(
+        sql("q_simulation_wagon_samples"), params={"wagon_id": wagon.wagon_id}
+    ).to_arrow_table()
+    return EstimateTask(wagon, samples, rev, config, power_noise_w_per_sqrt_s, data_key, model_key)
+
+
+def _frame(table: pa.Table) -> pl.DataFrame:
+    frame = pl.from_arrow(table)
+    assert isinstance(frame, pl.DataFrame)
+    return frame
+
+
+def _rows(
+    wagon_id: str, revision: str, t0: dt.datetime | None, est: ContactEstimate | None
+) -> pl.DataFrame:
+    if est is None or t0 is None or est.time_s.size == 0:
+        return pl.DataFrame(schema=ESTIMATE_SCHEMA)
+    times = np.datetime64(t0, "us") + (np.rint(est.time_s).astype(np.int64) * 1_000_000).astype(
+        "timedelta64[us]"
+    )
+
+    def smoothed(values: np.ndarray | None) -> np.ndarray:
+        return np.full(est.time_s.size, np.nan) if values is None else values
+
+    columns: dict[str, np.ndarray] = {
+        "time_utc": times,
+        "contact_mean_c": est.contact_mean_c,
+        "contact_mean_lo_c": est.contact_mean_lo_c,
+        "contact_mean_hi_c": est.contact_mean_hi_c,
+        "contact_max_c": est.contact_max_c,
+        "contact_max_hi_c": est.contact_max_hi_c,
+        "smoothed_contact_mean_c": smoothed(est.smoothed_contact_mean_c),
+        "smoothed_contact_mean_lo_c": smoothed(est.smoothed_contact_mean_lo_c),
+        "smoothed_contact_mean_hi_c": smoothed(est.smoothed_contact_mean_hi_c),
+        "unexplained_power_w": est.unexplained_power_w,
+        "unexplained_power_lo_w": est.unexplained_power_lo_w,
+        "unexplained_power_hi_w": est.unexplained_power_hi_w,
+        "innovation_k": est.innovation_k,
+        "innovation_sd_k": np.sqrt(est.innovation_var_k2),
+        "smoothed_contact_max_c": smoothed(est.smoothed_contact_max_c),
+        "smoothed_contact_max_hi_c": smoothed(est.smoothed_contact_max_hi_c),
+        "smoothed_unexplained_power_w": smoothed(est.smoothed_unexplained_power_w),
+        "smoothed_unexplained_power_lo_w": smoothed(est.smoothed_unexplained_power_lo_w),
+        "smoothed_unexplained_power_hi_w": smoothed(est.smoothed_unexplained_power_hi_w),
+    }
+    frame = pl.DataFrame(
+        {
+            name: pl.Series(name, values, dtype=ESTIMATE_SCHEMA[name])
+            for name, values in columns.items()
+        }
+    )
+    floats = [name for name, kind in ESTIMATE_SCHEMA.items() if kind == pl.Float64()]
+    return frame.with_columns(
+        pl.lit(wagon_id, dtype=pl.String).alias("wagon_id"),
+        pl.lit(revision, dtype=pl.String).alias("model_revision"),
+        *(pl.col(name).fill_nan(None) for name in floats),
+    ).select(list(ESTIMATE_SCHEMA))
+
+
+def _estimate(
+    wagon: WagonConfig,
+    series: EstimatorSeries,
+    rev: Revision,
+    config: EstimationConfig,
+    noise: EstimatorNoise,
+) -> ContactEstimate | None:
+    if series.time_s.size == 0:
+        return None
+    return estimate_contact(
+        _rom(wagon, rev.refinement),
+        wagon,
+        series,
+        effects=rev.effects,
+        config=dataclasses.replace(config.estimator, noise=noise),
+        smooth=True,
+        engine=config.kernel,  # type: ignore[arg-type]  # checked in EstimationConfig
+    )
+
+
+def estimate_wagon(task: EstimateTask) -> EstimateResult:
+    """One wagon estimated from its partition, no database: a pure function of the task (the
+    reduced model made, or read from its cache, once per process)."""
+    wagon = task.wagon
+    series, t0 = estimator_series(wagon, _frame(task.samples), task.config.chain)
+    noise = wagon_noise(series, task.config, task.power_noise_w_per_sqrt_s)
+    est = _estimate(wagon, series, task.rev, task.config, noise)
+    rows = _rows(wagon.wagon_id, task.rev.name, t0, est)
+    return EstimateResult(
+        wagon_id=wagon.wagon_id,
+        revision=task.rev.name,
+        data_key=task.data_key,
+        model_key=task.model_key,
+        rows=rows.to_arrow(),
+        frozen_fraction=0.0 if est is None else est.frozen_fraction,
+        noise=None if est is None else noise,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# The noise: σ_v the wagon's, σ_w the revision's
+
+
+def wagon_noise(
+    series: EstimatorSeries, config: EstimationConfig, power_noise_w_per_sqrt_s: float
+) -> EstimatorNoise:
+    """The noise a wagon is estimated with: ``config.noise`` when given; else σ_v from the
+    wagon's own readings (:func:`~fleetbrake.model.estimator.measurement_noise`, at least
+    ``min_measurement_noise_k``; the estimator's default with fewer than 10 second
+    differences) and the revision's σ_w. A function of the wagon's data alone."""
+    if config.noise is not None:
+        return config.noise
+    found = measurement_noise(series.time_s, series.reading_c)
+    sigma_v = config.estimator.noise.measurement_k if found is None else found
+    return EstimatorNoise(max(sigma_v, config.min_measurement_noise_k), power_noise_w_per_sqrt_s)
+
+
+def stored_noise(wh: Warehouse, revision: str) -> StoredNoise | None:
+    """The σ_w fitted for ``revision`` (None: none was, the default applies)."""
+    rows = wh.con.execute(sql("q_estimates_noise"), {"revision": revision}).fetchall()
+    if not rows:
+        return None
+    v, w, method, wagons, readings, loglik, at_floor, _ = rows[0]
+    return StoredNoise(
+        EstimatorNoise(float(v), float(w)), method, wagons, readings, loglik, at_floor
+    )
+
+
+def revision_power_noise(
+    wh: Warehouse, rev: Revision, config: EstimationConfig
+) -> tuple[float, str]:
+    """The revision's σ_w and where it came from: given (``config.noise``), fitted by
+    :func:`fit_revision_noise` (``ml``), else the default (``default``)."""
+    if config.noise is not None:
+        return config.noise.power_w_per_sqrt_s, "given"
+    found = stored_noise(wh, rev.name)
+    if found is not None:
+        return found.noise.power_w_per_sqrt_s, found.method
+    return config.power_noise_w_per_sqrt_s, "default"
+
+
+def _fit_wagon_ids(ids: Sequence[str], count: int) -> list[str]:
+    """``count`` ids spread evenly over the sorted ``ids`` (all of them if fewer)."""
+    ordered = sorted(ids)
+    if len(ordered) <= count:
+        return ordered
+    if count == 1:
+        return [ordered[0]]
+    picks = {round(i * (len(ordered) - 1) / (count - 1)) for i in range(count)}
+    return [ordered[i] for i in sorted(picks)]
+
+
+def fit_revision_noise(
+    wh: Warehouse,
+    registry: Registry | Mapping[str, WagonConfig],
+    rev: Revision,
+    fit_events: pl.DataFrame,
+    config: EstimationConfig | None = None,
+) -> StoredNoise | None:
+    """Fit the revision's σ_w by maximum likelihood on the innovations of its fit days, and
+    store it (replacing any stored for the revision): what the close loop calls when it makes
+    a revision, before estimating with it. The fit days: the UTC days of ``fit_events``
+    (``wagon_id``, ``start_utc``) per wagon; ``config.noise_fit_wagons`` of those wagons
+    spread over their sorted ids, the first ``config.noise_fit_s`` seconds of each one's fit
+    days, each fitted on its own with its own σ_v (:func:`wagon_noise`) held; the revision's
+    σ_w is the median (a wagon whose fit days hold a failing sensor does not set it). None,
+    and nothing stored, when no wagon has 100 valid readings there."""
+    config = config or EstimationConfig()
+    wagons = registry.wagons if isinstance(registry, Registry) else registry
+    days: dict[str, set[dt.date]] = {}
+    if fit_events.height:
+        for wagon_id, start in fit_events.select("wagon_id", "start_utc").iter_rows():
+            if wagon_id in wagons and start is not None:
+                days.setdefault(str(wagon_id), set()).add(start.date())
+    estimator = config.estimator
+    fits: dict[str, NoiseFit] = {}
+    used: dict[str, dict[str, float | list[str]]] = {}
+    for wagon_id in _fit_wagon_ids(list(days), config.noise_fit_wagons):
+        wagon = wagons[wagon_id]
+        samples = wh.con.sql(sql("q_simulation_wagon_samples"), params={"wagon_id": wagon_id}).pl()
+        samples = samples.filter(pl.col("time_utc").dt.date().is_in(sorted(days[wagon_id])))
+        series, _ = estimator_series(wagon, samples, config.chain, max_s=config.noise_fit_s)
+        if int(np.isfinite(series.reading_c).sum()) < _MIN_FIT_READINGS:
+            continue
+        sigma_v = wagon_noise(series, dataclasses.replace(config, noise=None), 1.0).measurement_k
+        contact = None
+        if rev.effects.state_dependent:  # the fade evaluated on a first estimate's contact
+            start = EstimatorNoise(sigma_v, config.power_noise_w_per_sqrt_s)
+            first = _estimate(wagon, series, rev, config, start)
+            contact = None if first is None else first.contact_mean_c
+        problem = prepare(
+            _rom(wagon, rev.refinement),
+            wagon,
+            series,
+            effects=rev.effects,
+            config=estimator,
+            contact_c=contact,
+        )
+        fit = fits[wagon_id] = fit_noise(
+            [problem],
+            config=estimator,
+            min_power_noise_w_per_sqrt_s=config.min_power_noise_w_per_sqrt_s,
+            engine=config.kernel,  # type: ignore[arg-type]  # checked in EstimationConfig
+            measurement_k=sigma_v,
+        )
+        used[wagon_id] = {
+            "days": [d.isoformat() for d in sorted(days[wagon_id])],
+            "seconds": float(series.time_s[-1] - series.time_s[0] + 1),
+            "readings": fit.readings,
+            "sigma_v_k": sigma_v,
+            "sigma_w_w_per_sqrt_s": fit.noise.power_w_per_sqrt_s,
+        }
+    if not fits:
+        logger.warning(
+            "revision %s: no fit day with %d valid readings to fit sigma_w on; the default "
+            "%g W/sqrt(s) applies",
+            rev.name,
+            _MIN_FIT_READINGS,
+            config.power_noise_w_per_sqrt_s,
+        )
+        return None
+    noise = EstimatorNoise(
+        float(np.median([f.noise.measurement_k for f in fits.values()])),
+        float(np.median([f.noise.power_w_per_sqrt_s for f in fits.values()])),
+    )
+    logger.info(
+        "revision %s: sigma_w %.4g W/sqrt(s), the median of %d wagons' maximum-likelihood fits",
+        rev.name,
+        noise.power_w_per_sqrt_s,
+        len(fits),
+    )
+    stored = StoredNoise(
+        noise,
+        "ml",
+        json.dumps(used, sort_keys=True),
+        sum(f.readings for f in fits.values()),
+        sum(f.log_likelihood for f in fits.values()),
+        noise.power_w_per_sqrt_s <= config.min_power_noise_w_per_sqrt_s * 1.01,
+    )
+    wh.con.execute(
+        sql("q_estimates_insert_noise"),
+        {
+            "revision": rev.name,
+            "measurement_k": noise.measurement_k,
+            "power_w_per_sqrt_s": noise.power_w_per_sqrt_s,
+            "method": stored.method,
+            "fit_wagons": stored.fit_wagons,
+            "fit_readings": stored.fit_readings,
+            "log_likelihood": stored.log_likelihood,
+            "at_floor": stored.at_floor,
+            "created_utc": utc_now(),
+        },
+    )
+    return stored
+
+
+# --------------------------------------------------------------------------------------------
+# The stage
+
+
+def estimation_data_keys(wh: Warehouse) -> dict[str, str]:
+    """Each wagon with samples: a key of its files and samples as they are now."""
+    rows = wh.con.execute(sql("q_estimates_wagon_data")).fetchall()
+    return {str(wagon_id): str(key) for wagon_id, key in rows}
+
+
+def estimated_wagons(wh: Warehouse, revision: str) -> dict[str, EstimatedWagon]:
+    """The wagons estimated with ``revision``, and from what."""
+    rows = wh.con.execute(sql("q_estimates_estimated_wagons"), {"revision": revision}).fetchall()
+    return {
+        str(r[0]): EstimatedWagon(str(r[0]), r[1], r[2], int(r[3]), r[4], r[5], r[6]) for r in rows
+    }
+
+
+def replace_estimates(wh: Warehouse, revision: str, results: Sequence[EstimateResult]) -> None:
+    """Replace the rows of ``revision`` of every wagon of ``results``, all in one transaction
+    (each wagon whole-old or whole-new whatever happens), recording the keys of each."""
+    if not results:
+        return
+    if len({r.wagon_id for r in results}) != len(results):
+        raise ValueError("replace_estimates: a wagon given twice")
+    key = {"wagon_ids": [r.wagon_id for r in results], "revision": revision}
+    now = utc_now()
+    tables = [r.rows for r in results if r.rows.num_rows]
+    with wh.transaction() as con:
+        con.execute(sql("q_estimates_delete_wagons"), key)
+        con.execute(sql("q_estimates_delete_estimated_wagons"), key)
+        if tables:
+            batch = tables[0] if len(tables) == 1 else pa.concat_tables(tables)
+            con.register("estimate_batch", batch)
+            try:
+                con.execute(sql("q_estimates_insert"))
+            finally:
+                con.unregister("estimate_batch")
+        for r in results:
+            con.execute(
+                sql("q_estimates_insert_estimated_wagon"),
+                {
+                    "wagon_id": r.wagon_id,
+                    "revision": revision,
+                    "data_key": r.data_key,
+                    "model_key": r.model_key,
+                    "seconds": r.seconds,
+                    "measurement_k": None if r.noise is None else r.noise.measurement_k,
+                    "power_w_per_sqrt_s": None if r.noise is None else r.noise.power_w_per_sqrt_s,
+                    "created_utc": now,
+                },
+            )
+
+
+def _forget(wh: Warehouse, wagon_id: str) -> None:
+    with wh.transaction() as con:
+        con.execute(sql("q_estimates_forget_wagon"), {"wagon_id": wagon_id})
+        con.execute(sql("q_estimates_forget_estimated_wagon"), {"wagon_id": wagon_id})
+
+
+def estimate_wagons(
+    wh: Warehouse,
+    registry: Registry | Mapping[str, WagonConfig],
+    rev: Revision,
+    config: EstimationConfig | None = None,
+    *,
+    wagons: Iterable[str] | None = None,
+    progress: bool | None = None,
+    engine: Mapper | None = None,
+) -> EstimationReport:
+    """Estimate with ``rev`` every wagon whose data, registry entry, the revision's σ_w or
+    the configuration changed since it was last estimated with it (or, forced, ``wagons``),
+    storing a row per logged second; each wagon whole in one transaction, several per
+    transaction up to ``config.batch_rows`` rows. Each wagon's results depend on its own
+    data and the revision only (:func:`wagon_noise`, :func:`revision_power_noise`)."""
+    config = config or EstimationConfig()
+    wagons_by_id = registry.wagons if isinstance(registry, Registry) else registry
+    report = EstimationReport()
+    keys = estimation_data_keys(wh)
+    done = estimated_wagons(wh, rev.name)
+    forced = set(wagons or ())
+    if wagons is None:
+        for wagon_id in sorted(set(done) - set(keys)):  # its samples are gone
+            _forget(wh, wagon_id)
+    candidates = [w for w in keys if w in wagons_by_id]
+    report.skipped = [f"wagon {w}: no valid registry entry" for w in keys if w not in wagons_by_id]
+    if not candidates:
+        return report
+    power, report.noise_method = revision_power_noise(wh, rev, config)
+    report.power_noise_w_per_sqrt_s = power
+    todo = []
+    for wagon_id in candidates:
+        if wagons is not None and wagon_id not in forced:
+            continue
+        model_key = _model_key(wagons_by_id[wagon_id], rev, config, power)
+        stored = done.get(wagon_id)
+        if (
+            wagon_id in forced
+            or stored is None
+            or (stored.data_key, stored.model_key) != (keys[wagon_id], model_key)
+        ):
+            todo.append((wagons_by_id[wagon_id], keys[wagon_id], model_key))
+    if not todo:
+        return report
+    tasks = (
+        estimate_task(wh, wagon, rev, config, power, data_key=data_key, model_key=model_key)
+        for wagon, data_key, model_key in todo
+    )
+    results = map(estimate_wagon, tasks) if engine is None else engine.map(estimate_wagon, tasks)
+    show = progress if progress is not None else os.isatty(1)
+    from rich.progress import Progress
+
+    pending: list[EstimateResult] = []
+    pending_rows = 0
+    with Progress(disable=not show, transient=True) as bar:
+        task = bar.add_task("estimating wagons", total=len(todo))
+        for result in results:
+            if pending and pending_rows + result.seconds > config.batch_rows:
+                replace_estimates(wh, rev.name, pending)
+                bar.advance(task, len(pending))
+                pending, pending_rows = [], 0
+            pending.append(result)
+            pending_rows += result.seconds
+            logger.info(
+                "wagon %s: %d seconds estimated with revision %s (%.0f %% steady)",
+                result.wagon_id,
+                result.seconds,
+                result.revision,
+                100 * result.frozen_fraction,
+            )
+            report.wagons_estimated.append(result.wagon_id)
+            report.rows += result.seconds
+        replace_estimates(wh, rev.name, pending)
+        bar.advance(task, len(pending))
+    return report
+
+
+def wagon_estimates(wh: Warehouse, wagon_id: str, revision: str) -> pl.DataFrame:
+    """One wagon's stored estimates of ``revision`` by time, every column of
+    ``contact_estimates`` (:data:`ESTIMATE_SCHEMA`; empty if none)."""
+    frame = wh.con.sql(
+        sql("q_estimates_wagon"), params={"wagon_id": wagon_id, "revision": revision}
+    ).pl()
+    if frame.height == 0:
+        return pl.DataFrame(schema=ESTIMATE_SCHEMA)
+    return frame.select(list(ESTIMATE_SCHEMA)).cast(dict(ESTIMATE_SCHEMA))
