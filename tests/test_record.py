@@ -83,12 +83,48 @@ def _predictions(samples: pl.DataFrame, event_id: str, start: dt.datetime, n: in
     )
 
 
+DRAG_S = range(300, 400)  # session 1: an unexplained 500 W (a dragging brake) in the estimates
+
+
+def _estimates(samples: pl.DataFrame) -> pl.DataFrame:
+    """``v_contact_estimates`` rows (interface v2) for every logged second of ``samples``: the
+    contact mean 70 K over the reading with a +-5 K band, the unexplained power 500 W during
+    :data:`DRAG_S` of session 1 (else 0) with a +-50 W band."""
+    n = samples.height
+    temp = samples["block_temp_c"].fill_null(40.0).to_numpy()
+    k = np.arange(n)
+    power = np.where((k >= DRAG_S.start) & (k < DRAG_S.stop), 500.0, 0.0)
+    return pl.DataFrame(
+        {
+            "wagon_id": samples["wagon_id"],
+            "time_utc": samples["time_utc"],
+            "model_revision": "declared",
+            "contact_mean_c": temp + 70.0,
+            "contact_mean_lo_c": temp + 65.0,
+            "contact_mean_hi_c": temp + 75.0,
+            "contact_max_c": temp + 110.0,
+            "contact_max_hi_c": temp + 118.0,
+            "smoothed_contact_mean_c": temp + 70.0,
+            "smoothed_contact_mean_lo_c": temp + 66.0,
+            "smoothed_contact_mean_hi_c": temp + 74.0,
+            "unexplained_power_w": power,
+            "unexplained_power_lo_w": power - 50.0,
+            "unexplained_power_hi_w": power + 50.0,
+            "innovation_k": 0.1,
+        }
+    )
+
+
 @pytest.fixture(scope="module")
 def fleet_db(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
-    """A small warehouse: two sessions of one wagon (700 samples, 5 faulty and 3 missing
-    readings), two events with predictions of revision `declared`, two flags; and a wagon
-    with samples only."""
-    db = tmp_path_factory.mktemp("record") / "fleet.duckdb"
+    """The warehouse of :func:`build_fleet_db`."""
+    return build_fleet_db(tmp_path_factory.mktemp("record") / "fleet.duckdb")
+
+
+def build_fleet_db(db: Path) -> dict[str, object]:
+    """A small warehouse at ``db``: two sessions of one wagon (700 samples, 5 faulty and 3
+    missing readings), two events with predictions of revision `declared`, contact estimates
+    at every logged second, two flags; and a wagon with samples only."""
     s1 = _session(T0, SESSION_1_S, (100, 250), 1)
     faulty = pl.Series("k", np.arange(SESSION_1_S)).is_in(list(FAULTY_S))
     missing = pl.Series("k", np.arange(SESSION_1_S)).is_in(list(MISSING_S))
@@ -104,8 +140,15 @@ def fleet_db(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     p1 = _predictions(s1, E1, E1_START, SESSION_1_S - 100)
     p2 = _predictions(s2, E2, E2_START, SESSION_2_S - 20)
     predictions = pl.concat([p1, p2])
+    estimates = pl.concat([_estimates(s1), _estimates(s2)])
     now = dt.datetime(2024, 3, 2)
     with open_warehouse(db) as wh, wh.transaction() as con:
+        # the public view the recording reads, over a table of this test's rows
+        con.register("new_estimates", estimates.to_arrow())
+        con.execute("CREATE TABLE test_contact_estimates AS SELECT * FROM new_estimates")
+        con.execute(
+            "CREATE OR REPLACE VIEW v_contact_estimates AS SELECT * FROM test_contact_estimates"
+        )
         con.register("new_samples", samples.to_arrow())
         con.execute("INSERT INTO samples SELECT * FROM new_samples")
         con.register("new_predictions", predictions.to_arrow())
@@ -157,6 +200,8 @@ def fleet_db(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
         "predictions": predictions.height,
         "residuals": predictions["measured_sensor_c"].is_not_null().sum(),
         "p1": p1,
+        "estimates": estimates.height,
+        "estimates_frame": estimates,
     }
 
 
@@ -211,6 +256,25 @@ def test_timeline_recording(fleet_db: dict[str, object], tmp_path: Path) -> None
         rows = e[f"/wagon/temperature/{path}"]["rows"]["Scalars:scalars"]
         assert rows == fleet_db["predictions"]
     assert e["/wagon/residual_k"]["rows"]["Scalars:scalars"] == fleet_db["residuals"]
+    # The virtual sensor: the contact estimate with its band, and the unexplained power.
+    for path in (
+        "temperature/estimated_contact_mean_c",
+        "temperature/estimated_contact_mean_lo_c",
+        "temperature/estimated_contact_mean_hi_c",
+        "unexplained_power/estimate_w",
+        "unexplained_power/lo_w",
+        "unexplained_power/hi_w",
+    ):
+        assert e[f"/wagon/{path}"]["rows"]["Scalars:scalars"] == fleet_db["estimates"], path
+        assert e[f"/wagon/{path}"]["rows"]["Clear:is_recursive"] == 1, path  # the 2-h gap
+    power = [v[0] for v in e["/wagon/unexplained_power/estimate_w"]["values"]["Scalars:scalars"]]
+    assert sum(p == 500.0 for p in power) == len(DRAG_S) and max(power) == 500.0
+    high = e["/wagon/unexplained_power/hi_w"]["values"]["Scalars:scalars"]
+    assert max(v[0] for v in high) == 550.0
+    mean = e["/wagon/temperature/estimated_contact_mean_c"]["values"]["Scalars:scalars"]
+    low = e["/wagon/temperature/estimated_contact_mean_lo_c"]["values"]["Scalars:scalars"]
+    assert all(m[0] - lo[0] == pytest.approx(5.0) for m, lo in zip(mean, low, strict=True))
+    assert summary.counts["wagon/unexplained_power/estimate_w"] == fleet_db["estimates"]
     # The two-hour gap between the sessions is a hole in the lines, not a straight line.
     assert e["/wagon/speed_kmh"]["rows"]["Clear:is_recursive"] == 1
     assert "SeriesLines:names" in e["/wagon/speed_kmh"]["static"]
@@ -243,6 +307,10 @@ def test_event_recording_has_the_block_field(fleet_db: dict[str, object], tmp_pa
     assert e["/wagon/speed_kmh"]["rows"]["Scalars:scalars"] == SESSION_1_S - 100 + 60
     p1 = fleet_db["p1"]
     assert e["/wagon/temperature/predicted_sensor_c"]["rows"]["Scalars:scalars"] == p1.height
+    # the estimates of the window (every logged second of it), not the other session's
+    window_s = SESSION_1_S - 100 + 60
+    assert e["/wagon/temperature/estimated_contact_mean_c"]["rows"]["Scalars:scalars"] == window_s
+    assert e["/wagon/unexplained_power/estimate_w"]["rows"]["Scalars:scalars"] == window_s
 
     n_steps = p1.height - 1  # one-second steps between the predicted seconds
     every = round(FIELD_EVERY_S)
@@ -277,6 +345,10 @@ def test_wagon_without_predictions_still_records_samples(
     )
     notes = [t[0] for t in e["/log/notes"]["values"]["TextLog:text"]]
     assert any("no predictions" in n for n in notes)
+    assert (
+        "/wagon/unexplained_power/estimate_w" not in e
+        or not (e["/wagon/unexplained_power/estimate_w"]["rows"])
+    )
 
 
 def test_bad_input_names_what_is_wrong(fleet_db: dict[str, object], tmp_path: Path) -> None:
@@ -369,7 +441,8 @@ def test_blueprint_lays_out_the_review(fleet_db: dict[str, object], tmp_path: Pa
     record(fleet_db["db"], WAGON, tmp_path / "e.rrd", event_id=E2)  # type: ignore[arg-type]
     timeline, event = _blueprint_names(tmp_path / "t.rrd"), _blueprint_names(tmp_path / "e.rrd")
     plots = {
-        "Block temperature °C: measured vs predicted",
+        "Block temperature °C: measured vs predicted, contact estimate (95 % band)",
+        "Unexplained heat power W (estimate, 95 % band)",
         "Speed km/h",
         "Brake pressure bar",
         "Residual K (measured - predicted sensor)",

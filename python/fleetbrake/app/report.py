@@ -9,7 +9,8 @@
     result.pictures  # the PNGs beside it, each referenced from the Markdown
 
 Everything comes from the public views (``v_files``, ``v_events``, ``v_predictions``,
-``v_flags``, ``v_model_revisions``; ``shared/spec/interface.md``), opened read-only, so the
+``v_flags``, ``v_model_revisions``, ``v_contact_estimates``; ``shared/spec/interface.md``),
+opened read-only, so the
 report shows what an analyst querying the database would see. Optional extras: the
 close-loop report (the dict ``run_close_loop`` returns) and, for a synthetic fleet, its truth
 (the effect and anomalies the generator put in, to compare with what was found).
@@ -22,7 +23,13 @@ One function per picture, each taking its data and a path and returning the path
 * :func:`plot_flag_timeline`: the flags on a timeline, one row per wagon, coloured by kind
   (and, with a truth, the injected anomalies beneath them);
 * :func:`plot_close_loop_error`: the closed loop's RMSE before and after, fit and holdout;
-* :func:`plot_contact_temperatures`: the peak predicted contact temperature of every event.
+* :func:`plot_contact_temperatures`: the peak predicted contact temperature of every event;
+* :func:`plot_contact_estimates`: per flagged wagon, around its most severe flag, the virtual
+  sensor's contact estimate with its 95 % band against the open-loop prediction and the
+  reading, and the unexplained heat power with its band.
+
+The tables give the peak contact temperature with its bounds: the virtual sensor's
+(``v_contact_estimates``) beside the open-loop prediction's, per wagon and per braking.
 """
 
 from __future__ import annotations
@@ -50,6 +57,7 @@ __all__ = [
     "ReportResult",
     "load_report_data",
     "plot_close_loop_error",
+    "plot_contact_estimates",
     "plot_contact_temperatures",
     "plot_event_predictions",
     "plot_flag_timeline",
@@ -74,6 +82,12 @@ FLAG_COLORS: dict[str, str] = {
 """One colour per flag kind (``v_flags.kind``), the same in every picture."""
 
 _SEVERITY_RANK = {"alarm": 0, "warning": 1, "info": 2}
+ESTIMATE_WAGONS = 8
+"""At most this many flagged wagons get a contact-estimate plot (the most severe flags first)."""
+ESTIMATE_PAD = dt.timedelta(minutes=30)
+"""A contact-estimate plot shows its flag with at least this much before and after."""
+ESTIMATE_SPAN = dt.timedelta(hours=24)
+"""... and at most this much in all."""
 _REVISION_STYLES = ("--", "-", ":", "-.")
 _REVISION_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#8c564b")
 
@@ -124,6 +138,22 @@ class ReportData:
     """``v_predictions`` rows of the representative events (every revision)."""
     representative: dict[str, list[tuple[str, str]]] = field(default_factory=dict)
     """Per wagon: (event_id, why it was chosen)."""
+    has_estimates: bool = False
+    """The database has ``v_contact_estimates`` (a database of an older ``run`` has not)."""
+    estimate_event_peaks: pl.DataFrame = field(default_factory=pl.DataFrame)
+    """Per event and revision: the virtual sensor's peak contact mean with its bounds, and
+    peak contact maximum with its upper bound, over the event's window."""
+    estimate_wagon_peaks: pl.DataFrame = field(default_factory=pl.DataFrame)
+    """Per wagon and revision: the same over every estimated second, and the extremes of the
+    unexplained power with their bounds."""
+    estimate_windows: dict[str, tuple[dt.datetime, dt.datetime, dict[str, Any]]] = field(
+        default_factory=dict
+    )
+    """Per flagged wagon (at most :data:`ESTIMATE_WAGONS`): the window of its plot and the
+    flag it is around."""
+    estimate_series: dict[str, pl.DataFrame] = field(default_factory=dict)
+    """Per wagon of ``estimate_windows``: the current revision's estimates in the window,
+    with the open-loop predicted contact mean and the measured sensor temperature."""
 
     @property
     def wagons(self) -> list[str]:
@@ -186,9 +216,60 @@ def load_report_data(db_path: str | Path, per_wagon: int = 3) -> ReportData:
         ids = [e for picks in data.representative.values() for e, _ in picks]
         if ids:
             data.series = _query(con, "q_report_series", {"event_ids": ids})
+        if "v_contact_estimates" in set(_query(con, "q_report_relations")["view_name"]):
+            _load_estimates(con, data)
     finally:
         con.close()
     return data
+
+
+def _load_estimates(con: Any, data: ReportData) -> None:
+    """The virtual sensor's peaks, and the series of the flagged wagons' plots."""
+    data.has_estimates = True
+    data.estimate_event_peaks = _query(con, "q_report_estimate_event_peaks")
+    data.estimate_wagon_peaks = _query(con, "q_report_estimate_wagon_peaks")
+    if data.current_revision is None:
+        return
+    data.estimate_windows = flag_windows(data.flags)
+    for wagon_id, (start, end, _) in data.estimate_windows.items():
+        series = _query(
+            con,
+            "q_report_estimate_series",
+            {
+                "wagon_id": wagon_id,
+                "model_revision": data.current_revision,
+                "from_utc": start,
+                "to_utc": end,
+            },
+        )
+        if series.height:
+            data.estimate_series[wagon_id] = series
+
+
+def flag_windows(
+    flags: pl.DataFrame, limit: int = ESTIMATE_WAGONS
+) -> dict[str, tuple[dt.datetime, dt.datetime, dict[str, Any]]]:
+    """Per flagged wagon, its most severe flag (then the longest, then the first) and the
+    window a plot of it shows: :data:`ESTIMATE_PAD` (or half the flag's length, if longer)
+    before and after, at most :data:`ESTIMATE_SPAN` in all. The ``limit`` wagons whose flags
+    are the most severe, in wagon order."""
+    if flags.height == 0:
+        return {}
+    ranked = flags.with_columns(
+        pl.col("severity").replace_strict(_SEVERITY_RANK, default=9).alias("_rank"),
+        (pl.col("end_utc") - pl.col("start_utc")).alias("_length"),
+    ).sort(["_rank", "_length", "start_utc", "flag_id"], descending=[False, True, False, False])
+    chosen = ranked.unique("wagon_id", keep="first", maintain_order=True).head(limit)
+    out: dict[str, tuple[dt.datetime, dt.datetime, dict[str, Any]]] = {}
+    for f in chosen.sort("wagon_id").iter_rows(named=True):
+        start, end = f["start_utc"], f["end_utc"]
+        pad = max(ESTIMATE_PAD, (end - start) / 2)
+        begin, finish = start - pad, end + pad
+        if finish - begin > ESTIMATE_SPAN:
+            begin, finish = start - ESTIMATE_PAD, start - ESTIMATE_PAD + ESTIMATE_SPAN
+        flag = {k: v for k, v in f.items() if not k.startswith("_")}
+        out[str(f["wagon_id"])] = (begin, finish, flag)
+    return out
 
 
 def _representative_events(data: ReportData, per_wagon: int) -> dict[str, list[tuple[str, str]]]:
@@ -433,6 +514,116 @@ def plot_contact_temperatures(
     return _save(fig, path)
 
 
+def _with_breaks(frame: pl.DataFrame, gap_s: float = 10.0) -> pl.DataFrame:
+    """``frame`` (by ``time_utc``) with a row of nulls a second after each gap longer than
+    ``gap_s``, so that a line is not drawn across a data gap."""
+    after_gap = pl.col("time_utc").diff().shift(-1) > dt.timedelta(seconds=gap_s)
+    breaks = frame.filter(after_gap).select(pl.col("time_utc") + dt.timedelta(seconds=1))
+    if breaks.height == 0:
+        return frame
+    return pl.concat([frame, breaks], how="diagonal").sort("time_utc")
+
+
+def plot_contact_estimates(
+    series: Mapping[str, pl.DataFrame],
+    windows: Mapping[str, tuple[dt.datetime, dt.datetime, Mapping[str, Any]]],
+    path: str | Path,
+) -> Path:
+    """Per wagon of ``series`` (the rows of ``q_report_estimate_series``), two plots over its
+    window: the virtual sensor's filtered contact mean with its 95 % band against the
+    open-loop predicted contact mean and the measured sensor temperature; below, the
+    unexplained heat power with its band. The flag the window is around is shaded in both."""
+    mdates = _dates()
+    plt = _pyplot()
+    wagons = [w for w in windows if w in series and series[w].height]
+    rows = max(len(wagons), 1)
+    fig, axes = plt.subplots(
+        2 * rows,
+        1,
+        figsize=(11, 3.9 * rows),
+        squeeze=False,
+        gridspec_kw={"height_ratios": [2.2, 1.2] * rows},
+    )
+    for k, wagon_id in enumerate(wagons):
+        frame = _with_breaks(series[wagon_id])
+        start, end, flag = windows[wagon_id]
+        times = mdates.date2num(frame["time_utc"].to_list())
+        top, bottom = axes[2 * k, 0], axes[2 * k + 1, 0]
+        top.fill_between(
+            times,
+            frame["contact_mean_lo_c"].to_numpy(),
+            frame["contact_mean_hi_c"].to_numpy(),
+            color="#17becf",
+            alpha=0.3,
+            lw=0,
+            label="estimate, 95 % band",
+        )
+        top.plot(
+            times, frame["contact_mean_c"].to_numpy(), color="#17becf", lw=1.2, label="estimate"
+        )
+        top.plot(
+            times,
+            frame["predicted_contact_mean_c"].to_numpy(),
+            "--",
+            color="#d62728",
+            lw=1.0,
+            label="open-loop prediction",
+        )
+        top.plot(
+            times,
+            frame["measured_sensor_c"].to_numpy(),
+            ".",
+            ms=1.2,
+            color="black",
+            label="sensor reading",
+        )
+        top.set_ylabel("contact mean (°C)", fontsize=8)
+        top.set_title(
+            f"{wagon_id}: {flag['kind']} [{flag['severity']}] "
+            f"{flag['start_utc']:%m-%d %H:%M} to {flag['end_utc']:%m-%d %H:%M} UTC",
+            fontsize=9,
+        )
+        bottom.fill_between(
+            times,
+            frame["unexplained_power_lo_w"].to_numpy(),
+            frame["unexplained_power_hi_w"].to_numpy(),
+            color="#bcbd22",
+            alpha=0.3,
+            lw=0,
+            label="95 % band",
+        )
+        bottom.plot(
+            times,
+            frame["unexplained_power_w"].to_numpy(),
+            color="#8c8c00",
+            lw=1.0,
+            label="unexplained power",
+        )
+        bottom.axhline(0.0, color="0.5", lw=0.6)
+        bottom.set_ylabel("power (W)", fontsize=8)
+        for ax in (top, bottom):
+            ax.axvspan(
+                mdates.date2num(flag["start_utc"]),
+                mdates.date2num(flag["end_utc"]),
+                color=FLAG_COLORS.get(flag["kind"], "0.5"),
+                alpha=0.12,
+                lw=0,
+            )
+            ax.set_xlim(mdates.date2num(start), mdates.date2num(end))
+            ax.xaxis_date()
+            ax.xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M"))
+            ax.tick_params(labelsize=7)
+            ax.grid(alpha=0.3)
+        if k == 0:
+            top.legend(fontsize=7, ncol=4, loc="upper left")
+            bottom.legend(fontsize=7, ncol=2, loc="upper left")
+    if not wagons:
+        axes[0, 0].set_visible(False)
+        axes[1, 0].set_visible(False)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 # --------------------------------------------------------------------------------------------
 # Markdown
 
@@ -641,6 +832,10 @@ def write_report(
     if anomalies:
         lines += _truth_table(data.flags, anomalies)
 
+    # ---- the virtual sensor
+    lines += ["## Contact temperature: the virtual sensor", ""]
+    lines += _estimates_section(data, out_dir / f"{stem}-estimates.png", pictures)
+
     # ---- events
     lines += ["## Events per wagon", ""]
     lines += _events_table(data)
@@ -731,6 +926,100 @@ def _error_by_wagon_table(data: ReportData) -> list[str]:
     ]
 
 
+def _bounded(value: Any, lo: Any, hi: Any, digits: int = 1) -> str:
+    """A value with its 95 % bounds: ``412.3 (398.1 to 426.5)``; ``-`` without a value."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{_fmt(value, digits)} ({_fmt(lo, digits)} to {_fmt(hi, digits)})"
+
+
+def _upper(value: Any, hi: Any, digits: int = 1) -> str:
+    """A value with its 95 % upper bound: ``430.2 (≤ 441.0)``."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{_fmt(value, digits)} (≤ {_fmt(hi, digits)})"
+
+
+def _current(frame: pl.DataFrame, data: ReportData) -> pl.DataFrame:
+    """The rows of the current revision (none without one)."""
+    if frame.height == 0:
+        return frame
+    return frame.filter(pl.col("model_revision") == (data.current_revision or ""))
+
+
+def _estimates_section(data: ReportData, png: Path, pictures: list[Path]) -> list[str]:
+    """The virtual sensor: the flagged wagons' plot, and per wagon its peak contact
+    temperatures with their bounds and the extremes of the unexplained power."""
+    if not data.has_estimates:
+        return [
+            "The database has no contact estimates (no `v_contact_estimates`: it was written "
+            "by an older `run`).",
+            "",
+        ]
+    peaks = _current(data.estimate_wagon_peaks, data)
+    if peaks.height == 0:
+        return [f"No contact estimates of revision `{data.current_revision}` yet.", ""]
+    lines = [
+        "The virtual sensor estimates the wheel-block contact (friction-face) temperature at "
+        "every logged second from the model and the thermistor together, with its 95 % band, "
+        "and the heat power on the friction face that the declared inputs do not explain "
+        "(a dragging brake heats with the cylinder released; a weak brake heats less than "
+        f"declared). Revision `{data.current_revision}`, filtered (live) estimate.",
+        "",
+    ]
+    if data.estimate_series:
+        plot_contact_estimates(data.estimate_series, data.estimate_windows, png)
+        pictures.append(png)
+        flagged = data.flags["wagon_id"].n_unique() if data.flags.height else 0
+        which = (
+            f" (the {len(data.estimate_windows)} of {flagged} flagged wagons with the most "
+            "severe flags)"
+            if flagged > len(data.estimate_windows)
+            else ""
+        )
+        lines += [
+            f"Around the most severe flag of each flagged wagon{which}: the estimate and its "
+            "band against the open-loop prediction (dashed) and the sensor's readings "
+            "(dots); below, the unexplained power and its band.",
+            "",
+            f"![contact estimates]({png.name})",
+            "",
+        ]
+    flagged_counts = (
+        dict(data.flags.group_by("wagon_id").len().iter_rows()) if data.flags.height else {}
+    )
+    rows = [
+        (
+            r["wagon_id"],
+            _bounded(r["est_mean_peak_c"], r["est_mean_peak_lo_c"], r["est_mean_peak_hi_c"]),
+            _fmt(r["est_mean_peak_utc"]),
+            _upper(r["est_max_peak_c"], r["est_max_peak_hi_c"]),
+            _bounded(r["power_max_w"], r["power_max_lo_w"], r["power_max_hi_w"], 0),
+            _bounded(r["power_min_w"], r["power_min_lo_w"], r["power_min_hi_w"], 0),
+            flagged_counts.get(r["wagon_id"], 0),
+        )
+        for r in peaks.sort("wagon_id").iter_rows(named=True)
+    ]
+    lines += [
+        "Per wagon, the hottest second of the estimate (95 % bounds in brackets) and the "
+        "extremes of the unexplained power:",
+        "",
+        *_table(
+            [
+                "wagon",
+                "hottest contact mean (°C)",
+                "at (UTC)",
+                "hottest contact max (°C)",
+                "highest unexplained power (W)",
+                "lowest unexplained power (W)",
+                "flags",
+            ],
+            rows,
+        ),
+    ]
+    return lines
+
+
 def _events_table(data: ReportData) -> list[str]:
     if data.events.height == 0:
         return ["No events.", ""]
@@ -752,6 +1041,10 @@ def _events_table(data: ReportData) -> list[str]:
     )
     flagged = data.flags.group_by("wagon_id").len()
     nflags = dict(zip(flagged["wagon_id"], flagged["len"], strict=True))
+    estimated = {
+        r["wagon_id"]: _upper(r["est_max_peak_c"], r["est_max_peak_hi_c"])
+        for r in _current(data.estimate_wagon_peaks, data).iter_rows(named=True)
+    }
     rows = [
         (
             r["wagon_id"],
@@ -761,6 +1054,7 @@ def _events_table(data: ReportData) -> list[str]:
             _fmt(r["p_mean_bar"], 2),
             _fmt(r["measured_max_c"]),
             _fmt(r["contact_max_c"]),
+            estimated.get(r["wagon_id"], "-"),
             nflags.get(r["wagon_id"], 0),
         )
         for r in summary.iter_rows(named=True)
@@ -774,6 +1068,7 @@ def _events_table(data: ReportData) -> list[str]:
             "mean pressure (bar)",
             "hottest sensor reading (°C)",
             "hottest contact, predicted (°C)",
+            "hottest contact, estimated (°C, 95 % upper)",
             "flags",
         ],
         rows,
@@ -796,6 +1091,22 @@ def _hottest_table(data: ReportData, top: int = 10) -> list[str]:
         .sort("contact_max_c", descending=True)
         .head(top)
     )
+    estimated = _current(data.estimate_event_peaks, data)
+    if estimated.height:
+        joined = joined.join(
+            estimated.drop("wagon_id", "model_revision"), on="event_id", how="left"
+        )
+    else:
+        joined = joined.with_columns(
+            pl.lit(None, dtype=pl.Float64).alias(c)
+            for c in (
+                "est_mean_peak_c",
+                "est_mean_peak_lo_c",
+                "est_mean_peak_hi_c",
+                "est_max_peak_c",
+                "est_max_peak_hi_c",
+            )
+        )
     rows = [
         (
             r["event_id"],
@@ -806,13 +1117,16 @@ def _hottest_table(data: ReportData, top: int = 10) -> list[str]:
             _fmt(r["p_mean_bar"], 2),
             _fmt(r["contact_max_c"]),
             _fmt(r["contact_mean_max_c"]),
+            _upper(r["est_max_peak_c"], r["est_max_peak_hi_c"]),
+            _bounded(r["est_mean_peak_c"], r["est_mean_peak_lo_c"], r["est_mean_peak_hi_c"]),
             _fmt(r["measured_max_c"]),
         )
         for r in joined.iter_rows(named=True)
     ]
     intro = (
         f"The {len(rows)} hottest brakings by predicted contact maximum "
-        f"(revision `{data.current_revision}`):"
+        f"(revision `{data.current_revision}`), with the virtual sensor's peaks over the same "
+        "seconds (95 % bounds in brackets):"
     )
     return [
         intro,
@@ -827,6 +1141,8 @@ def _hottest_table(data: ReportData, top: int = 10) -> list[str]:
                 "mean pressure (bar)",
                 "contact max (°C)",
                 "contact mean (°C)",
+                "contact max, estimated (°C, 95 % upper)",
+                "contact mean, estimated (°C, 95 % band)",
                 "sensor reading max (°C)",
             ],
             rows,

@@ -105,6 +105,16 @@ def watch_command(
         bool,
         typer.Option("--json", help="One JSON object per processed file on stdout."),
     ] = False,
+    rerun: Annotated[
+        str | None,
+        typer.Option(
+            "--rerun",
+            help="Stream each processed file's new timeline to the rerun viewer at ADDR "
+            "(HOST:PORT or rerun+http://HOST:PORT/proxy), as `record` lays it out; a viewer "
+            "that is not there is a warning, tried again at the next file.",
+            metavar="ADDR",
+        ),
+    ] = None,
 ) -> None:
     """Watch FLEET_DIR/logs/ and take every file that lands complete through `run`.
 
@@ -124,6 +134,10 @@ def watch_command(
         raise WatchOptionError(f"--refinement must be > 0, got {refinement}")
     if flag_config is not None:
         load_flag_config(flag_config)  # a bad file is a usage error before watching
+    if rerun is not None:
+        from fleetbrake.viz.live import viewer_url
+
+        viewer_url(rerun)  # not a viewer's address: a usage error (exit 2) before watching
     try:
         config = WatchConfig(
             poll_s=poll_s,
@@ -134,6 +148,7 @@ def watch_command(
             engine=engine,
             workers=workers,
             address=address,
+            rerun=rerun,
             simulation=SimulationConfig(
                 solver=cast(Literal["rom", "full"], solver), refinement=refinement
             ),

@@ -1,5 +1,6 @@
-"""What a recording shows, read from the warehouse: the samples, predictions, events and flags
-of a wagon (or of one event's window), the model revision, and notes on what is missing.
+"""What a recording shows, read from the warehouse: the samples, predictions, contact estimates,
+events and flags of a wagon (or of one event's window, or of a time window), the model revision,
+and notes on what is missing.
 
 ::
 
@@ -75,12 +76,16 @@ class RecordData:
     revision: str | None
     """Model revision of the predictions; ``None`` when the wagon has none."""
     window: tuple[np.datetime64, np.datetime64] | None
-    """Time range recorded for one event; ``None`` for the whole timeline."""
+    """Time range recorded (one event's, or the one asked for); ``None`` for the whole
+    timeline."""
     samples: pl.DataFrame
     predictions: pl.DataFrame
     events: pl.DataFrame
     flags: pl.DataFrame
     notes: list[str] = field(default_factory=list)
+    estimates: pl.DataFrame = field(default_factory=pl.DataFrame)
+    """``v_contact_estimates`` rows of the revision (the virtual sensor); empty when the
+    database has none."""
     stored_wagon: WagonConfig | None = None
     """The wagon's registry entry as the last ``run`` stored it (``wagon_registry``)."""
     stored_wagon_source: str | None = None
@@ -266,12 +271,14 @@ def load_record_data(
     *,
     event_id: str | None = None,
     revision: str | None = None,
+    window: tuple[np.datetime64, np.datetime64] | None = None,
 ) -> RecordData:
-    """Read what a recording of ``wagon_id`` (or of one of its events) shows.
+    """Read what a recording of ``wagon_id`` (or of one of its events, or of the time range
+    ``window``, both ends included) shows.
 
-    ``revision``: the model revision of the predictions; default the current one
-    (``model_revisions.is_current``), else ``declared``. Raises :class:`RecordError` naming
-    the database and the unknown wagon, event or revision.
+    ``revision``: the model revision of the predictions and estimates; default the current
+    one (``model_revisions.is_current``), else ``declared``. Raises :class:`RecordError`
+    naming the database and the unknown wagon, event or revision.
     """
     con = wh.con
     db = str(wh.path)
@@ -283,7 +290,8 @@ def load_record_data(
     chosen, notes = _resolve_revision(con, tables, wagon_id, revision, db)
 
     event: dict[str, Any] | None = None
-    window: tuple[np.datetime64, np.datetime64] | None = None
+    if window is not None:
+        window = (_microseconds(window[0]), _microseconds(window[1]))
     if event_id is not None:
         event, window = _event_window(con, tables, wagon_id, event_id, chosen, db)
     # rows at an instant inside the window, ranges overlapping it (no window: every row)
@@ -315,6 +323,14 @@ def load_record_data(
             notes.append(
                 f"{what} has no predictions of model revision {chosen!r} yet: measurements only"
             )
+    estimates = pl.DataFrame()
+    if chosen is not None and "v_contact_estimates" in tables:
+        estimates = _frame(con, "q_record_estimates", of_wagon | {"model_revision": chosen})
+    if chosen is not None and estimates.height == 0:
+        notes.append(
+            f"wagon {wagon_id} has no contact estimates of model revision {chosen!r} in the "
+            "recorded time range: open-loop prediction only"
+        )
     if samples.height == 0:
         notes.append(f"wagon {wagon_id} has no samples in the recorded time range")
     stored, source = _stored_wagon(con, tables, wagon_id, notes)
@@ -328,6 +344,7 @@ def load_record_data(
         events=events,
         flags=flags,
         notes=notes,
+        estimates=estimates,
         stored_wagon=stored,
         stored_wagon_source=source,
     )

@@ -10,6 +10,11 @@ UTC time. Entities:
 - ``wagon/temperature/predicted_sensor_c``, ``.../predicted_contact_mean_c``,
   ``.../predicted_contact_max_c``: the predictions of one model revision (sensor seat,
   friction face mean and maximum);
+- ``wagon/temperature/estimated_contact_mean_c``, ``..._lo_c``, ``..._hi_c``: the virtual
+  sensor's filtered estimate of the friction-face mean temperature (``v_contact_estimates``,
+  the model and the reading together) and its 95 % band, against the open-loop prediction;
+- ``wagon/unexplained_power/estimate_w``, ``.../lo_w``, ``.../hi_w``: the heat power on the
+  friction face that the declared inputs do not explain, with its 95 % band (its own plot);
 - ``wagon/residual_k``: measured - predicted sensor temperature, kelvin;
 - ``state/events``, ``state/flags/<kind>``, ``state/faulty_readings``: ranges
   (``StateChange``): each event (state: its kind), each flag kind (state: the highest
@@ -35,11 +40,17 @@ __all__ = [
     "COLORMAP",
     "CONTACT_MAX",
     "CONTACT_MEAN",
+    "ESTIMATE_HI",
+    "ESTIMATE_LO",
+    "ESTIMATE_MEAN",
     "LOG_EVENTS",
     "LOG_FAULTY_READINGS",
     "LOG_FLAGS",
     "LOG_NOTES",
     "MEASURED",
+    "POWER",
+    "POWER_HI",
+    "POWER_LO",
     "PREDICTED",
     "PRESSURE",
     "RESIDUAL",
@@ -48,6 +59,7 @@ __all__ = [
     "STATE_FAULTY_READINGS",
     "STATE_FLAGS",
     "TIMELINE",
+    "UNEXPLAINED_POWER",
     "Floats",
     "Times",
     "time_index",
@@ -65,6 +77,13 @@ MEASURED = "wagon/temperature/measured_sensor_c"
 PREDICTED = "wagon/temperature/predicted_sensor_c"
 CONTACT_MEAN = "wagon/temperature/predicted_contact_mean_c"
 CONTACT_MAX = "wagon/temperature/predicted_contact_max_c"
+ESTIMATE_MEAN = "wagon/temperature/estimated_contact_mean_c"
+ESTIMATE_LO = "wagon/temperature/estimated_contact_mean_lo_c"
+ESTIMATE_HI = "wagon/temperature/estimated_contact_mean_hi_c"
+UNEXPLAINED_POWER = "wagon/unexplained_power"
+POWER = f"{UNEXPLAINED_POWER}/estimate_w"
+POWER_LO = f"{UNEXPLAINED_POWER}/lo_w"
+POWER_HI = f"{UNEXPLAINED_POWER}/hi_w"
 RESIDUAL = "wagon/residual_k"
 STATE_EVENTS = "state/events"
 STATE_FLAGS = "state/flags"

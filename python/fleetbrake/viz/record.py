@@ -12,7 +12,9 @@
 Open the file with ``rerun FILE.rrd``. :func:`record` orchestrates: it reads what the recording
 shows (:mod:`fleetbrake.viz.data`; the database is only read), simulates the block's field for
 an event (:mod:`fleetbrake.viz.block`), and logs each concern (:mod:`fleetbrake.viz.timeline`)
-on the one timeline with the layout of :mod:`fleetbrake.viz.blueprint`. The entities are listed
+on the one timeline with the layout of :mod:`fleetbrake.viz.blueprint`, through
+:func:`fleetbrake.viz.compose.log_recording` (which the live viewer of ``watch --rerun`` uses
+too). The entities are listed
 in :mod:`fleetbrake.viz.entities`.
 """
 
@@ -33,30 +35,18 @@ from fleetbrake.viz.block import (
     DEFAULT_BLOCK_REFINEMENT,
     FIELD_EVERY_S,
     BlockField,
-    log_block_field,
     simulate_block_field,
 )
-from fleetbrake.viz.blueprint import blueprint
+from fleetbrake.viz.compose import log_recording
 from fleetbrake.viz.data import (
     RecordData,
     RecordError,
     frame_times,
     frame_values,
-    instant,
     load_record_data,
     open_read_only,
 )
-from fleetbrake.viz.entities import BLOCK_MESH, COLORMAP, PRESSURE, RESIDUAL, SPEED
-from fleetbrake.viz.timeline import (
-    log_events,
-    log_faulty_readings,
-    log_flags,
-    log_notes,
-    log_pressure,
-    log_residual,
-    log_speed,
-    log_temperatures,
-)
+from fleetbrake.viz.entities import COLORMAP
 
 __all__ = ["RecordSummary", "record", "wagon_config"]
 
@@ -133,7 +123,7 @@ def record(
     try:
         rec.save(partial)
         name = event_id if event_id is not None else f"{wagon_id} timeline"
-        counts = _log_recording(rec, name, data, block, notes, about)
+        counts = log_recording(rec, name, data, block=block, notes=notes, about=about)
         rec.flush()
         rec.disconnect()
         os.replace(partial, out_path)
@@ -217,43 +207,3 @@ def _claim(out_path: Path) -> Path:
             f"{out_path}: cannot write the recording: {error.strerror or error}"
         ) from None
     return partial
-
-
-def _log_recording(
-    rec: rr.RecordingStream,
-    name: str,
-    data: RecordData,
-    block: BlockField | None,
-    notes: list[str],
-    about: list[str],
-) -> dict[str, int]:
-    """Everything on the one timeline, each concern by its ``log_<thing>()``, with the
-    recording's name, start and layout. Returns the counts per entity path or concern."""
-    rec.set_log_time_enabled(False)
-    rec.set_log_tick_enabled(False)
-    rec.send_recording_name(f"{name} (revision {data.revision or 'none'})")
-    starts = [
-        t
-        for t in (
-            data.window[0] if data.window is not None else None,
-            frame_times(data.samples)[0] if data.samples.height else None,
-            instant(data.events["start_utc"][0]) if data.events.height else None,
-        )
-        if t is not None
-    ]
-    first = instant(starts[0]) if starts else np.datetime64(0, "ns")
-    rec.send_recording_start_time_nanos(int(first.astype(np.int64)))
-    rec.send_blueprint(blueprint(block_range_c=block.range_c if block else None))
-
-    counts: dict[str, int] = {}
-    counts[SPEED] = log_speed(rec, data.samples)
-    counts[PRESSURE] = log_pressure(rec, data.samples)
-    counts |= log_temperatures(rec, data.samples, data.predictions)
-    counts[RESIDUAL] = log_residual(rec, data.predictions)
-    counts["faulty_readings"] = log_faulty_readings(rec, data.samples)
-    counts["events"] = log_events(rec, data.events)
-    counts["flags"] = log_flags(rec, data.flags)
-    if block is not None:
-        counts[BLOCK_MESH] = log_block_field(rec, block)
-    counts["notes"] = log_notes(rec, first, notes) + log_notes(rec, first, about, level="INFO")
-    return counts

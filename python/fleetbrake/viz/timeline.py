@@ -1,5 +1,6 @@
 """The wagon's timeline logged to rerun: one ``log_<thing>()`` per concern (speed, pressure,
-temperatures, residual, events, flags, faulty readings, notes), each taking the recording
+temperatures, contact estimate, unexplained power, residual, events, flags, faulty readings,
+notes), each taking the recording
 stream and the frames of :mod:`fleetbrake.viz.data` and returning how much it logged.
 
 Series are sent with ``send_columns`` (a wagon-day is 86,400 samples); a line is broken
@@ -20,11 +21,17 @@ from fleetbrake.viz.data import frame_times, frame_values, instant
 from fleetbrake.viz.entities import (
     CONTACT_MAX,
     CONTACT_MEAN,
+    ESTIMATE_HI,
+    ESTIMATE_LO,
+    ESTIMATE_MEAN,
     LOG_EVENTS,
     LOG_FAULTY_READINGS,
     LOG_FLAGS,
     LOG_NOTES,
     MEASURED,
+    POWER,
+    POWER_HI,
+    POWER_LO,
     PREDICTED,
     PRESSURE,
     RESIDUAL,
@@ -40,6 +47,7 @@ from fleetbrake.viz.entities import (
 __all__ = [
     "GAP_S",
     "LEVELS",
+    "log_contact_estimate",
     "log_events",
     "log_faulty_readings",
     "log_flags",
@@ -48,6 +56,7 @@ __all__ = [
     "log_residual",
     "log_speed",
     "log_temperatures",
+    "log_unexplained_power",
 ]
 
 GAP_S = 10.0
@@ -65,8 +74,10 @@ _SEVERITY_COLORS = {"info": (90, 150, 230), "warning": (240, 170, 40), "alarm": 
 # Sending columns.
 
 
-def _style(rec: rr.RecordingStream, path: str, name: str, color: Sequence[int]) -> None:
-    rec.log(path, rr.SeriesLines(names=name, colors=[color], widths=1.5), static=True)
+def _style(
+    rec: rr.RecordingStream, path: str, name: str, color: Sequence[int], width: float = 1.5
+) -> None:
+    rec.log(path, rr.SeriesLines(names=name, colors=[color], widths=width), static=True)
 
 
 def _send_series(rec: rr.RecordingStream, path: str, times: Times, values: Floats) -> int:
@@ -182,6 +193,74 @@ def log_temperatures(
         ):
             counts[path] = _send_series(rec, path, times, frame_values(predictions, column))
     return counts
+
+
+_ESTIMATE_COLOR = (60, 200, 220)
+_POWER_COLOR = (250, 210, 60)
+_BAND_WIDTH = 0.6
+"""The 95 % bounds are drawn as thin lines of their estimate's colour (rerun's plots have no
+filled band)."""
+
+
+def _send_band(
+    rec: rr.RecordingStream,
+    estimates: pl.DataFrame,
+    lines: Sequence[tuple[str, str, str, Sequence[int], float]],
+) -> dict[str, int]:
+    """Each (path, column, name, colour, width) of ``estimates`` as a styled series."""
+    counts = dict.fromkeys((path for path, *_ in lines), 0)
+    for path, _, name, color, width in lines:
+        _style(rec, path, name, color, width)
+    if estimates.height == 0:
+        return counts
+    times = frame_times(estimates)
+    for path, column, *_ in lines:
+        counts[path] = _send_series(rec, path, times, frame_values(estimates, column))
+    return counts
+
+
+def log_contact_estimate(rec: rr.RecordingStream, estimates: pl.DataFrame) -> dict[str, int]:
+    """The virtual sensor's filtered estimate of the friction-face mean temperature
+    (``v_contact_estimates.contact_mean_c``: the model and the reading together) and its
+    95 % bounds, beside the open-loop prediction of :func:`log_temperatures`. Returns the
+    number of values logged per entity path."""
+    return _send_band(
+        rec,
+        estimates,
+        [
+            (ESTIMATE_MEAN, "contact_mean_c", "estimated contact mean (°C)", _ESTIMATE_COLOR, 1.5),
+            (
+                ESTIMATE_LO,
+                "contact_mean_lo_c",
+                "estimate, 95 % low (°C)",
+                _ESTIMATE_COLOR,
+                _BAND_WIDTH,
+            ),
+            (
+                ESTIMATE_HI,
+                "contact_mean_hi_c",
+                "estimate, 95 % high (°C)",
+                _ESTIMATE_COLOR,
+                _BAND_WIDTH,
+            ),
+        ],
+    )
+
+
+def log_unexplained_power(rec: rr.RecordingStream, estimates: pl.DataFrame) -> dict[str, int]:
+    """The heat power on the friction face that the declared inputs do not explain
+    (``unexplained_power_w``: a dragging brake heats with the cylinder released, a weak brake
+    heats less than declared) and its 95 % bounds, W, on their own plot. Returns the number of
+    values logged per entity path."""
+    return _send_band(
+        rec,
+        estimates,
+        [
+            (POWER, "unexplained_power_w", "unexplained power (W)", _POWER_COLOR, 1.5),
+            (POWER_LO, "unexplained_power_lo_w", "95 % low (W)", _POWER_COLOR, _BAND_WIDTH),
+            (POWER_HI, "unexplained_power_hi_w", "95 % high (W)", _POWER_COLOR, _BAND_WIDTH),
+        ],
+    )
 
 
 def log_residual(rec: rr.RecordingStream, predictions: pl.DataFrame) -> int:

@@ -8,17 +8,20 @@
 One loop, on the calling thread:
 
 * a watchdog observer on ``logs/`` (inotify; with ``poll_s`` the polling observer, for network
-  filesystems where inotify sees nothing) queues what happens to files; the
+  filesystems where inotify sees nothing) queues what happens to files and wakes the loop; the
   :class:`~fleetbrake.app.watch.landing.LandingTracker` decides which are complete;
 * a **rescan** at start and every ``rescan_s``: every file under ``logs/`` whose path, size or
   modification time the ingestion ledger does not hold is a candidate (events are lost while
   the service is down, or when the kernel's queue overflows);
-* a **unit** of work: once some files are complete and none is still being written, one
-  :func:`fleetbrake.app.run.run_fleet` over the fleet directory, exactly what ``fleetbrake run``
-  does (only new files are read; only the wagons they touch are simulated and flagged;
-  quarantine, late files, idempotence and the one-writer lock as there). The database is open
-  only during the unit, so that read-only connections of other processes (analysts' SQL) get
-  in between; when one holds the file, the unit is retried for up to ``wait_s`` seconds;
+* a **unit** of work: as soon as some files are complete, one
+  :func:`fleetbrake.app.run.run_fleet` restricted to exactly those files (``files=``; a file
+  still being written, or landing during the unit, is not read by it), otherwise exactly what
+  ``fleetbrake run`` does (only the wagons they touch are simulated and flagged; quarantine,
+  late files, idempotence and the one-writer lock as there). The database is open only during
+  the unit, so that read-only connections of other processes (analysts' SQL) get in between;
+  when one holds the file, the unit is retried for up to ``wait_s`` seconds;
+* the **engine** (``engine``/``workers``) is made and its workers started when the service
+  starts, and kept for every unit until it stops;
 * **stop** (the event set): the unit in progress finishes and commits, then the loop returns;
 * a **health line** every ``health_s`` (files processed, queue, last error), at info level;
 * for each file a unit processed, :class:`FileOutcome` to ``on_file``.
@@ -36,7 +39,7 @@ import random
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -61,7 +64,9 @@ if TYPE_CHECKING:
 
     from fleetbrake.app.run import RunReport
     from fleetbrake.engine import Engine
+    from fleetbrake.ingest.files import FileResult
     from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.viz.live import LiveTimelines
 
 __all__ = ["FileOutcome", "WatchConfig", "WatchError", "WatchReport", "watch_fleet"]
 
@@ -92,7 +97,8 @@ class WatchConfig:
     health_s: float = 60.0
     """A health line in the log this often."""
     tick_s: float = 0.25
-    """The loop's period: how often queued events and settling files are looked at."""
+    """The loop's period: how often settling files are looked at (an observer's event wakes
+    the loop at once), and how soon a stop is seen between units."""
     simulation: SimulationConfig | None = None
     """As ``run``'s (None: its defaults)."""
     flag_config_path: Path | None = None
@@ -104,6 +110,9 @@ class WatchConfig:
     1: in the service's own process)."""
     address: str | None = None
     """The Ray cluster of ``engine="ray"`` (None: a local one)."""
+    rerun: str | None = None
+    """A rerun viewer (``HOST:PORT`` or ``rerun+http://HOST:PORT/proxy``) each unit's new
+    timelines are streamed to (:mod:`fleetbrake.viz.live`); None: none."""
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:
@@ -187,10 +196,11 @@ class WatchReport:
 
 
 class _Queued(FileSystemEventHandler):
-    """Puts the observer's file events on a queue for the service's loop."""
+    """Puts the observer's file events on a queue for the service's loop, and wakes it."""
 
-    def __init__(self, events: queue.SimpleQueue[FileSystemEvent]) -> None:
+    def __init__(self, events: queue.SimpleQueue[FileSystemEvent], wake: threading.Event) -> None:
         self._events = events
+        self._wake = wake
 
     def on_any_event(self, event: FileSystemEvent) -> None:
         if isinstance(
@@ -204,6 +214,7 @@ class _Queued(FileSystemEventHandler):
             | DirMovedEvent,
         ):
             self._events.put(event)
+            self._wake.set()
 
 
 def _observer(poll_s: float | None) -> BaseObserver:
@@ -243,19 +254,16 @@ def _apply(tracker: LandingTracker, event: FileSystemEvent) -> None:
 # The service
 
 
-def _ledger(
-    db_path: Path, wait_s: float, *, every_status: bool = False
-) -> dict[str, tuple[int, int]] | None:
+def _ledger(db_path: Path, wait_s: float) -> dict[str, tuple[int, int]] | None:
     """Path -> (size, mtime_ns) of the files the ingestion ledger holds for good (those
     quarantined for a cause judged again at every run are left out, as every unit retries
-    them, unless ``every_status``); ``{}`` without a database, None when it could not be read
-    within ``wait_s``."""
+    them); ``{}`` without a database, None when it could not be read within ``wait_s``."""
     if not db_path.exists():
         return {}
     rows = _query(db_path, wait_s, "q_ingest_known_files")
     if rows is None:
         return None
-    retried = set() if every_status else {"registry", "unreadable", "error"}
+    retried = {"registry", "unreadable", "error"}
     # columns: path, file_id, sha256, size_bytes, mtime_ns, status, quarantine_code, ...
     return {row[0]: (int(row[3]), int(row[4])) for row in rows if row[6] not in retried}
 
@@ -294,6 +302,9 @@ class _Service:
         self.on_file = on_file
         self.tracker = LandingTracker(fleet_dir, config.settle_s)
         self.events: queue.SimpleQueue[FileSystemEvent] = queue.SimpleQueue()
+        self.wake = threading.Event()
+        """Set by the observer's thread with each event: the loop looks at once (a file
+        renamed into place goes to a unit without waiting for the next tick)."""
         self.report = WatchReport()
         self.began = time.monotonic()
         self.next_rescan = 0.0  # at once
@@ -301,18 +312,26 @@ class _Service:
         self.next_unit = 0.0
         self.pause_s = config.retry_s
         self._engine: Engine | None = None
+        self.live: LiveTimelines | None = None
+        """The live viewer of ``config.rerun``, from the service's start."""
         self.retaken: set[str] = set()
         """Files a unit read while they were still being written (see :meth:`_unit`)."""
 
     def engine(self) -> Engine:
-        """The engine every unit runs on, made at the first unit and kept (its workers
-        started once, not at every file)."""
+        """The engine every unit runs on, made at the service's start (its workers started
+        then, importing the stages' modules, while the service waits for the first file) and
+        kept for every unit, not started at each; remade after a unit that failed on it."""
+        from fleetbrake.app.run import STAGE_MODULES
         from fleetbrake.engine import make_engine
 
         if self._engine is None:
             self._engine = make_engine(
-                self.config.engine, self.config.workers, address=self.config.address
+                self.config.engine,
+                self.config.workers,
+                preload=STAGE_MODULES,
+                address=self.config.address,
             )
+            self._engine.start()
         return self._engine
 
     def _close_engine(self) -> None:
@@ -330,9 +349,13 @@ class _Service:
             raise WatchError(f"{logs}: cannot make the landing folder ({error})") from None
         import fleetbrake.app.run  # noqa: F401  (the units' code, imported before the first file)
 
-        self.engine()
+        self.engine()  # the workers start while nothing has landed yet
+        if self.config.rerun is not None:
+            from fleetbrake.viz.live import LiveTimelines
+
+            self.live = LiveTimelines(self.config.rerun)
         observer = _observer(self.config.poll_s)
-        observer.schedule(_Queued(self.events), str(logs), recursive=True)
+        observer.schedule(_Queued(self.events, self.wake), str(logs), recursive=True)
         try:
             observer.start()
         except OSError as error:
@@ -343,12 +366,15 @@ class _Service:
         logger.info("watching %s (%s), database %s", logs, how, self.db_path)
         try:
             while not self.stop.is_set():
+                self.wake.clear()
                 self._step(observer)
-                self.stop.wait(self.config.tick_s)
+                self.wake.wait(self.config.tick_s)  # a stop is seen within a tick
         finally:
             observer.stop()
             observer.join(timeout=5.0)
             self._close_engine()
+            if self.live is not None:
+                self.live.close()
             self.report.seconds = time.monotonic() - self.began
         logger.info("watch stopped: %s", self.report.line())
         return self.report
@@ -363,8 +389,7 @@ class _Service:
         if now >= self.next_rescan:
             self._rescan()
         self.tracker.refresh()
-        ready, writing = self.tracker.complete(), self.tracker.incomplete()
-        if ready and not writing and now >= self.next_unit:
+        if self.tracker.complete() and now >= self.next_unit:
             self._unit()
         if time.monotonic() >= self.next_health:
             self._health()
@@ -376,27 +401,17 @@ class _Service:
             except queue.Empty:
                 return
 
-    def _changed_since_read(self, paths: list[str]) -> set[str]:
-        """Those of ``paths`` whose size or modification time is no longer what the ledger
-        recorded when the unit read them (still being written then)."""
-        if not paths:
-            return set()
-        try:
-            ledger = _ledger(self.db_path, self.config.wait_s, every_status=True) or {}
-        except FleetbrakeError as error:
-            logger.warning("cannot check what the unit read: %s", error)
-            return set()
+    def _changed_since_read(self, results: list[FileResult]) -> set[str]:
+        """The paths of ``results`` whose size or modification time is no longer what the
+        ledger recorded when the unit read them (still being written then)."""
         changed: set[str] = set()
-        for path in paths:
+        for result in results:
             try:
-                stat = (self.fleet_dir / path).stat()
+                stat = (self.fleet_dir / result.path).stat()
             except OSError:
                 continue  # gone: nothing to take again
-            if ledger.get(path, (stat.st_size, stat.st_mtime_ns)) != (
-                stat.st_size,
-                stat.st_mtime_ns,
-            ):
-                changed.add(path)
+            if (result.size_bytes, result.mtime_ns) != (stat.st_size, stat.st_mtime_ns):
+                changed.add(result.path)
         return changed
 
     def _stored_outcome(self, relpath: str, seconds: float) -> None:
@@ -473,12 +488,15 @@ class _Service:
 
     # ---- a unit --------------------------------------------------------------------------
 
-    def _run_fleet(self) -> RunReport | None:
-        """One ``run_fleet``, retried while the database is held (for up to ``wait_s``);
-        None when stopped while waiting (nothing was written)."""
+    def _run_fleet(self, files: Collection[str]) -> RunReport | None:
+        """One ``run_fleet`` over exactly ``files`` (a file that lands meanwhile waits for
+        the next unit), retried while the database is held (for up to ``wait_s``; the first
+        retries soon, as a reader's query is short); None when stopped while waiting
+        (nothing was written)."""
         from fleetbrake.app.run import run_fleet
 
         deadline = time.monotonic() + self.config.wait_s
+        pause_s = 0.02
         while True:
             try:
                 return run_fleet(
@@ -489,19 +507,21 @@ class _Service:
                     flag_config_path=self.config.flag_config_path,
                     progress=False,
                     engine=self.engine(),
+                    files=files,
                 )
             except DatabaseLockedError:
                 if time.monotonic() >= deadline:
                     raise
                 logger.debug("%s is held by another process; trying again", self.db_path)
-            if self.stop.wait(random.uniform(0.1, 0.5)):
+            if self.stop.wait(random.uniform(pause_s, 2 * pause_s)):
                 return None
+            pause_s = min(2 * pause_s, 0.25)
 
     def _unit(self) -> None:
         began = time.monotonic()
         taken = {e.relpath for e in self.tracker.complete()}
         try:
-            report = self._run_fleet()
+            report = self._run_fleet(taken)
         except Exception as error:  # one unit's failure never stops the service
             if not self.fleet_dir.is_dir():
                 raise WatchError(f"{self.fleet_dir}: the fleet directory is gone") from None
@@ -522,16 +542,16 @@ class _Service:
         self.report.units += 1
         self.pause_s = self.config.retry_s
         self._drain()  # what happened during the unit, before its files are attributed
-        changed = self._changed_since_read([r.path for r in report.ingest.results])
+        changed = self._changed_since_read(report.ingest.results)
         flags = Counter(
             (flag.wagon_id, flag.kind) for flag in (report.flags.flags if report.flags else [])
         )
         for result in report.ingest.results:
             entry = self.tracker.get(result.path)
             if result.path in changed or (entry is not None and not entry.complete):
-                # landed after the check and read by the unit's scan while being written:
-                # it stays queued, and the next unit reads it again (its new bytes replace
-                # what was stored of it)
+                # written again after it was handed to the unit, which may have read it
+                # half-written: it stays queued, and the next unit reads it again (its new
+                # bytes replace what was stored of it)
                 logger.warning("%s: read while still being written; taken again", result.path)
                 self.tracker.writing(self.fleet_dir / result.path)
                 self.retaken.add(result.path)
@@ -568,6 +588,11 @@ class _Service:
             committed - began,
             ", ".join(f"{k} {v:.2f} s" for k, v in report.stage_s.items()),
         )
+        if self.live is not None:  # the new timelines to the live viewer (never raises)
+            results = report.ingest.results
+            self.live.after_unit(
+                self.db_path, [(r.path, r.wagon_id) for r in results if r.path not in self.retaken]
+            )
 
 
 def watch_fleet(
