@@ -1,0 +1,465 @@
+"""The fleets of the close loop's acceptance tests (issue 13, "Tests on fleets the pipeline did
+not make easy"), and what the tests measure on them.
+
+Each :class:`Case` is one small fleet (``WAGONS`` wagons x ``DAYS`` UTC days, the last day the
+holdout) written by ``fleetbrake.synth`` with the **full finite-element model** (``solver =
+"full"``, ``FE_REFINEMENT``), never by the reduced model the pipeline predicts and fits with;
+every anomaly and file fault on. A case holds one effect of the vocabulary whose law (among the
+laws the close loop can name) and parameters are drawn at random from the case's seed
+(:func:`draw_case_effect`: uniform in each law's ``PARAMETER_RANGES``), or no effect (the clean
+fleet), or an effect outside the vocabulary (sunshine by the hour of day,
+``SynthConfig.solar_heating_w_m2``, its peak drawn from ``SOLAR_PEAK_W_M2``).
+
+:func:`make_outcome` generates a case, runs the pipeline on it (``run``: declared model, flags)
+and the close loop, and returns an :class:`Outcome` holding everything the tests assert on; the
+measures are plain functions of the database and the generator's truth:
+:func:`holdout_rmse_against_truth`, :func:`report_vs_predictions`, :func:`flag_score`.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import duckdb
+import numpy as np
+import polars as pl
+
+from fleetbrake.app.run import run_fleet
+from fleetbrake.closeloop.loop import CloseLoopConfig, run_close_loop
+from fleetbrake.model.effects import LAWS, Effect, EffectSet, effect_from_dict
+from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.synth.config import draw_effect
+from fleetbrake.synth.generator import FleetTruth, SynthConfig, generate_fleet, load_truth
+
+WAGONS = 4
+"""Registered wagons per fleet (with 4: wagon 1 clean, a dragging brake on 2, a weak brake on
+3, the four sensor faults on 2-4; plus synth's unregistered and badly registered wagons)."""
+DAYS = 3
+"""UTC days per fleet: two fit days, the last one the holdout."""
+FE_REFINEMENT = 0.2
+"""The full model's mesh that writes the fleets (409 hex20 nodes, as ``test_closeloop``): not
+the reduced model's mesh either (``conftest.TEST_REFINEMENT``)."""
+NOISE_K = 0.1
+"""The sensor noise the fleets are read with (``SynthConfig.sensor_noise_k``'s default)."""
+SOLAR_PEAK_W_M2 = (40.0, 90.0)
+"""Range of the absorbed sunshine's noon peak of the out-of-vocabulary fleet: a sol-air rise
+of 4-9 K at noon on the block's air-cooled faces (``q / h0``, h0 10 W/m^2 K)."""
+
+ANOMALY_KINDS = ("dragging_brake", "weak_brake", "sensor_fault")
+"""The flag kinds the generator injects as anomalies (``overheating`` is a limit, not an
+anomaly: it is not scored)."""
+
+VOCABULARY = (
+    "friction_speed",
+    "friction_temperature",
+    "convection_speed",
+    "sensor_lag",
+    "heat_partition",
+    "holder_conduction",
+    "ambient_offset",
+)
+"""The physical vocabulary of ``interface.md`` (``empirical``, a fitting device, excluded)."""
+
+
+@dataclass(frozen=True)
+class Case:
+    """One acceptance fleet: ``effect`` (a vocabulary name, or None) or, with
+    ``outside_vocabulary``, sunshine by the hour of day; everything random drawn from ``seed``."""
+
+    name: str
+    seed: int
+    effect: str | None = None
+    outside_vocabulary: bool = False
+
+
+CASES: tuple[Case, ...] = (
+    *(Case(name, seed=301 + i, effect=name) for i, name in enumerate(VOCABULARY)),
+    Case("clean", seed=311),
+    Case("hour_of_day", seed=313, outside_vocabulary=True),
+)
+
+
+def candidate_laws(name: str) -> list[type[Effect]]:
+    """The laws of ``name`` the close loop can name and fit (``candidate``, not ``fallback``)."""
+    return [cls for cls in LAWS[name] if cls.candidate and not cls.fallback]
+
+
+def draw_case_effect(case: Case) -> Effect | None:
+    """The case's effect: a law drawn among :func:`candidate_laws`, its parameters drawn by
+    ``fleetbrake.synth.config.draw_effect`` (uniform in the law's ``PARAMETER_RANGES``), both
+    from the case's seed."""
+    if case.effect is None:
+        return None
+    laws = candidate_laws(case.effect)
+    law = laws[int(np.random.default_rng(case.seed).integers(len(laws)))]
+    return draw_effect(f"{case.effect}:law={law.law}", case.seed)
+
+
+def synth_config(case: Case) -> SynthConfig:
+    effect = draw_case_effect(case)
+    solar = 0.0
+    if case.outside_vocabulary:
+        solar = round(float(np.random.default_rng(case.seed).uniform(*SOLAR_PEAK_W_M2)), 1)
+    return SynthConfig(
+        wagons=WAGONS,
+        days=DAYS,
+        seed=case.seed,
+        effects=EffectSet((effect,)) if effect is not None else EffectSet(),
+        anomalies=True,
+        sensor_noise_k=NOISE_K,
+        solver="full",
+        refinement=FE_REFINEMENT,
+        solar_heating_w_m2=solar,
+    )
+
+
+@dataclass
+class Outcome:
+    """A case generated, run and closed: the truth, the database, the report, and timings."""
+
+    case: Case
+    truth: FleetTruth
+    db: Path
+    report: dict[str, Any]
+    holdout_from: dt.date
+    loop: CloseLoopConfig
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def make_outcome(
+    case: Case,
+    out_dir: Path,
+    full_model_for: Callable[..., Any],
+    rom_refinement: float,
+) -> Outcome:
+    """Generate ``case`` in ``out_dir`` with the full model, ``run`` it (reduced model at
+    ``rom_refinement``, in this process), then close the loop with the holdout on the last day."""
+    config = synth_config(case)
+    seconds: dict[str, float] = {}
+    began = time.perf_counter()
+    truth = generate_fleet(out_dir / "fleet", config, rom=full_model_for)
+    seconds["generate"] = time.perf_counter() - began
+    db = out_dir / "fleet.duckdb"
+    simulation = SimulationConfig(refinement=rom_refinement)
+    began = time.perf_counter()
+    run_fleet(out_dir / "fleet", db, simulation=simulation, progress=False, workers=1)
+    seconds["run"] = time.perf_counter() - began
+    holdout = config.start + dt.timedelta(days=config.days - 1)
+    loop = CloseLoopConfig(holdout, simulation=simulation)
+    out = out_dir / "close-loop.json"
+    began = time.perf_counter()
+    report = run_close_loop(db, holdout, out, config=loop)
+    seconds["close_loop"] = time.perf_counter() - began
+    # the report on disk is the one returned
+    assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=str))
+    return Outcome(case, truth, db, report, holdout, loop, seconds)
+
+
+def outcome_in(case: Case, out_dir: Path, rom_refinement: float) -> Outcome:
+    """The outcome :func:`make_outcome` left in ``out_dir``, read back (to measure a kept
+    fleet again without generating and closing it again)."""
+    truth = load_truth(out_dir / "fleet")
+    report = json.loads((out_dir / "close-loop.json").read_text(encoding="utf-8"))
+    holdout = truth.config.start + dt.timedelta(days=truth.config.days - 1)
+    loop = CloseLoopConfig(holdout, simulation=SimulationConfig(refinement=rom_refinement))
+    return Outcome(case, truth, out_dir / "fleet.duckdb", report, holdout, loop)
+
+
+# ------------------------------------------------------------------------------ measures
+
+
+def fitted_effects(report: Mapping[str, Any]) -> list[Effect]:
+    """The effects the report says were added (``effects``, each with its law; else read from
+    ``effect`` and ``parameters`` by the parameter names)."""
+    if report.get("new_revision") is None:
+        return []
+    if report.get("effects"):
+        return [effect_from_dict(d) for d in report["effects"]]
+    names = str(report["effect"]).split("+")
+    if len(names) != 1:
+        raise AssertionError(f"several effects and no per-effect parameters: {report['effect']}")
+    return [effect_from_dict({"name": names[0], "parameters": report["parameters"]})]
+
+
+def interval_misses(
+    truth: Effect, intervals: Mapping[str, Sequence[float | None]]
+) -> dict[str, tuple[float, Any]]:
+    """The true parameters of ``truth`` whose reported interval does not contain them (or that
+    have no interval): name -> (true value, interval). ``None`` is an unbounded side."""
+    misses: dict[str, tuple[float, Any]] = {}
+    for name, value in truth.parameters.items():
+        interval = intervals.get(name)
+        if interval is None or len(interval) != 2:
+            misses[name] = (value, interval)
+            continue
+        lo, hi = interval
+        if not ((lo is None or lo <= value) and (hi is None or value <= hi)):
+            misses[name] = (value, interval)
+    return misses
+
+
+def _connect(db: Path) -> duckdb.DuckDBPyConnection:
+    return duckdb.connect(str(db), read_only=True)
+
+
+def event_sets(outcome: Outcome) -> dict[str, dict[str, list[str]]]:
+    """The fit and holdout event ids by the report's documented exclusion rule (an event whose
+    window overlaps a dragging/weak brake or sensor-fault flag of its wagon, or the window of
+    one of its events cut by a data gap, or starts within ``settle_after_flag_s`` after one
+    ends, is left out), computed from the views: ``{"used": {...}, "every": {...}}``."""
+    con = _connect(outcome.db)
+    try:
+        frame = con.sql(
+            """
+            WITH windows AS (
+                SELECT event_id, wagon_id, min(time_utc) AS t0, max(time_utc) AS t1
+                FROM v_predictions WHERE model_revision = $base GROUP BY ALL
+            )
+            , disturbances AS (
+                SELECT wagon_id, start_utc AS d0, end_utc AS d1 FROM v_flags
+                WHERE kind IN ('dragging_brake', 'weak_brake', 'sensor_fault')
+                UNION ALL
+                SELECT w.wagon_id, w.t0, w.t1 FROM windows w JOIN events e USING (event_id)
+                WHERE NOT e.complete
+            )
+            SELECT w.event_id, e.start_utc, EXISTS (
+                SELECT 1 FROM disturbances d WHERE d.wagon_id = w.wagon_id
+                AND d.d0 <= w.t1 AND d.d1 + to_microseconds($settle_us) >= w.t0
+            ) AS flagged
+            FROM windows w JOIN v_events e USING (event_id)
+            """,
+            params={
+                "base": outcome.report["baseline_revision"],
+                "settle_us": round(outcome.loop.settle_after_flag_s * 1e6),
+            },
+        ).pl()
+    finally:
+        con.close()
+    cutoff = dt.datetime.combine(outcome.holdout_from, dt.time())
+    before = pl.col("start_utc") < cutoff
+    clean = frame.filter(~pl.col("flagged"))
+    return {
+        "used": {
+            "fit": clean.filter(before)["event_id"].to_list(),
+            "holdout": clean.filter(~before)["event_id"].to_list(),
+        },
+        "every": {
+            "fit": frame.filter(before)["event_id"].to_list(),
+            "holdout": frame.filter(~before)["event_id"].to_list(),
+        },
+    }
+
+
+def rmse_measured(db: Path, revision: str, event_ids: Sequence[str]) -> float | None:
+    """RMSE of measured - predicted sensor over these events' seconds with a valid reading."""
+    if not event_ids:
+        return None
+    con = _connect(db)
+    try:
+        con.register("ids", pl.DataFrame({"event_id": list(event_ids)}, schema={"event_id": str}))
+        ((value,),) = con.execute(
+            "SELECT sqrt(avg(power(measured_sensor_c - predicted_sensor_c, 2))) "
+            "FROM v_predictions WHERE model_revision = $rev "
+            "AND measured_sensor_c IS NOT NULL AND event_id IN (SELECT event_id FROM ids)",
+            {"rev": revision},
+        ).fetchall()
+    finally:
+        con.close()
+    return None if value is None else float(value)
+
+
+def report_vs_predictions(outcome: Outcome) -> list[str]:
+    """Every figure of the report's ``fit``/``holdout`` parts that differs from what
+    ``v_predictions`` gives for the same events (empty: they agree to 1e-9)."""
+    report = outcome.report
+    sets = event_sets(outcome)
+    base = report["baseline_revision"]
+    after = report["new_revision"] or base
+    problems = []
+    for key in ("fit", "holdout"):
+        part = report[key]
+        for count, ids in (("events", sets["used"][key]), ("events_all", sets["every"][key])):
+            if part.get(count) != len(ids):
+                problems.append(f"{key}.{count}: report {part.get(count)}, views {len(ids)}")
+        for field_name, rev, ids in (
+            ("rmse_before_k", base, sets["used"][key]),
+            ("rmse_after_k", after, sets["used"][key]),
+            ("rmse_before_all_k", base, sets["every"][key]),
+            ("rmse_after_all_k", after, sets["every"][key]),
+        ):
+            value = rmse_measured(outcome.db, rev, ids)
+            stated = part.get(field_name)
+            same = (
+                stated is None
+                if value is None
+                else stated is not None and abs(stated - value) <= 1e-9 * max(abs(value), 1e-12)
+            )
+            if not same:
+                problems.append(f"{key}.{field_name}: report {stated}, views {value}")
+    return problems
+
+
+def holdout_rmse_against_truth(outcome: Outcome, revision: str) -> float:
+    """RMSE of ``revision``'s predicted sensor against the generator's noise-free sensor over
+    the holdout events the report uses (every second of their windows)."""
+    ids = event_sets(outcome)["used"]["holdout"]
+    if not ids:
+        raise AssertionError(f"{outcome.case.name}: no holdout event left to judge")
+    con = _connect(outcome.db)
+    try:
+        con.register("ids", pl.DataFrame({"event_id": ids}, schema={"event_id": str}))
+        pred = con.sql(
+            "SELECT wagon_id, time_utc, predicted_sensor_c FROM v_predictions "
+            "WHERE model_revision = $rev AND event_id IN (SELECT event_id FROM ids)",
+            params={"rev": revision},
+        ).pl()
+    finally:
+        con.close()
+    errors = []
+    for (wagon_id,), part in pred.partition_by("wagon_id", as_dict=True).items():
+        series = outcome.truth.series(str(wagon_id)).select(
+            pl.col("time_utc").dt.cast_time_unit("us"), "sensor_c"
+        )
+        joined = part.with_columns(pl.col("time_utc").dt.cast_time_unit("us")).join(
+            series, on="time_utc"
+        )
+        errors.append((joined["predicted_sensor_c"] - joined["sensor_c"]).to_numpy())
+    e = np.concatenate(errors)
+    return float(np.sqrt(np.mean(e * e)))
+
+
+@dataclass
+class FlagScore:
+    flags: int
+    true_flags: int
+    anomalies: int
+    found: int
+    misses: list[str]
+    by_kind: dict[str, tuple[int, int, int, int]]
+    """kind -> (flags, true flags, observable anomalies, found)."""
+
+    @property
+    def precision(self) -> float:
+        return self.true_flags / self.flags if self.flags else 1.0
+
+    @property
+    def recall(self) -> float:
+        return self.found / self.anomalies if self.anomalies else 1.0
+
+
+def _overlaps(flag: Mapping[str, Any], anomaly: Any) -> bool:
+    return bool(
+        flag["wagon_id"] == anomaly.wagon_id
+        and flag["kind"] == anomaly.kind
+        and flag["start_utc"] < anomaly.end_utc
+        and anomaly.start_utc < flag["end_utc"]
+    )
+
+
+def flag_score(outcome: Outcome) -> FlagScore:
+    """The stored flags (judged with the revision the loop left current) against the
+    generator's injected anomalies. A flag is true when it overlaps an anomaly of its kind on
+    its wagon; an anomaly counts for the recall when the data can show it (a sensor fault with
+    at least a minute of ingested samples in it, a brake anomaly with 5 minutes outside its
+    wagon's sensor faults)."""
+    con = _connect(outcome.db)
+    try:
+        flags = con.sql(
+            "SELECT flag_id, wagon_id, kind, start_utc, end_utc, evidence FROM v_flags "
+            "WHERE kind IN ('dragging_brake', 'weak_brake', 'sensor_fault') ORDER BY start_utc"
+        ).pl()
+        anomalies = outcome.truth.anomalies
+        observable = []
+        for a in anomalies:
+            query = (
+                "SELECT count(*) FROM samples WHERE wagon_id = $w "
+                "AND time_utc >= $a AND time_utc < $b"
+            )
+            params: dict[str, Any] = {"w": a.wagon_id, "a": a.start_utc, "b": a.end_utc}
+            if a.kind != "sensor_fault":
+                for k, other in enumerate(anomalies):
+                    if other.kind == "sensor_fault" and other.wagon_id == a.wagon_id:
+                        query += f" AND NOT (time_utc >= $s{k} AND time_utc < $e{k})"
+                        params.update({f"s{k}": other.start_utc, f"e{k}": other.end_utc})
+            ((count,),) = con.execute(query, params).fetchall()
+            if count >= (60 if a.kind == "sensor_fault" else 300):
+                observable.append(a)
+    finally:
+        con.close()
+    rows = flags.to_dicts()
+    misses = []
+    by_kind: dict[str, list[int]] = {k: [0, 0, 0, 0] for k in ANOMALY_KINDS}
+    true_flags = 0
+    for f in rows:
+        ok = any(_overlaps(f, a) for a in anomalies)
+        true_flags += ok
+        by_kind[f["kind"]][0] += 1
+        by_kind[f["kind"]][1] += ok
+        if not ok:
+            misses.append(f"false {f['kind']} {f['wagon_id']}: {f['evidence']}")
+    found = 0
+    for a in observable:
+        hit = any(_overlaps(f, a) for f in rows)
+        found += hit
+        by_kind[a.kind][2] += 1
+        by_kind[a.kind][3] += hit
+        if not hit:
+            misses.append(
+                f"missed {a.kind} {a.subtype or ''} {a.wagon_id} {a.start_utc}..{a.end_utc}"
+            )
+    return FlagScore(
+        flags=len(rows),
+        true_flags=true_flags,
+        anomalies=len(observable),
+        found=found,
+        misses=misses,
+        by_kind={k: (v[0], v[1], v[2], v[3]) for k, v in by_kind.items()},
+    )
+
+
+def summary_row(outcome: Outcome) -> dict[str, Any]:
+    """What the acceptance table shows for a case (each figure None when it cannot be had)."""
+    report = outcome.report
+    truth = draw_case_effect(outcome.case)
+    row: dict[str, Any] = {
+        "case": outcome.case.name,
+        "truth": truth.to_dict() if truth is not None else None,
+        "solar_w_m2": outcome.truth.config.solar_heating_w_m2 or None,
+        "named": report.get("effect"),
+        "fitted": [e.to_dict() for e in _quiet(lambda: fitted_effects(report), [])],
+        "intervals": report.get("parameter_intervals"),
+        "noise_k": report.get("noise_k"),
+        "adequate": report.get("adequate"),
+        "unexplained": report.get("unexplained"),
+        "fit_rmse_k": [report["fit"].get("rmse_before_k"), report["fit"].get("rmse_after_k")],
+        "seconds": {k: round(v, 1) for k, v in outcome.seconds.items()},
+    }
+    row["holdout_truth_rmse_k"] = [
+        _quiet(lambda rev=rev: round(holdout_rmse_against_truth(outcome, rev), 4), None)
+        for rev in (report["baseline_revision"], report.get("new_revision"))
+        if rev is not None
+    ]
+    score = _quiet(lambda: flag_score(outcome), None)
+    if not isinstance(score, FlagScore):
+        row["flags"] = score
+    else:
+        row["flags"] = {
+            "precision": round(score.precision, 3),
+            "recall": round(score.recall, 3),
+            "by_kind": score.by_kind,
+            "misses": score.misses,
+        }
+    return row
+
+
+def _quiet(make: Callable[[], Any], default: Any) -> Any:
+    try:
+        return make()
+    except Exception as exc:  # a summary never hides the test's own failure
+        return default if default is not None else f"error: {exc!r}"
