@@ -167,3 +167,93 @@ def bench_fleet_command(
     print_figures(figures, typer.echo)
     if json_out:
         typer.echo(json.dumps(figures))
+
+
+@bench_app.command("close-loop")
+def bench_close_loop_command(
+    json_out: JsonFlag = False,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 10,
+    days: Annotated[int, typer.Option("--days", help="UTC days (the last held out).")] = 4,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 7,
+    effect: Annotated[
+        str, typer.Option("--effect", help="The fleet's undeclared effect, NAME[:k=v,...].")
+    ] = "convection_speed:gain=2.0,exponent=0.8",
+    workdir: WorkdirOption = None,
+    fleet_dir: BenchFleetOption = None,
+    refinement: RefinementOption = 1.0,
+    workers: WorkersOption = None,
+    engine: Annotated[
+        str, typer.Option("--engine", help="close-loop's --engine: local, inline or ray.")
+    ] = "local",
+    address: AddressOption = None,
+) -> None:
+    """The whole `fleetbrake close-loop` command timed on a generated fleet with an undeclared
+    effect and anomalies (generation and `run` not timed): seconds, candidates fitted, kernel
+    calls, what it found."""
+    from fleetbrake.bench.closeloop import bench_close_loop, print_figures
+
+    with blas_single_thread():
+        figures = bench_close_loop(
+            wagons,
+            days,
+            seed=seed,
+            effect=effect,
+            workdir=workdir,
+            fleet_dir=fleet_dir,
+            refinement=refinement,
+            engine=engine,
+            workers=workers,
+            address=address,
+        )
+    print_figures(figures, typer.echo)
+    if json_out:
+        typer.echo(json.dumps(figures))
+
+
+@bench_app.command("watch")
+def bench_watch_command(
+    json_out: JsonFlag = False,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 4,
+    history_days: Annotated[
+        int, typer.Option("--history-days", help="Days of history run before the service starts.")
+    ] = 1,
+    files: Annotated[
+        int, typer.Option("--files", help="One-hour session files dropped into logs/.")
+    ] = 20,
+    rate: Annotated[
+        float, typer.Option("--rate", help="Files dropped per minute, at a steady pace.")
+    ] = 12.0,
+    idle_s: Annotated[
+        float, typer.Option("--idle", help="Seconds the idle service's CPU is measured over.")
+    ] = 10.0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 0,
+    workdir: WorkdirOption = None,
+    refinement: RefinementOption = 1.0,
+    workers: WorkersOption = None,
+    engine: EngineOption = "local",
+    service_log: Annotated[
+        Path | None, typer.Option("--service-log", help="Keep the service's log in this file.")
+    ] = None,
+) -> None:
+    """`fleetbrake watch` as a user runs it: one-hour files dropped at a steady rate into a
+    fleet with history; per file, the seconds from its rename into place to its flags being
+    queryable from another process; p50, p95, max, and the service's idle CPU."""
+    from fleetbrake.bench.watch import bench_watch, print_figures
+
+    figures = bench_watch(
+        wagons=wagons,
+        history_days=history_days,
+        files=files,
+        rate_per_min=rate,
+        idle_s=idle_s,
+        seed=seed,
+        workdir=workdir,
+        refinement=refinement,
+        workers=workers,
+        engine=engine,
+        service_log=service_log,
+        echo=typer.echo,
+    )
+    print_figures(figures, typer.echo)
+    if json_out:
+        typer.echo(json.dumps(figures))

@@ -202,20 +202,33 @@ def close_loop_command(
     json_out: Annotated[Path, typer.Option("--json", help="Where to write the JSON report.")],
     db: DbOption = DEFAULT_DB,
     wait_s: WaitOption = 0.0,
+    engine: Annotated[
+        str,
+        typer.Option(
+            "--engine",
+            help="Where candidates are fitted and the new revision simulated: local (worker "
+            "processes on this machine, default); inline (this process); ray (Ray tasks: pip "
+            'install "fleetbrake[ray]").',
+        ),
+    ] = "local",
+    workers: WorkersOption = None,
+    address: AddressOption = None,
 ) -> None:
     """Find the effect the model lacks, add it as a new model revision, and report.
 
     Compares predictions with measurements, fits the effect on the events before the
     holdout date, records the new model revision, re-simulates, and writes the report. The last line of stdout is one JSON summary (the report itself is in --json's file).
-    Exit 1 when the database cannot be used for it, 2 for a bad --holdout-from, 75 when
-    another process is writing the database.
+    Exit 1 when the database cannot be used for it, 2 for a bad --holdout-from, --engine or
+    --workers, 75 when another process is writing the database.
     """
     from fleetbrake.app.progress import spinner
     from fleetbrake.closeloop.loop import run_close_loop
 
     holdout = _holdout_date(holdout_from)
     with spinner("finding the effect the model lacks", global_options(ctx).progress):
-        report = run_close_loop(db, holdout, json_out, wait_s=wait_s)
+        report = run_close_loop(
+            db, holdout, json_out, wait_s=wait_s, engine=engine, workers=workers, address=address
+        )
     print_close_loop(report, json_out)
     echo_json(close_loop_summary(report, json_out))
 
@@ -284,9 +297,28 @@ def synth_command(
         typer.Option(
             "--effect",
             help="Undeclared effect acting on every wagon, NAME[:k=v,...] (repeatable), e.g. "
-            "convection_speed:gain=2,exponent=0.8 or sensor_lag:tau_s=40.",
+            "convection_speed:gain=2,exponent=0.8 or sensor_lag:tau_s=40; a law other than "
+            "the first with law=LAW, e.g. convection_speed:law=flat_plate,multiplier=0.5.",
         ),
     ] = None,
+    random_effect: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--random-effect",
+            help="Undeclared effect with its parameters drawn at random (from --seed) within "
+            "its law's physical ranges, NAME or NAME:law=LAW (repeatable), e.g. "
+            "friction_speed or convection_speed:law=flat_plate; never empirical.",
+        ),
+    ] = None,
+    solar_heating: Annotated[
+        float,
+        typer.Option(
+            "--solar-heating",
+            help="An effect OUTSIDE the vocabulary (to see the close loop say 'not adequate'): "
+            "sunshine absorbed by the block, W/m^2 at noon UTC, following the hour of day "
+            "(sol-air temperature of its air-cooled faces); 0 = none.",
+        ),
+    ] = 0.0,
     anomalies: Annotated[
         bool,
         typer.Option(
@@ -326,12 +358,16 @@ def synth_command(
     """
     from fleetbrake.app.progress import generation_bar
     from fleetbrake.model.effects import EffectSet, parse_effect
+    from fleetbrake.synth.config import draw_effect
     from fleetbrake.synth.generator import SynthConfig, generate_fleet, summary
 
     if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
         raise OutputDirError(f"{out_dir}: not empty; give a new or empty directory")
     with option_values("--effect"):
         effects = EffectSet(tuple(parse_effect(text) for text in effect or []))
+    with option_values("--random-effect"):
+        for index, text in enumerate(random_effect or []):
+            effects = EffectSet((*effects, draw_effect(text, seed, index)))
     with option_values("--start"):
         first_day = dt.date.fromisoformat(start)
     make = SynthConfig if imperfections else SynthConfig.clean
@@ -346,6 +382,7 @@ def synth_command(
             gzip_fraction=gzip_fraction,
             refinement=refinement,
             solver=cast(Literal["rom", "full"], solver),  # SynthConfig checks the value
+            solar_heating_w_m2=solar_heating,
         )
     total = config.wagons + int(config.unregistered_wagon) + int(config.bad_registry_entry)
     began = time.perf_counter()

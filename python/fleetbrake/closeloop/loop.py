@@ -12,21 +12,35 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
 2. **Residual.** measured - predicted sensor temperature, per second, of the current
    revision on the fit events: how it relates to speed, pressure, the predicted heating,
    ambient, time since activation and the phase (heating or cooling) is the evidence.
-   The sensor noise is estimated from the residual itself (``std(diff) / sqrt(2)``: model
+   The sensor noise is estimated from the residual itself (its second differences within
+   each event window, :func:`~fleetbrake.closeloop.selection.noise_from_residual`: model
    errors are smooth, the thermistor's noise is white).
-3. **Candidates.** Every effect of :mod:`fleetbrake.model.effects` (or those of
-   ``CloseLoopConfig.candidates``), acting where it acts physically, its parameters fitted by
-   bounded least squares on the per-second residual of the fit events (each evaluation
-   re-simulates them, carried state and all, with the baseline revision's solver; each is
-   compared with the starting point second by second, matched by event and second, so that a
-   candidate losing a prediction is not scored on shifted seconds); then, when one effect
-   leaves the fit clearly above the noise, pairs with the best.
-4. **Choice** (never looks at the holdout): the Bayesian information criterion on an
-   effective sample size (one independent residual per ``CORRELATION_S`` seconds: the
-   residual of a missing effect is smooth, so the seconds are far from independent). A
-   candidate must beat the current revision by ``bic_margin`` (a pair must also beat the
-   best single effect by it) and cut the fit RMSE by ``min_improvement``; otherwise nothing
-   is added and the report says so.
+3. **Candidates.** The fit events are cached as arrays once
+   (:class:`~fleetbrake.closeloop.fitdata.FitData`: the chains' pieces and declared loading;
+   an evaluation applies the effects in numpy and runs each span's chain in one kernel call,
+   the same predictions as the simulation stage's). Every effect of
+   :mod:`fleetbrake.model.effects` (or those of ``CloseLoopConfig.candidates``; a
+   ``fallback`` law such as ``empirical`` only last, when nothing physical is adequate),
+   acting where it acts physically, has its parameters fitted by bounded least squares (trf)
+   on the per-second residual, the forward-difference Jacobian's perturbed vectors evaluated
+   together; each evaluation is scored on the starting point's seconds (where a candidate
+   predicts nothing, the start's residual), carried state and all, with the baseline
+   revision's solver. Candidates are fitted in parallel on the engine's workers (the data
+   read by each worker once): first on the screening events (the earliest of each wagon:
+   short chains), the best then on every fit event from its screened parameters (the next
+   ones, up to ``refit``, too when within ``bic_margin`` of it); when the best leaves the fit
+   clearly above the noise, pairs seeded from it. Fit events whose residual under the best
+   screened effect is far above the bulk (data the flags missed) are left out of every fit
+   on the fit events and of the verdict as outliers (report: ``outliers``).
+4. **Choice** (never looks at the holdout): the Bayesian information criterion on the
+   effective sample size of the baseline residual
+   (:func:`~fleetbrake.closeloop.selection.effective_sample_size`: its autocorrelation
+   within wagon-days; the residual of a missing effect is smooth, so the seconds are far
+   from independent). A candidate must beat the current revision by ``bic_margin`` (a pair
+   must also beat the best single effect by it) and cut the fit RMSE by
+   ``min_improvement``; otherwise nothing is added and the report says so. The chosen
+   model's residual is judged against the noise (``adequate``, ``unexplained``) and its
+   parameters get 95 % intervals from the Jacobian (``parameter_intervals``).
 5. **Revision.** The chosen effects become a new model revision (the current one, predicting
    with its parent's solver: before and after compare one model form), every
    event is re-simulated with it, the flags are judged again with it (the baseline's flags
@@ -43,25 +57,45 @@ import datetime as dt
 import json
 import logging
 import math
+import tempfile
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import polars as pl
 
+from fleetbrake.closeloop import fitdata
+from fleetbrake.closeloop.fitdata import FitData
+from fleetbrake.closeloop.selection import (
+    Adequacy,
+    SelectionError,
+    adequacy,
+    effective_sample_size,
+    event_rms,
+    information_criterion,
+    intervals_for_json,
+    noise_from_residual,
+    outlier_events,
+    parameter_intervals,
+)
+from fleetbrake.engine import Engine, InlineEngine, LocalEngine, make_engine
 from fleetbrake.errors import ConfigError, FleetbrakeError
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.effects import EFFECT_ORDER, EFFECTS, Effect, EffectSet
+from fleetbrake.simulation.estimates import (
+    EstimationConfig,
+    estimate_wagons,
+    fit_revision_noise,
+)
 from fleetbrake.simulation.predictions import (
     Revision,
     SimulationConfig,
     WagonData,
     current_revision,
     load_wagon,
-    model_for,
-    predict_wagon,
     simulate_events,
     stored_wagons,
 )
@@ -77,8 +111,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-CORRELATION_S = 30.0
-"""Seconds per independent residual in the information criterion."""
 
 ANOMALY_KINDS = ("dragging_brake", "weak_brake", "sensor_fault")
 
@@ -103,10 +135,14 @@ class CloseLoopConfig:
     """Try pairs of effects when the best single leaves the fit RMSE above this many times
     the estimated sensor noise."""
     max_nfev: int = 14
-    """Model evaluations per parameter fit (each re-simulates the fit events)."""
+    """Model evaluations per parameter fit (each re-simulates the fit events; the Jacobian's
+    perturbed vectors not counted)."""
+    diff_step: float = 0.05
+    """Relative forward-difference step of the Jacobian (above ``H_QUANTUM_W_M2K``'s rounding
+    of a varying convection)."""
     screen_events: int = 60
-    """Candidates are first fitted on at most this many fit events (spread evenly over the
-    fit period); the best ones are then refitted on all of them."""
+    """Candidates are first fitted on at most this many fit events (the earliest of each
+    wagon in turn: their chains are short); the best ones are then refitted on all of them."""
     refit: int = 2
     """How many of the screened candidates are refitted on every fit event."""
     reflag: bool = True
@@ -117,6 +153,17 @@ class CloseLoopConfig:
     """Events starting less than this after the end of a brake or sensor-fault flag of their
     wagon are left out: the state carried out of the anomaly is still off (a weak braking
     leaves the simulated block ~0.8 K too warm at the sensor 25 min later)."""
+    outlier_noise_factor: float = 5.0
+    """Events whose residual RMS under the best screened single effect is above this many
+    times the sensor noise ..."""
+    outlier_z: float = 5.0
+    """... and this many robust standard deviations above the events' median are left out of
+    the fit as outliers (:func:`~fleetbrake.closeloop.selection.outlier_events`)."""
+    max_outlier_fraction: float = 0.05
+    """At most this share of the fit events is left out as outliers (0: none)."""
+    refit_changed_fraction: float = 0.02
+    """After re-flagging, the effect is refitted only when the fit set changed by at least
+    this share of its events."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
@@ -133,7 +180,12 @@ class CloseLoopConfig:
     def candidate_classes(self) -> tuple[type[Effect], ...]:
         """The effect classes to try, in :data:`EFFECT_ORDER`."""
         wanted = set(EFFECTS) if self.candidates is None else set(self.candidates)
-        return tuple(cls for cls in EFFECT_ORDER if cls.name in wanted)
+        # a fallback (``empirical``) only when named: the method tries it last
+        return tuple(
+            cls
+            for cls in EFFECT_ORDER
+            if cls.name in wanted and (self.candidates is not None or not cls.fallback)
+        )
 
 
 @dataclass
@@ -143,6 +195,9 @@ class Candidate:
     bic: float
     n_parameters: int
     rmse_holdout_k: float | None = None
+    fitted: FitResult | None = None
+    fitted_on: str = "fit"
+    """``fit``: every fit event; ``screen``: the screening events only."""
 
     @property
     def label(self) -> str:
@@ -150,104 +205,15 @@ class Candidate:
 
 
 # ---------------------------------------------------------------------------- evaluation
-class _Evaluator:
-    """Re-simulates a set of events with candidate effects (data loaded once), with the
-    solver and mesh of the revision the candidates would become children of."""
+class Evaluator(Protocol):
+    """What a fit evaluates: measured - predicted at fixed seconds for each effect set (NaN
+    where a candidate predicts nothing); :class:`~fleetbrake.closeloop.fitdata.FitData`."""
 
-    def __init__(
-        self,
-        wh: Warehouse,
-        wagons: Mapping[str, WagonConfig],
-        all_events: pl.DataFrame,
-        events: pl.DataFrame,
-        config: SimulationConfig,
-        base: Revision,
-        loaded: dict[tuple[str, float], WagonData] | None = None,
-    ):
-        """``loaded``: the wagons' data already read, by (wagon, ``bridge_max_s``), shared by
-        the evaluators of one run (filled here): each wagon is read once per run."""
-        self.config = config
-        self.base = base
-        self.parts = []
-        loaded = {} if loaded is None else loaded
-        for wagon_id in events["wagon_id"].unique(maintain_order=True).to_list():
-            wagon = wagons.get(wagon_id)
-            if wagon is None:
-                continue
-            todo = events.filter(pl.col("wagon_id") == wagon_id)["event_id"].to_list()
-            key = (wagon_id, config.chain.bridge_max_s)
-            if key not in loaded:
-                loaded[key] = load_wagon(wh, wagon, config)
-            self.parts.append(
-                (model_for(wagon, base.solver, base.refinement), loaded[key], set(todo))
-            )
-
-    def frames(self, effects: EffectSet) -> pl.DataFrame:
-        """The events' windows as the simulation stage predicts them (the one chain
-        algorithm), with ``effects``."""
-        rev = Revision("candidate", effects, self.base.solver, self.base.refinement)
-        out = [
-            predict_wagon(data, model, rev, self.config, event_ids=todo, timeline=False).predictions
-            for model, data, todo in self.parts
-        ]
-        return pl.concat(out) if out else pl.DataFrame()
-
-    def residual(self, effects: EffectSet) -> np.ndarray:
-        return _finite_residual(self.frames(effects))
-
-
-def _finite_residual(frame: pl.DataFrame) -> np.ndarray:
-    """measured - predicted sensor temperature of every second where both are finite, in the
-    frame's order."""
-    if frame.height == 0:
-        return np.zeros(0)
-    r = (frame["measured_sensor_c"] - frame["predicted_sensor_c"]).to_numpy()
-    return r[np.isfinite(r)]
-
-
-RESIDUAL_KEY = ("event_id", "time_utc")
-"""What identifies one residual: the event and the second."""
-
-
-def _keyed_residual(frame: pl.DataFrame) -> pl.DataFrame:
-    """measured - predicted sensor temperature (``residual_k``) by event and second, where
-    both are known and finite."""
-    if frame.height == 0:
-        return pl.DataFrame(
-            schema={"event_id": pl.String, "time_utc": pl.Datetime("us"), "residual_k": pl.Float64}
-        )
-    return frame.select(
-        *RESIDUAL_KEY,
-        residual_k=pl.col("measured_sensor_c") - pl.col("predicted_sensor_c"),
-    ).filter(pl.col("residual_k").is_finite())
-
-
-def _aligned(reference: pl.DataFrame, candidate: pl.DataFrame) -> np.ndarray:
-    """The candidate's residual at each (event, second) of ``reference``, in its order; where
-    the candidate has no residual (a prediction dropped), the reference's. A second the
-    candidate gained is not scored: every candidate of one fit is scored on the same seconds,
-    and a dropped one neither helps nor hurts it."""
-    joined = reference.join(
-        candidate.rename({"residual_k": "candidate_k"}),
-        on=list(RESIDUAL_KEY),
-        how="left",
-        maintain_order="left",
-    )
-    return (
-        joined.select(pl.coalesce("candidate_k", "residual_k"))
-        .to_series()
-        .to_numpy()
-        .astype(np.float64)
-    )
+    def residuals(self, effect_sets: Sequence[EffectSet]) -> list[np.ndarray]: ...
 
 
 def _rmse(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
-
-
-def _bic(r: np.ndarray, k: int) -> float:
-    n_eff = max(r.size / CORRELATION_S, k + 2.0)
-    return n_eff * math.log(max(float(np.mean(r * r)), 1e-12)) + k * math.log(n_eff)
 
 
 def _noise_k(frame: pl.DataFrame) -> float:
@@ -263,14 +229,58 @@ def _noise_k(frame: pl.DataFrame) -> float:
     return float(np.std(diffs) / math.sqrt(2.0)) if diffs.size > 10 else float("nan")
 
 
+@dataclass(frozen=True)
+class FitResult:
+    """A candidate's parameters fitted: its effects, its own residual (every second it
+    predicts), the residual at the starting point's seconds (what candidates are compared
+    on) with the Jacobian there, the parameter vector and names (``effect.parameter``)."""
+
+    effects: EffectSet
+    residual: np.ndarray
+    aligned: np.ndarray
+    jacobian: np.ndarray
+    x: np.ndarray
+    names: tuple[str, ...]
+    evaluations: int
+    scored: np.ndarray
+    """(evaluator seconds) which seconds ``aligned`` and the Jacobian's rows are."""
+    kernel_calls: int = 0
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        return tuple(name.split(".", 1)[1] for name in self.names)
+
+
+def _steps(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float) -> np.ndarray:
+    """Forward-difference steps as scipy's ``2-point`` scheme takes them (``rel |x|``, the
+    sign of x, a step that would cross a bound turned round or cut to the farther bound)."""
+    sign = np.where(x >= 0, 1.0, -1.0)
+    h = rel * sign * np.abs(x)
+    h = np.where(h == 0.0, rel * sign * np.maximum(1.0, np.abs(x)), h)
+    h = (x + h) - x
+    lb_dist, ub_dist = x - lo, hi - x
+    violated = (x + h < lo) | (x + h > hi)
+    fitting = np.abs(h) <= np.maximum(lb_dist, ub_dist)
+    h = np.where(violated & fitting, -h, h)
+    forward = violated & ~fitting & (ub_dist >= lb_dist)
+    backward = violated & ~fitting & (ub_dist < lb_dist)
+    h = np.where(forward, ub_dist, h)
+    return np.where(backward, -lb_dist, h)
+
+
 def _fit(
-    evaluator: _Evaluator,
+    evaluator: Evaluator,
     base: EffectSet,
     classes: Sequence[type[Effect]],
     start: Sequence[Effect] | None,
     max_nfev: int,
-) -> tuple[EffectSet, np.ndarray]:
-    """Fit the parameters of ``classes`` (added to ``base``) by bounded least squares."""
+    diff_step: float = 0.05,
+    keep: np.ndarray | None = None,
+) -> FitResult:
+    """Fit the parameters of ``classes`` (added to ``base``) by bounded least squares (trf),
+    the Jacobian by forward differences with every perturbed vector of a step evaluated in
+    one pass over the cached data (``evaluator.residuals``). ``keep``: (evaluator seconds)
+    the seconds fitted and scored (None: all; outlier events left out)."""
     from scipy.optimize import least_squares
 
     names: list[tuple[type[Effect], str]] = []
@@ -285,6 +295,7 @@ def _fit(
             lo.append(-np.inf if lim_lo is None else lim_lo)
             hi.append(np.inf if lim_hi is None else lim_hi)
             scale.append(b - a)
+    lower, upper = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
 
     def build(x: np.ndarray) -> EffectSet:
         params: dict[type[Effect], dict[str, float]] = {cls: {} for cls in classes}
@@ -295,40 +306,114 @@ def _fit(
             effects = effects.with_effect(cls.from_parameters(params[cls]))
         return effects
 
-    # every evaluation is scored on the seconds of the starting point, matched by key: a
-    # candidate that loses or gains a prediction is still compared second by second. Each
-    # parameter vector is simulated once: the optimiser's first call (the starting point) and
-    # the residual of its result (its last accepted point) are taken from what was computed.
-    seen: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+    # every parameter vector is simulated once (the optimiser's first call is the starting
+    # point, the fit's residual its last accepted point); each is scored on the seconds the
+    # starting point predicts: where a candidate predicts nothing, the start's residual
+    seen: dict[bytes, np.ndarray] = {}
 
-    def evaluate(x: np.ndarray, reference: pl.DataFrame | None) -> pl.DataFrame:
-        frame = evaluator.frames(build(x))
-        keyed = _keyed_residual(frame)
-        aligned = _aligned(keyed if reference is None else reference, keyed)
-        seen[np.asarray(x, dtype=np.float64).tobytes()] = (aligned, _finite_residual(frame))
-        return keyed
+    def raw_many(xs: Sequence[np.ndarray]) -> list[np.ndarray]:
+        keys = [np.asarray(x, dtype=np.float64).tobytes() for x in xs]
+        todo = {k: x for k, x in zip(keys, xs, strict=True) if k not in seen}
+        if todo:
+            got = evaluator.residuals([build(x) for x in todo.values()])
+            seen.update(zip(todo, got, strict=True))
+        return [seen[k] for k in keys]
 
-    reference = evaluate(np.asarray(x0, dtype=np.float64), None)
+    r0 = raw_many([np.asarray(x0, dtype=np.float64)])[0]
+    kept = np.ones(r0.size, dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
+    scored = np.isfinite(r0) & kept
+    reference = r0[scored]
+
+    def aligned(r: np.ndarray) -> np.ndarray:
+        out = r[scored]
+        missing = ~np.isfinite(out)
+        if missing.any():
+            out = np.where(missing, reference, out)
+        return out
 
     def fun(x: np.ndarray) -> np.ndarray:
-        key = np.asarray(x, dtype=np.float64).tobytes()
-        if key not in seen:
-            evaluate(x, reference)
-        return seen[key][0]
+        return aligned(raw_many([x])[0])
 
-    x_start = np.clip(np.asarray(x0), np.asarray(lo) + 1e-9, np.asarray(hi) - 1e-9)
+    def jac(x: np.ndarray) -> np.ndarray:
+        f0 = fun(x)
+        h = _steps(np.asarray(x, dtype=np.float64), lower, upper, diff_step)
+        moved = [x + np.eye(x.size)[j] * h[j] for j in range(x.size)]
+        columns = [(aligned(r) - f0) / h[j] for j, r in enumerate(raw_many(moved))]
+        return np.column_stack(columns) if columns else np.zeros((f0.size, 0))
+
+    x_start = np.clip(np.asarray(x0), lower + 1e-9, upper - 1e-9)
     result = least_squares(
         fun,
         x_start,
-        bounds=(lo, hi),
+        jac=jac,
+        bounds=(lower, upper),
         x_scale=np.asarray(scale),
-        diff_step=0.05,  # above simulate.H_QUANTUM_W_M2K's rounding of a varying h
         max_nfev=max_nfev,
         method="trf",
     )
-    effects = build(result.x)
-    done = seen.get(np.asarray(result.x, dtype=np.float64).tobytes())
-    return effects, done[1] if done is not None else evaluator.residual(effects)
+    x = np.asarray(result.x, dtype=np.float64)
+    r = raw_many([x])[0]
+    return FitResult(
+        effects=build(x),
+        residual=r[np.isfinite(r) & kept],
+        aligned=aligned(r),
+        jacobian=np.asarray(result.jac, dtype=np.float64),
+        x=x,
+        names=tuple(f"{cls.name}.{pname}" for cls, pname in names),
+        evaluations=len(seen),
+        scored=scored,
+    )
+
+
+@dataclass(frozen=True)
+class FitTask:
+    """One candidate's fit, for an engine's worker: the data (or where :func:`fitdata.store`
+    wrote it), the effects to add and where to start."""
+
+    data: FitData | str
+    base: EffectSet
+    classes: tuple[type[Effect], ...]
+    start: tuple[Effect, ...] | None
+    max_nfev: int
+    diff_step: float
+    exclude: frozenset[str] = frozenset()
+    """Events left out of the fit (outliers)."""
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        return "candidate " + "+".join(cls.name for cls in self.classes)
+
+
+def fit_task(task: FitTask) -> FitResult:
+    """Run one :class:`FitTask` (a pure function of it: picklable, for the workers)."""
+    data = task.data if isinstance(task.data, FitData) else fitdata.stored(task.data)
+    calls = fitdata.kernel_calls()
+    keep = _kept_seconds(data, task.exclude)
+    fitted = _fit(data, task.base, task.classes, task.start, task.max_nfev, task.diff_step, keep)
+    return dataclasses.replace(fitted, kernel_calls=fitdata.kernel_calls() - calls)
+
+
+def _kept_seconds(data: FitData, exclude: frozenset[str]) -> np.ndarray | None:
+    """(seconds of ``data``) whether each second's event is not in ``exclude``; None: all."""
+    gone = [i for i, event_id in enumerate(data.event_ids) if event_id in exclude]
+    return ~np.isin(data.event, gone) if gone else None
+
+
+@dataclass(frozen=True)
+class EvalTask:
+    """Residuals of effect sets on some data (a candidate's holdout residual)."""
+
+    data: FitData | str
+    effect_sets: tuple[EffectSet, ...]
+
+    def __str__(self) -> str:
+        return "evaluation of " + ", ".join(str(e) or "none" for e in self.effect_sets)
+
+
+def eval_task(task: EvalTask) -> tuple[list[np.ndarray], int]:
+    """Run one :class:`EvalTask`: the residuals, and the kernel calls they took."""
+    data = task.data if isinstance(task.data, FitData) else fitdata.stored(task.data)
+    calls = fitdata.kernel_calls()
+    return data.residuals(list(task.effect_sets)), fitdata.kernel_calls() - calls
 
 
 # ---------------------------------------------------------------------------- evidence
@@ -420,8 +505,185 @@ def rmse_from_predictions(wh: Warehouse, revision: str, event_ids: Sequence[str]
     return float(value) if value is not None else float("nan")
 
 
-def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
-    """The closed loop on an open (writable) warehouse; returns the report (see module)."""
+def _screen_events(fit: pl.DataFrame, count: int) -> pl.DataFrame:
+    """The screening subset: the earliest fit events of each wagon, taken in turn across the
+    wagons (its first, then its second, ...) up to ``count`` events. Each wagon's chain is
+    simulated only up to its last chosen window: early events keep the chains short."""
+    if fit.height <= count:
+        return fit
+    ranked = fit.with_columns(_rank=pl.col("start_utc").rank("ordinal").over("wagon_id")).sort(
+        "_rank", "start_utc"
+    )
+    return ranked.head(count).drop("_rank").sort("wagon_id", "start_utc")
+
+
+class _Workers:
+    """Where a run's fits go: the engine (the inline one when none), and the data it is
+    handed. The local engine's workers read each data set once from a file this run writes
+    (:func:`fitdata.store`), the inline engine uses the objects, Ray gets them with the
+    task."""
+
+    def __init__(self, engine: Engine | None) -> None:
+        self.engine = engine
+        self.files = isinstance(engine, LocalEngine)
+        self._dir: tempfile.TemporaryDirectory[str] | None = None
+        self._refs: dict[int, FitData | str] = {}
+        self.remote = engine is not None and not isinstance(engine, InlineEngine)
+        """Whether tasks run in other processes (their kernel calls counted from their
+        results)."""
+        self.kernel_calls = 0
+        self.fits = 0
+        self.timing: dict[str, float] = {}
+
+    def ref(self, data: FitData) -> FitData | str:
+        if not self.files:
+            return data
+        if id(data) not in self._refs:
+            if self._dir is None:
+                self._dir = tempfile.TemporaryDirectory(prefix="fleetbrake-closeloop-")
+            path = Path(self._dir.name) / f"fitdata-{len(self._refs)}.pickle"
+            self._refs[id(data)] = str(fitdata.store(data, path))
+        return self._refs[id(data)]
+
+    def _map(self, fn: Any, items: list[Any]) -> list[Any]:
+        if self.engine is None or len(items) <= 1:
+            return [fn(item) for item in items]
+        return list(self.engine.map(fn, items))
+
+    def fit(self, tasks: list[FitTask]) -> list[FitResult]:
+        results: list[FitResult] = self._map(fit_task, tasks)
+        if self.remote and len(tasks) > 1:
+            self.kernel_calls += sum(r.kernel_calls for r in results)
+        self.fits += len(results)
+        return results
+
+    def evaluate(self, data: FitData, effect_sets: Sequence[EffectSet]) -> list[np.ndarray]:
+        ref = self.ref(data)
+        out = self._map(eval_task, [EvalTask(ref, (e,)) for e in effect_sets])
+        if self.remote and len(effect_sets) > 1:
+            self.kernel_calls += sum(calls for _, calls in out)
+        return [residuals[0] for residuals, _ in out]
+
+    def close(self) -> None:
+        if self._dir is not None:
+            self._dir.cleanup()
+            self._dir = None
+
+
+def _finite(r: np.ndarray) -> np.ndarray:
+    return r[np.isfinite(r)]
+
+
+def _noise(r: np.ndarray, data: FitData, ok: np.ndarray, frame: pl.DataFrame) -> float:
+    """The sensor noise from the residual's second differences within each event window
+    (:func:`~fleetbrake.closeloop.selection.noise_from_residual`); from its first differences
+    when too few seconds for that."""
+    seconds = (data.time_utc[ok] - data.time_utc[ok].min()).astype("timedelta64[us]")
+    try:
+        return noise_from_residual(r, data.event[ok], seconds.astype(np.float64) / 1e6)
+    except SelectionError:
+        return _noise_k(frame)
+
+
+def _verdict(
+    chosen: Candidate | None,
+    data: FitData,
+    base: tuple[np.ndarray, np.ndarray],
+    noise_k: float,
+    current: Candidate,
+) -> Adequacy:
+    """Whether ``chosen`` (None: the baseline, ``base``: its residual and the seconds it is
+    of) leaves a fit residual consistent with the sensor noise
+    (:func:`~fleetbrake.closeloop.selection.adequacy`)."""
+    if chosen is None or chosen.fitted is None:
+        residual, scored = base
+        effect = None
+    else:
+        residual, scored, effect = chosen.fitted.aligned, chosen.fitted.scored, chosen.label
+    return adequacy(
+        residual,
+        data.blocks[scored],
+        noise_k,
+        _drivers(data, scored),
+        before_rmse_k=current.rmse_fit_k if effect is not None else None,
+        effect=effect,
+    )
+
+
+def _intervals(chosen: Candidate, data: FitData) -> dict[str, tuple[float, float]]:
+    """95 % intervals of the chosen effects' parameters (the fit's Jacobian, inflated by the
+    residual's correlation)."""
+    fitted = chosen.fitted
+    if fitted is None or fitted.x.size == 0:
+        return {}
+    blocks = data.blocks[fitted.scored]
+    n_eff = effective_sample_size(fitted.aligned, blocks)
+    return parameter_intervals(
+        fitted.jacobian, fitted.aligned, fitted.x, fitted.parameter_names, n_eff
+    )
+
+
+def _drivers(data: FitData, scored: np.ndarray) -> dict[str, np.ndarray]:
+    """What a residual may still correlate with, at the ``scored`` seconds of ``data``."""
+    time_s = data.time_utc.astype("datetime64[us]").astype(np.int64) / 1e6
+    first = np.full(len(data.event_ids), np.inf)
+    np.minimum.at(first, data.event, time_s)
+    named = {
+        "speed": data.drivers["speed_kmh"],
+        "pressure": data.drivers["brake_pressure_bar"],
+        "heat input": data.drivers["flux_w_m2"],
+        "ambient": data.drivers["ambient_c"],
+        "time since activation": time_s - first[data.event],
+        "heating phase": data.heating.astype(np.float64),
+        "hour of day": (time_s % 86400.0) / 3600.0,
+    }
+    return {name: values[scored] for name, values in named.items()}
+
+
+def _load_wagons(
+    wh: Warehouse,
+    wagons: Mapping[str, WagonConfig],
+    events: pl.DataFrame,
+    sim: SimulationConfig,
+    have: Mapping[str, WagonData] | None = None,
+) -> dict[str, WagonData]:
+    """The samples and events of the wagons of ``events`` (those not in ``have``), each
+    read once."""
+    out: dict[str, WagonData] = {}
+    for wagon_id in events["wagon_id"].unique(maintain_order=True).to_list():
+        wagon = wagons.get(wagon_id)
+        if wagon is not None and wagon_id not in (have or {}):
+            out[wagon_id] = load_wagon(wh, wagon, sim)
+    return out
+
+
+def close_loop(
+    wh: Warehouse, config: CloseLoopConfig, engine: Engine | None = None
+) -> dict[str, Any]:
+    """The closed loop on an open (writable) warehouse; returns the report (see module).
+    ``engine``: where the candidates are fitted (and the new revision simulated and judged),
+    in this process when None. The report's ``cost`` says what it took: candidates fitted,
+    chain-kernel calls, seconds per phase."""
+    clock = time.perf_counter()
+    calls = fitdata.kernel_calls()
+    workers = _Workers(engine)
+    try:
+        report = _close_loop(wh, config, engine, workers)
+    finally:
+        workers.close()
+    workers.timing["total_s"] = time.perf_counter() - clock
+    report["cost"] = {
+        "candidates_fitted": workers.fits,
+        "kernel_calls": fitdata.kernel_calls() - calls + workers.kernel_calls,
+        "seconds": {k: round(v, 3) for k, v in workers.timing.items()},
+    }
+    return report
+
+
+def _close_loop(
+    wh: Warehouse, config: CloseLoopConfig, engine: Engine | None, workers: _Workers
+) -> dict[str, Any]:
+    clock = time.perf_counter()
     wagons = stored_wagons(wh)
     if not wagons:
         raise CloseLoopError(f"{wh.path}: no registry stored: run `fleetbrake run` first")
@@ -435,101 +697,201 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         )
     all_events = wh.con.sql(sql("q_closeloop_events")).pl()
     sim = config.simulation
-    # candidates are simulated as the baseline's predictions were: with its solver
-    loaded: dict[tuple[str, float], WagonData] = {}
-    fit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base, loaded)
-    hold_eval = (
-        _Evaluator(wh, wagons, all_events, holdout, sim, base, loaded) if holdout.height else None
+    # each wagon read once; the fit, screening and holdout events cached as arrays once
+    loaded = _load_wagons(wh, wagons, pl.concat([fit, holdout]), sim)
+    fit_data = FitData.build(loaded, fit, sim, base)
+    hold_data = FitData.build(loaded, holdout, sim, base) if holdout.height else None
+    screen = _screen_events(fit, config.screen_events)
+    screen_data = (
+        fit_data if screen.height == fit.height else FitData.build(loaded, screen, sim, base)
     )
+    timing = workers.timing
+    timing["load_s"] = time.perf_counter() - clock
 
-    base_frame = fit_eval.frames(base.effects)
-    noise_k = _noise_k(base_frame)
+    base_predicted = fit_data.predict(base.effects)
+    base_frame = fit_data.frame(base.effects, base_predicted)
     evidence = _evidence(base_frame)
-    r_base = fit_eval.residual(base.effects)
-    current = Candidate(base.effects, _rmse(r_base), _bic(r_base, 0), 0)
-
-    # screening: every effect on a subset of the fit events, each from a uniform start at
-    # its measured temperature (independent windows: a tenth of the cost of carrying the
-    # state through whole sessions, and enough to rank effects)
-    picks = np.linspace(0, fit.height - 1, min(config.screen_events, fit.height))
-    screen_config = dataclasses.replace(sim, initial_state="uniform")
-    screen_eval = _Evaluator(
-        wh,
-        wagons,
-        all_events,
-        fit[np.unique(picks.round().astype(int))],
-        screen_config,
-        base,
-        loaded,
+    r_all = fit_data.measured_c - base_predicted
+    ok = np.isfinite(r_all)
+    r_base = r_all[ok]
+    noise_k = _noise(r_base, fit_data, ok, base_frame)
+    # one effective sample size per data set, the baseline's: the residual of a missing
+    # effect is the most correlated, and candidates are compared on one count
+    n_eff = {"fit": effective_sample_size(r_base, fit_data.blocks[ok])}
+    if screen_data is fit_data:
+        n_eff["screen"] = n_eff["fit"]
+    else:
+        r_screen = screen_data.residual(base.effects)
+        keep = np.isfinite(r_screen)
+        n_eff["screen"] = effective_sample_size(r_screen[keep], screen_data.blocks[keep])
+    current = Candidate(
+        base.effects, _rmse(r_base), information_criterion(r_base, 0, n_eff["fit"]), 0
     )
-    screened: list[Candidate] = []
+
     present = {type(e) for e in base.effects}
-    for cls in config.candidate_classes():
-        if cls in present:
-            continue
-        effects, r = _fit(screen_eval, base.effects, [cls], None, config.max_nfev)
-        k = len(cls.PARAMETER_RANGES)
-        screened.append(Candidate(effects, _rmse(r), _bic(r, k), k))
-        logger.debug("screened %s: %s rmse %.4f K", cls.name, effects, screened[-1].rmse_fit_k)
-    screened.sort(key=lambda c: c.bic)
-    # refit the best on every fit event, from the screened parameters
-    candidates: list[Candidate] = []
+    excluded: frozenset[str] = frozenset()
+    outliers: dict[str, Any] = {"events": 0}
+    base_kept = (r_base, ok)
+
+    def added_of(effects: EffectSet) -> list[Effect]:
+        return [e for e in effects if type(e) not in present]
+
+    def task(
+        data: FitData, classes: Sequence[type[Effect]], start: Sequence[Effect] | None, nfev: int
+    ) -> FitTask:
+        return FitTask(
+            workers.ref(data),
+            base.effects,
+            tuple(classes),
+            None if start is None else tuple(start),
+            nfev,
+            config.diff_step,
+            excluded,
+        )
+
+    def candidate(fitted: FitResult, k: int, on: str) -> Candidate:
+        r = fitted.residual
+        bic = information_criterion(r, k, n_eff[on])
+        return Candidate(fitted.effects, _rmse(r), bic, k, fitted=fitted, fitted_on=on)
+
+    screened_on = "fit" if screen_data is fit_data else "screen"
+    # screening: every effect on the earliest fit events of each wagon, carried chains
+    # as the predictions' (in parallel across the engine's workers)
+    classes = [cls for cls in config.candidate_classes() if cls not in present]
+    t = time.perf_counter()
+    results = workers.fit([task(screen_data, [cls], None, config.max_nfev) for cls in classes])
+    screened = [
+        candidate(res, len(cls.PARAMETER_RANGES), screened_on)
+        for cls, res in zip(classes, results, strict=True)
+    ]
     for c in screened:
-        if len(candidates) < config.refit:
-            added = [e for e in c.effects if type(e) not in present]
-            classes = [type(e) for e in added]
-            effects, r = _fit(fit_eval, base.effects, classes, added, max(4, config.max_nfev // 2))
-            candidates.append(Candidate(effects, _rmse(r), _bic(r, c.n_parameters), c.n_parameters))
-            logger.debug("refitted %s: %s rmse %.4f K", c.label, effects, candidates[-1].rmse_fit_k)
-        else:
-            r = fit_eval.residual(c.effects)
-            candidates.append(
-                Candidate(c.effects, _rmse(r), _bic(r, c.n_parameters), c.n_parameters)
+        logger.debug("screened %s: %s rmse %.4f K", c.label, c.effects, c.rmse_fit_k)
+    screened.sort(key=lambda c: c.bic)
+    timing["screen_s"] = time.perf_counter() - t
+    # outlier events: data the flags did not catch, far off under the best screened single
+    # effect, are left out of every fit on the fit events (and of the verdict)
+    t = time.perf_counter()
+    if screened and config.max_outlier_fraction > 0:
+        excluded, outliers = _outliers(fit_data, screened[0].effects, noise_k, config)
+        kept_seconds = _kept_seconds(fit_data, excluded)
+        if kept_seconds is not None:
+            keep = ok & kept_seconds
+            base_kept = (r_all[keep], keep)
+            current = Candidate(
+                base.effects,
+                _rmse(r_all[keep]),
+                information_criterion(r_all[keep], 0, n_eff["fit"]),
+                0,
             )
-    candidates.sort(key=lambda c: c.bic)
-    best = candidates[0] if candidates else None
+    timing["outliers_s"] = time.perf_counter() - t
+    # the best refitted on every fit event, from the screened parameters (the second too
+    # when within the margin of it)
+    t = time.perf_counter()
+    top = screened[: config.refit] if screen_data is not fit_data else []
+    top = [c for c in top if c.bic < screened[0].bic + config.bic_margin] or top[:1]
+    refits = workers.fit(
+        [
+            task(
+                fit_data,
+                [type(e) for e in added_of(c.effects)],
+                added_of(c.effects),
+                max(4, config.max_nfev // 2),
+            )
+            for c in top
+        ]
+    )
+    candidates = [candidate(res, c.n_parameters, "fit") for c, res in zip(top, refits, strict=True)]
+    candidates += screened[len(top) :] if top else screened
+    for c in candidates[: len(top)]:
+        logger.debug("refitted %s: %s rmse %.4f K", c.label, c.effects, c.rmse_fit_k)
+    timing["refit_s"] = time.perf_counter() - t
+    # compared on the fit events only: a candidate screened only is ranked by screening
+    comparable = [c for c in candidates if c.fitted_on == "fit"] or candidates
+    comparable.sort(key=lambda c: c.bic)
+    best = comparable[0] if comparable else None
+    t = time.perf_counter()
     if (
         best is not None
         and config.max_effects >= 2
         and best.rmse_fit_k > config.pair_above_noise * noise_k
     ):
-        first = [e for e in best.effects if type(e) not in present]
-        pairs: list[Candidate] = []
-        for cls in config.candidate_classes():
-            if cls in present or cls in {type(e) for e in first}:
-                continue
-            classes = [type(first[0]), cls]
-            effects, r = _fit(screen_eval, base.effects, classes, first, config.max_nfev)
-            k = best.n_parameters + len(cls.PARAMETER_RANGES)
-            pairs.append(Candidate(effects, _rmse(r), _bic(r, k), k))
-            logger.debug("screened pair %s: rmse %.4f K", pairs[-1].label, pairs[-1].rmse_fit_k)
+        # pairs seeded from the best single: its fitted effect, the second from its range
+        first = added_of(best.effects)
+        others = [
+            cls
+            for cls in config.candidate_classes()
+            if cls not in present and cls.name not in {e.name for e in first}
+        ]
+        pair_results = workers.fit(
+            [task(screen_data, [type(first[0]), cls], first, config.max_nfev) for cls in others]
+        )
+        pairs = [
+            candidate(res, best.n_parameters + len(cls.PARAMETER_RANGES), screened_on)
+            for cls, res in zip(others, pair_results, strict=True)
+        ]
+        for c in pairs:
+            logger.debug("screened pair %s: rmse %.4f K", c.label, c.rmse_fit_k)
         if pairs:
-            top = min(pairs, key=lambda c: c.bic)
-            added = [e for e in top.effects if type(e) not in present]
-            effects, r = _fit(
-                fit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
-            )
-            candidates.append(
-                Candidate(effects, _rmse(r), _bic(r, top.n_parameters), top.n_parameters)
-            )
-            logger.debug(
-                "refitted pair %s: rmse %.4f K", candidates[-1].label, candidates[-1].rmse_fit_k
-            )
-        candidates.sort(key=lambda c: c.bic)
-        best = candidates[0]
+            top_pair = min(pairs, key=lambda c: c.bic)
+            added = added_of(top_pair.effects)
+            if screened_on == "fit":  # screened on every fit event already
+                refitted = top_pair
+            else:
+                (res,) = workers.fit(
+                    [task(fit_data, [type(e) for e in added], added, max(4, config.max_nfev // 2))]
+                )
+                refitted = candidate(res, top_pair.n_parameters, "fit")
+            logger.debug("refitted pair %s: rmse %.4f K", refitted.label, refitted.rmse_fit_k)
+            candidates.append(refitted)
+            comparable.append(refitted)
+        comparable.sort(key=lambda c: c.bic)
+        best = comparable[0]
         # a pair must beat the best single effect by the margin too
-        singles = [c for c in candidates if len(c.effects) - len(present) == 1]
+        singles = [c for c in comparable if len(c.effects) - len(present) == 1]
         if best not in singles and singles and best.bic > singles[0].bic - config.bic_margin:
             best = singles[0]
-    if hold_eval is not None:
-        for c in candidates:
-            c.rmse_holdout_k = _rmse(hold_eval.residual(c.effects))
+    timing["pairs_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if hold_data is not None:
+        fitted_all = [c for c in candidates if c.fitted_on == "fit"]
+        for c, r in zip(
+            fitted_all,
+            workers.evaluate(hold_data, [c.effects for c in fitted_all]),
+            strict=True,
+        ):
+            c.rmse_holdout_k = _rmse(_finite(r))
+    timing["holdout_s"] = time.perf_counter() - t
 
-    significant = (
-        best is not None
-        and best.bic < current.bic - config.bic_margin
-        and best.rmse_fit_k < (1.0 - config.min_improvement) * current.rmse_fit_k
-    )
+    def significant_over(c: Candidate | None, than: Candidate) -> bool:
+        return (
+            c is not None
+            and c.bic < than.bic - config.bic_margin
+            and c.rmse_fit_k < (1.0 - config.min_improvement) * than.rmse_fit_k
+        )
+
+    significant = significant_over(best, current)
+    # nothing physical adequate: the empirical correction, last (on the best physical effect
+    # when one was significant)
+    fallbacks = [
+        cls
+        for cls in EFFECT_ORDER
+        if getattr(cls, "fallback", False) and cls not in present and config.candidates is None
+    ]
+    chosen = best if significant else None
+    if fallbacks and not _verdict(chosen, fit_data, base_kept, noise_k, current).adequate:
+        t = time.perf_counter()
+        seed = added_of(chosen.effects) if chosen is not None else []
+        if len(seed) < config.max_effects:
+            classes = [type(e) for e in seed] + fallbacks[:1]
+            (res,) = workers.fit([task(fit_data, classes, seed, max(4, config.max_nfev // 2))])
+            k = sum(len(cls.PARAMETER_RANGES) for cls in classes)
+            empirical = candidate(res, k, "fit")
+            logger.debug("fitted %s: rmse %.4f K", empirical.label, empirical.rmse_fit_k)
+            candidates.append(empirical)
+            if significant_over(empirical, chosen or current):
+                best, significant = empirical, True
+        timing["empirical_s"] = time.perf_counter() - t
+    candidates.sort(key=lambda c: (c.fitted_on != "fit", c.bic))
     report: dict[str, Any] = {
         "baseline_revision": base.name,
         "new_revision": None,
@@ -545,6 +907,7 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
                 "rmse_fit_k": round(c.rmse_fit_k, 5),
                 "rmse_holdout_k": None if c.rmse_holdout_k is None else round(c.rmse_holdout_k, 5),
                 "score": round(current.bic - c.bic, 3),
+                "fitted_on": c.fitted_on,
             }
             for c in candidates
         ],
@@ -552,9 +915,12 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         "flags_judged_with": base.name,
         "solver": base.solver,
         "residual": evidence,
+        "n_eff": round(n_eff["fit"], 1),
         "selection": (
-            f"Bayesian information criterion on the fit events (one independent residual per "
-            f"{CORRELATION_S:.0f} s); score = improvement over the baseline; a candidate must "
+            f"Bayesian information criterion on the fit events on an effective sample size of "
+            f"{n_eff['fit']:.0f} independent residuals (of {r_base.size} seconds: the "
+            f"baseline residual's autocorrelation within wagon-days); score = improvement over "
+            f"the baseline; a candidate must "
             f"score above {config.bic_margin} and cut the fit RMSE by "
             f"{100 * config.min_improvement:.0f} %. The holdout is never used to choose."
         ),
@@ -562,7 +928,9 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
         "sensor_fault flag of their wagon or the window of one of its events cut by a data gap "
         f"(incomplete), or starts less than {config.settle_after_flag_s:.0f} s after one ends, "
         "are left out of fit and holdout; events_all and rmse_*_all_k count every event of the "
-        "set",
+        "set; fit events whose residual RMS under the best screened effect is far above the "
+        "bulk (outliers) are left out of the parameter fit and the adequacy verdict",
+        "outliers": outliers,
     }
     fit_ids = fit["event_id"].to_list()
     hold_ids = holdout["event_id"].to_list()
@@ -574,31 +942,45 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             value = rmse_from_predictions(wh, base.name, ids) if ids else None
             report[key].update({"rmse_before_k": value, "rmse_after_k": value})
         _add_all_events(wh, report, sets_all, base.name, base.name)
+        _add_verdict(report, _verdict(None, fit_data, base_kept, noise_k, current), {})
         return report
 
     added = [e for e in best.effects if type(e) not in present]
+    best_data = fit_data
     name = _new_revision_name(wh, best.label)
     _record_revision(wh, name, base, best)
     new_rev = Revision(name, best.effects, base.solver, base.refinement)
-    simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
+    simulate_events(
+        wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list(), engine=engine
+    )
+    # the virtual sensor re-estimated with the new revision (every wagon), its sigma_w fitted
+    # first on the fit days (a property of the revision: docs/estimator.md)
+    fit_revision_noise(wh, wagons, new_rev, fit, EstimationConfig(chain=sim.chain))
+    estimate_wagons(wh, wagons, new_rev, EstimationConfig(chain=sim.chain), engine=engine)
     if config.reflag:
         # the flags were judged with the baseline, which lacks the effect: a fleet-wide misfit
         # looks like weak brakes or failing sensors. Judge them again with the new revision,
         # and refit on the events that are usable now.
-        _reflag(wh, wagons, new_rev, sim)
+        _reflag(wh, wagons, new_rev, sim, engine)
         fit, holdout, _ = _event_sets(wh, base.name, config)
-        if fit.height and set(fit["event_id"].to_list()) != set(fit_ids):
-            refit_eval = _Evaluator(wh, wagons, all_events, fit, sim, base, loaded)
-            effects, r = _fit(
-                refit_eval, base.effects, [type(e) for e in added], added, config.max_nfev // 2
+        changed = set(fit["event_id"].to_list()) ^ set(fit_ids)
+        if fit.height and len(changed) >= config.refit_changed_fraction * max(1, len(fit_ids)):
+            loaded.update(_load_wagons(wh, wagons, fit, sim, have=loaded))
+            refit_data = best_data = FitData.build(loaded, fit, sim, base)
+            (res,) = workers.fit(
+                [task(refit_data, [type(e) for e in added], added, max(1, config.max_nfev // 2))]
             )
-            logger.debug("refitted on %d events after re-flagging: %s", fit.height, effects)
-            best = Candidate(effects, _rmse(r), _bic(r, best.n_parameters), best.n_parameters)
+            logger.debug("refitted on %d events after re-flagging: %s", fit.height, res.effects)
+            best = candidate(res, best.n_parameters, "fit")
             added = [e for e in best.effects if type(e) not in present]
             _set_revision_effects(wh, name, best.effects)
             new_rev = Revision(name, best.effects, base.solver, base.refinement)
-            simulate_events(wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list())
-            _reflag(wh, wagons, new_rev, sim)
+            simulate_events(
+                wh, wagons, new_rev, sim, event_ids=all_events["event_id"].to_list(), engine=engine
+            )
+            fit_revision_noise(wh, wagons, new_rev, fit, EstimationConfig(chain=sim.chain))
+            estimate_wagons(wh, wagons, new_rev, EstimationConfig(chain=sim.chain), engine=engine)
+            _reflag(wh, wagons, new_rev, sim, engine)
             fit, holdout, _ = _event_sets(wh, base.name, config)
         fit_ids = fit["event_id"].to_list()
         hold_ids = holdout["event_id"].to_list()
@@ -626,12 +1008,67 @@ def close_loop(wh: Warehouse, config: CloseLoopConfig) -> dict[str, Any]:
             "effects": [e.to_dict() for e in added],
         }
     )
+    _add_verdict(
+        report,
+        _verdict(best, best_data, base_kept, noise_k, current),
+        _intervals(best, best_data),
+    )
     for key in ("fit", "holdout"):
         report[key].update(
             {"rmse_before_k": rmse[(key, base.name)], "rmse_after_k": rmse[(key, name)]}
         )
     _add_all_events(wh, report, sets_all, base.name, name)
     return report
+
+
+def _outliers(
+    data: FitData, effects: EffectSet, noise_k: float, config: CloseLoopConfig
+) -> tuple[frozenset[str], dict[str, Any]]:
+    """The fit events left out as outliers under ``effects`` (the best screened single), and
+    what the report says of them: how many, the threshold and the worst few with their RMS."""
+    rms = event_rms(data.residual(effects), data.event, len(data.event_ids))
+    worst, threshold = outlier_events(
+        rms,
+        noise_k,
+        noise_factor=config.outlier_noise_factor,
+        z=config.outlier_z,
+        max_fraction=config.max_outlier_fraction,
+    )
+    finite = rms[np.isfinite(rms)]
+    for i in worst:
+        logger.info("outlier event %s: residual RMS %.3f K", data.event_ids[i], rms[i])
+    return frozenset(data.event_ids[i] for i in worst), {
+        "events": int(worst.size),
+        "threshold_k": round(threshold, 4) if math.isfinite(threshold) else None,
+        "median_event_rms_k": round(float(np.median(finite)), 5) if finite.size else None,
+        "judged_with": str(effects),
+        "worst": [
+            {"event_id": data.event_ids[i], "rms_k": round(float(rms[i]), 4)} for i in worst[:5]
+        ],
+    }
+
+
+def _add_verdict(
+    report: dict[str, Any], verdict: Adequacy, intervals: Mapping[str, tuple[float, float]]
+) -> None:
+    """The report's ``parameter_intervals``, ``adequate`` and ``unexplained`` (interface.md
+    v2), and the figures behind the verdict (``adequacy``)."""
+    report.update(
+        {
+            "parameter_intervals": intervals_for_json(intervals),
+            "adequate": verdict.adequate,
+            "unexplained": verdict.unexplained,
+            "adequacy": {
+                "rmse_k": round(verdict.rmse_k, 5),
+                "ratio": round(verdict.ratio, 3),
+                "whiteness": round(verdict.whiteness, 3),
+                "explained_fraction": None
+                if verdict.explained_fraction is None
+                else round(verdict.explained_fraction, 4),
+                "correlations": {k: round(v, 3) for k, v in verdict.correlations.items()},
+            },
+        }
+    )
 
 
 def _add_all_events(
@@ -649,15 +1086,19 @@ def _add_all_events(
 
 
 def _reflag(
-    wh: Warehouse, wagons: Mapping[str, WagonConfig], revision: Revision, sim: SimulationConfig
+    wh: Warehouse,
+    wagons: Mapping[str, WagonConfig],
+    revision: Revision,
+    sim: SimulationConfig,
+    engine: Engine | None = None,
 ) -> None:
     """Judge every wagon's flags again with ``revision``: the simulation stage's flow, its
     timeline simulated and stored first (nothing to do for a wagon already simulated with it
     from the same data), then the flags judged from what was stored."""
     from fleetbrake.flags import raise_flags
 
-    simulate_events(wh, wagons, revision, sim, progress=False)
-    raise_flags(wh, wagons, revision.name)
+    simulate_events(wh, wagons, revision, sim, progress=False, engine=engine)
+    raise_flags(wh, wagons, revision.name, engine=engine)
 
 
 def _set_revision_effects(wh: Warehouse, name: str, effects: EffectSet) -> None:
@@ -692,6 +1133,26 @@ def _record_revision(wh: Warehouse, name: str, parent: Revision, best: Candidate
         )
 
 
+CLOSE_LOOP_ENGINES = ("inline", "local", "ray")
+"""Names ``close-loop --engine`` accepts: ``inline`` runs everything in this process."""
+
+
+def _make_engine(name: str, workers: int | None, address: str | None) -> Engine:
+    from fleetbrake.engine import EngineConfigError
+
+    if name not in CLOSE_LOOP_ENGINES:
+        raise EngineConfigError(
+            f"--engine must be one of {', '.join(CLOSE_LOOP_ENGINES)}, got {name!r}"
+        )
+    if name == "inline":
+        if address is not None:
+            raise EngineConfigError("--address needs --engine ray")
+        if workers is not None and workers < 1:
+            raise EngineConfigError(f"--workers must be >= 1, got {workers}")
+        return InlineEngine()
+    return make_engine(name, workers, address=address, preload=("fleetbrake.closeloop.loop",))
+
+
 def run_close_loop(
     db_path: str | Path,
     holdout_from: dt.date,
@@ -699,11 +1160,18 @@ def run_close_loop(
     *,
     wait_s: float = 0.0,
     config: CloseLoopConfig | None = None,
+    engine: str = "inline",
+    workers: int | None = None,
+    address: str | None = None,
 ) -> dict[str, Any]:
-    """``fleetbrake close-loop``: run, write the JSON report and the Markdown report."""
+    """``fleetbrake close-loop``: run, write the JSON report and the Markdown report.
+    ``engine``: where candidates are fitted and the new revision simulated and judged:
+    ``inline`` (this process), ``local`` (``workers`` processes, default the cores) or
+    ``ray`` (at ``address``, or a local instance of ``workers`` CPUs)."""
     config = config or CloseLoopConfig(holdout_from=holdout_from)
-    with open_warehouse(db_path, wait_s=wait_s) as wh:
-        report = close_loop(wh, config)
+    pool = _make_engine(engine, workers, address)  # refused before the database is opened
+    with pool, open_warehouse(db_path, wait_s=wait_s) as wh:
+        report = close_loop(wh, config, None if isinstance(pool, InlineEngine) else pool)
         json_out = Path(json_out)
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(report, indent=2, default=str) + "\n", encoding="utf-8")

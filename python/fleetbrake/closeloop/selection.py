@@ -48,12 +48,14 @@ __all__ = [
     "blocked_cv_rmse",
     "distinguishable_from_null",
     "effective_sample_size",
+    "event_rms",
     "held_out_residual",
     "improves_held_out",
     "information_criterion",
     "intervals_for_json",
     "ljung_box_white_fraction",
     "noise_from_residual",
+    "outlier_events",
     "parameter_intervals",
     "refusal",
 ]
@@ -64,6 +66,16 @@ bring over a simpler one (5 %). The close loop states its own in its configurati
 
 MAX_NOISE_RATIO = 1.5
 """A model is adequate when its fit RMSE is at most this many times the sensor noise."""
+
+OUTLIER_NOISE_FACTOR = 5.0
+"""An event is an outlier only when its residual RMS is above this many times the noise..."""
+
+OUTLIER_Z = 5.0
+"""... and this many robust standard deviations (1.4826 MAD) above the events' median RMS."""
+
+MAX_OUTLIER_FRACTION = 0.05
+"""At most this share of the events is left out as outliers (the worst ones): more is a
+misfit of the model, not bad data."""
 
 MIN_CORRELATION = 0.1
 """Drivers whose correlation with a leftover residual is weaker than this are not named."""
@@ -606,3 +618,45 @@ def adequacy(
         correlations=correlations,
         unexplained=unexplained,
     )
+
+
+# ---------------------------------------------------------------------------- outliers
+def event_rms(residual: np.ndarray, event: np.ndarray, n_events: int) -> np.ndarray:
+    """(n_events) RMS of the finite ``residual`` of each event (``event``: each second's
+    index into the events); NaN for an event with no finite second."""
+    r = np.asarray(residual, dtype=np.float64).ravel()
+    e = np.asarray(event).ravel()
+    if r.size != e.size:
+        raise SelectionError(f"event_rms: {r.size} residuals but {e.size} event indices")
+    ok = np.isfinite(r)
+    sums = np.bincount(e[ok], weights=r[ok] * r[ok], minlength=n_events)
+    counts = np.bincount(e[ok], minlength=n_events).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sqrt(np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan))
+
+
+def outlier_events(
+    rms_k: np.ndarray,
+    noise_k: float,
+    *,
+    noise_factor: float = OUTLIER_NOISE_FACTOR,
+    z: float = OUTLIER_Z,
+    max_fraction: float = MAX_OUTLIER_FRACTION,
+) -> tuple[np.ndarray, float]:
+    """Which events' residual RMS (``rms_k``, one per event, from :func:`event_rms`) is far
+    above the bulk: above ``noise_factor`` x the sensor noise and above the median by ``z``
+    robust standard deviations (1.4826 x the median absolute deviation). Data the flags did
+    not catch (a reading gone wild, an unlogged braking) then leaves the fit instead of
+    biasing it; a model that misfits every event leaves none out (the bulk moves with it).
+    At most ``max_fraction`` of the events, the worst. Returns the outliers' indices, worst
+    first, and the threshold (K)."""
+    rms = np.asarray(rms_k, dtype=np.float64).ravel()
+    finite = np.isfinite(rms)
+    if finite.sum() < 3:
+        return np.zeros(0, dtype=np.int64), math.inf
+    median = float(np.median(rms[finite]))
+    spread = 1.4826 * float(np.median(np.abs(rms[finite] - median)))
+    threshold = max(noise_factor * noise_k if math.isfinite(noise_k) else 0.0, median + z * spread)
+    above = np.flatnonzero(finite & (rms > threshold))
+    worst = above[np.argsort(-rms[above], kind="stable")]
+    return worst[: int(max_fraction * int(finite.sum()))].astype(np.int64), threshold

@@ -1,0 +1,641 @@
+"""The close loop's fit events cached as arrays, evaluated for any effects in a few kernel calls.
+
+::
+
+    from fleetbrake.closeloop.fitdata import FitData
+
+    data = FitData.build(loaded, wagons, events, sim, base)   # once per run
+    r = data.residual(effects)        # measured - predicted at data.seconds, NaN: no prediction
+    rs = data.residuals([e1, e2, e3]) # several parameter vectors (a finite-difference Jacobian)
+
+What a candidate's evaluation needs that does not depend on its effects is computed once, when
+the data is built (the same steps, with the same public functions, as
+:func:`fleetbrake.simulation.batched.simulate_span_batched`): for every span holding a fit
+event, its segments and event windows (:func:`~fleetbrake.simulation.chains.segment_bounds`,
+:func:`~fleetbrake.simulation.chains.event_windows`), the trusted readings, the running-median
+speed, the pieces of the chain (segments, coarse gap grids, window continuations) and the
+declared loading of every sample before the effects
+(:func:`fleetbrake.model.timeline.drive_inputs`: pointwise in the samples, so the effects can
+be applied to the cached inputs). An evaluation applies the effects to those inputs in numpy,
+forms each step's flux, air and convection (a convection varying inside a piece rounded to
+``H_QUANTUM_W_M2K``, piece by piece, vectorised), and runs each span's chain in one call of the
+reduced model's chain kernel (:meth:`~fleetbrake.model.rom.ReducedModel.simulate_chain`); the
+windows' sensor predictions are read at the cached seconds. No database, no polars frame, no
+Python per event: equal to :func:`~fleetbrake.simulation.predictions.predict_wagon` to rounding
+(a test holds it to 1e-9 K).
+
+The seconds (:attr:`FitData.seconds`) are those of the wanted events' windows with a valid
+measurement, in the order ``predict_wagon`` gives them (wagon, span, window, second); each
+carries its event, its block (wagon-day, :attr:`FitData.blocks`), its chain (the span,
+:attr:`FitData.chains`) and the drivers the evidence reads (speed, pressure, heat input with the
+base effects, air, heating or cooling).
+
+An effect depending on the block's temperature (friction fade) is solved by fixed-point
+iteration over the whole chain, each pass one kernel call (the same fixed point as the
+simulation's run-by-run iteration, to its tolerance). What the kernel cannot run (the full
+model, a ``uniform`` initial state, a window starting on a coarse gap segment) is evaluated
+with ``predict_wagon`` itself, wagon by wagon, and read at the same seconds.
+
+A :class:`FitData` pickles without its models (a worker makes them, or reads them from the
+reduced-model cache, once per process): an engine's workers get the data once each
+(:func:`store` / :func:`stored`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import pickle
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.effects import DriveInputs, EffectSet
+from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
+from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
+from fleetbrake.simulation.chains import (
+    ANCHOR_TOLERANCE_K,
+    Model,
+    event_windows,
+    segment_bounds,
+    trusted_readings,
+)
+from fleetbrake.simulation.predictions import (
+    Revision,
+    SimulationConfig,
+    WagonData,
+    model_for,
+    predict_wagon,
+)
+from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
+
+__all__ = ["FitData", "kernel_calls", "store", "stored"]
+
+_KERNEL_CALLS = [0]
+
+
+def _count(calls: int) -> None:
+    _KERNEL_CALLS[0] += calls
+
+
+def kernel_calls() -> int:
+    """Chain-kernel calls this process has made for fit data (spans simulated, those of
+    ``predict_wagon`` where the kernel path cannot run included)."""
+    return _KERNEL_CALLS[0]
+
+
+FIXED_POINT_TOL_K = 1.0e-4
+"""K: a state-dependent effect's iteration stops when no prediction changed by more
+(``simulate_timeline``'s ``tol_k``)."""
+
+FIXED_POINT_MAX_ITERATIONS = 30
+
+DRIVERS = ("speed_kmh", "brake_pressure_bar", "flux_w_m2", "ambient_c")
+"""The drivers kept for each second (the prediction's columns of the same names)."""
+
+
+def _step_mean(samples: FloatArray) -> FloatArray:
+    return 0.5 * (samples[:-1] + samples[1:])
+
+
+@dataclass
+class _Loading:
+    """Per-step flux, air and convection (S, F) of a piece's samples."""
+
+    flux: FloatArray
+    air: FloatArray
+    h: FloatArray
+
+
+def _loading(inputs: DriveInputs, faces: Sequence[str]) -> _Loading:
+    h = np.zeros((inputs.flux_w_m2.size - 1, len(faces)))
+    for j, face in enumerate(faces):
+        if face in inputs.h_w_m2k:
+            h[:, j] = _step_mean(np.asarray(inputs.h_w_m2k[face], dtype=np.float64))
+    flux = np.asarray(inputs.flux_w_m2, dtype=np.float64)
+    return _Loading(_step_mean(flux), _step_mean(np.asarray(inputs.ambient_c)), h)
+
+
+@dataclass
+class _Span:
+    """One span's chain, everything but the effects: its pieces (the timeline's segments in
+    order, then the windows' continuations), where each piece's steps come from (``gather``
+    into the fine steps followed by each coarse grid's), and the seconds read from its
+    windows (``select`` into the kernel's concatenated window output)."""
+
+    trusted_c: FloatArray
+    ambient_c: FloatArray
+    fine: DriveInputs
+    """The declared loading at samples 0 .. last (before the effects)."""
+    coarse: list[DriveInputs]
+    """Each coarse gap piece's declared loading on its own grid."""
+    coarse_at: list[tuple[int, int, FloatArray]]
+    """Each coarse gap piece's samples ``a .. b`` and grid (for a state-dependent effect's
+    face temperature there)."""
+    gather: np.ndarray
+    piece_a: np.ndarray
+    piece_b: np.ndarray
+    piece_dt: np.ndarray
+    step_offsets: np.ndarray
+    at: FloatArray
+    at_offsets: np.ndarray
+    continuation: np.ndarray
+    length: np.ndarray
+    select: np.ndarray
+    """Positions in the window output of this span's seconds (in :attr:`FitData.seconds`
+    order)."""
+    contact: FloatArray | None = None
+    """The face temperature of the last state-dependent fixed point (a warm start)."""
+
+
+@dataclass
+class _Wagon:
+    wagon: WagonConfig
+    data: WagonData | None
+    """The wagon's samples, kept only where the kernel path cannot run it."""
+    event_ids: frozenset[str]
+    spans: list[_Span]
+    batched: bool
+    """Whether the kernel path can run this wagon's spans (else ``predict_wagon``)."""
+    start: int
+    stop: int
+    """Its seconds are ``start .. stop`` of :attr:`FitData.seconds`."""
+    keys: pl.DataFrame
+    """(event_id, time_utc, position) of its seconds, for reading a frame at them."""
+
+
+def _prepare_span(
+    series: WagonSeries,
+    wagon: WagonConfig,
+    model: ReducedModel,
+    config: SimulationConfig,
+    wanted: frozenset[str],
+) -> tuple[_Span | None, list[tuple[str, int, int, int]], bool]:
+    """The span's cached chain and its wanted windows ``(event_id, start, release, stop)`` in
+    output order; None when it holds no wanted window. The flag: whether the kernel path can
+    run it (a window starting on a coarse gap segment cannot)."""
+    chain = config.chain
+    mine = [w for w in event_windows(series, chain) if w.event_id in wanted]
+    if not mine:
+        return None, [], True
+    until = max(w.stop for w in mine)
+    n = series.n
+    bounds, kinds = segment_bounds(series, chain)
+    windows = {w.start: w for w in mine}
+    end = min(n, until + 1)
+    segments: list[tuple[int, int, bool]] = []  # a, b, coarse
+    for (a, stop), kind in zip(itertools.pairwise(bounds), kinds, strict=True):
+        if a >= end:
+            break
+        b = min(stop, n - 1)
+        if b > a:
+            segments.append((a, b, kind == "gap" and b - a > 2 * chain.gap_step_s))
+    if any(coarse and a in windows for a, _, coarse in segments):
+        return None, [], False
+    pieces: list[tuple[int, int, bool]] = list(segments)
+    continuation: list[int] = []
+    length: list[int] = []
+    for a, b, _ in segments:
+        window = windows.get(a)
+        length.append(0 if window is None else window.stop - a + 1)
+        if window is not None and window.stop > b:
+            pieces.append((b, window.stop, False))
+            continuation.append(len(pieces) - 1)
+        else:
+            continuation.append(-1)
+    last = max(b for _, b, _ in pieces)
+    speed = running_median(series.speed_kmh, chain.speed_median_samples)
+    fine = drive_inputs(
+        model,
+        wagon,
+        dt_s=1.0,
+        p_bar=series.pressure_bar[: last + 1],
+        speed_kmh=speed[: last + 1],
+        ambient_c=series.ambient_c[: last + 1],
+    )
+    coarse: list[DriveInputs] = []
+    coarse_at: list[tuple[int, int, FloatArray]] = []
+    gather: list[np.ndarray] = []
+    at_parts: list[FloatArray] = []
+    at_counts: list[int] = []
+    dts: list[float] = []
+    counts: list[int] = []
+    source = last  # the fine steps come first in the source arrays, the coarse grids after
+    for a, b, is_coarse in pieces:
+        if is_coarse:
+            steps = math.ceil((b - a) / chain.gap_step_s)
+            at = np.linspace(a, b, steps + 1)
+            k = np.arange(a, b + 1)
+            coarse.append(
+                drive_inputs(
+                    model,
+                    wagon,
+                    dt_s=(b - a) / steps,
+                    p_bar=np.interp(at, k, series.pressure_bar[a : b + 1]),
+                    speed_kmh=np.interp(at, k, speed[a : b + 1]),
+                    ambient_c=np.interp(at, k, series.ambient_c[a : b + 1]),
+                )
+            )
+            coarse_at.append((a, b, at))
+            gather.append(np.arange(source, source + steps))
+            source += steps
+            at_parts.append(at)
+            at_counts.append(at.size)
+            dts.append((b - a) / steps)
+            counts.append(steps)
+        else:
+            gather.append(np.arange(a, b))
+            at_counts.append(0)
+            dts.append(1.0)
+            counts.append(b - a)
+    # the windows' seconds with a valid measurement, in the kernel's output order
+    select: list[np.ndarray] = []
+    done: list[tuple[str, int, int, int]] = []
+    offset = 0
+    for (a, _, _), size in zip(segments, length, strict=True):
+        if size:
+            w = windows[a]
+            k = np.arange(w.start, w.stop + 1)
+            ok = np.flatnonzero(np.isfinite(series.measured_c[k]))
+            select.append(offset + ok)
+            done.append((w.event_id, w.start, w.release, w.stop))
+            offset += size
+
+    def offsets(values: list[int]) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum(values, dtype=np.int64)]).astype(np.int64)
+
+    span = _Span(
+        trusted_c=trusted_readings(series, chain),
+        ambient_c=series.ambient_c,
+        fine=fine,
+        coarse=coarse,
+        coarse_at=coarse_at,
+        gather=np.concatenate(gather).astype(np.int64),
+        piece_a=np.array([p[0] for p in pieces], dtype=np.int64),
+        piece_b=np.array([p[1] for p in pieces], dtype=np.int64),
+        piece_dt=np.array(dts, dtype=np.float64),
+        step_offsets=offsets(counts),
+        at=np.concatenate(at_parts) if at_parts else np.zeros(0),
+        at_offsets=offsets(at_counts),
+        continuation=np.array(continuation, dtype=np.int64),
+        length=np.array(length, dtype=np.int64),
+        select=np.concatenate(select) if select else np.zeros(0, dtype=np.int64),
+    )
+    return span, done, True
+
+
+_MODELS: dict[tuple[object, ...], Model] = {}
+"""The models of this process (a worker's, made once: they are not pickled with the data)."""
+
+
+def _model(wagon: WagonConfig, solver: str, refinement: float) -> Model:
+    key = (wagon.geometry, wagon.block, wagon.sensor_point_m, solver, refinement)
+    if key not in _MODELS:
+        _MODELS[key] = model_for(wagon, solver, refinement)
+    return _MODELS[key]
+
+
+@dataclass
+class FitData:
+    """The fit events of a close loop as arrays (see the module docstring)."""
+
+    config: SimulationConfig
+    base: Revision
+    wagons: list[_Wagon]
+    event_ids: list[str]
+    """The events, by index (:attr:`event`)."""
+    event: np.ndarray
+    """(n) index into :attr:`event_ids` of each second."""
+    time_utc: np.ndarray
+    """(n) datetime64[us] of each second."""
+    measured_c: FloatArray
+    blocks: np.ndarray
+    """(n) block id of each second: the wagon-day (whole blocks are independent enough to
+    hold out; seconds of one day are not)."""
+    chains: np.ndarray
+    """(n) the span (one carried chain) of each second."""
+    heating: np.ndarray
+    """(n) True up to the release (the prediction's ``phase`` heating), else cooling."""
+    drivers: dict[str, FloatArray] = field(default_factory=dict)
+    """(n) each of :data:`DRIVERS`, the heat input with the base revision's effects."""
+    evaluations: int = 0
+    """Effect sets evaluated."""
+
+    @property
+    def seconds(self) -> int:
+        return int(self.measured_c.size)
+
+    # ------------------------------------------------------------------ building
+    @classmethod
+    def build(
+        cls,
+        loaded: Mapping[str, WagonData],
+        events: pl.DataFrame,
+        config: SimulationConfig,
+        base: Revision,
+    ) -> FitData:
+        """The events of ``events`` (columns ``wagon_id``, ``event_id``) of the wagons in
+        ``loaded``, simulated as ``base``'s predictions are (its solver and mesh)."""
+        wagons: list[_Wagon] = []
+        parts: dict[str, list[np.ndarray]] = {
+            k: [] for k in ("event", "time", "measured", "chain", "heating", *DRIVERS)
+        }
+        event_ids: list[str] = []
+        chain_count = 0
+        position = 0
+        for wagon_id in events["wagon_id"].unique(maintain_order=True).to_list():
+            data = loaded.get(wagon_id)
+            if data is None:
+                continue
+            wanted = frozenset(events.filter(pl.col("wagon_id") == wagon_id)["event_id"])
+            model = _model(data.wagon, base.solver, base.refinement)
+            batched = isinstance(model, ReducedModel) and config.initial_state == "carried"
+            spans: list[_Span] = []
+            start = position
+            keys: list[pl.DataFrame] = []
+            base_effects = EffectSet(tuple(e for e in base.effects if e.name != "sensor_lag"))
+            for series in data.spans if batched else ():
+                assert isinstance(model, ReducedModel)
+                span, windows, ok = _prepare_span(series, data.wagon, model, config, wanted)
+                if not ok:
+                    batched = False
+                    break
+                if span is None:
+                    continue
+                spans.append(span)
+                flux = base_effects.apply_to_inputs(span.fine).flux_w_m2
+                speed = span.fine.speed_kmh
+                for event_id, a, release, stop in windows:
+                    k = np.arange(a, stop + 1)
+                    k = k[np.isfinite(series.measured_c[k])]
+                    index = len(event_ids)
+                    event_ids.append(event_id)
+                    parts["event"].append(np.full(k.size, index, dtype=np.int64))
+                    parts["time"].append(_times(series, k))
+                    parts["measured"].append(series.measured_c[k])
+                    parts["chain"].append(np.full(k.size, chain_count, dtype=np.int64))
+                    parts["heating"].append(k <= release)
+                    parts["speed_kmh"].append(speed[k])
+                    parts["brake_pressure_bar"].append(series.pressure_bar[k])
+                    parts["flux_w_m2"].append(np.asarray(flux, dtype=np.float64)[k])
+                    parts["ambient_c"].append(series.ambient_c[k])
+                    keys.append(
+                        pl.DataFrame(
+                            {"event_id": event_id, "time_utc": parts["time"][-1]},
+                            schema={"event_id": pl.String, "time_utc": pl.Datetime("us")},
+                        )
+                    )
+                    position += k.size
+                chain_count += 1
+            if not batched:
+                # the reference path's own seconds (the same windows, read from its frame)
+                for key in ("event", "time", "measured", "chain", "heating", *DRIVERS):
+                    del parts[key][len(parts[key]) - len(keys) :]
+                del event_ids[len(event_ids) - len(keys) :]
+                position = start
+                spans, keys = [], []
+                frame = predict_wagon(
+                    data, model, base, config, event_ids=wanted, timeline=False
+                ).predictions.filter(pl.col("measured_sensor_c").is_not_null())
+                for group, part in frame.group_by("event_id", maintain_order=True):
+                    index = len(event_ids)
+                    event_ids.append(str(group[0]))
+                    size = part.height
+                    times = part["time_utc"].to_numpy().astype("datetime64[us]")
+                    parts["event"].append(np.full(size, index, dtype=np.int64))
+                    parts["time"].append(times)
+                    parts["measured"].append(part["measured_sensor_c"].to_numpy())
+                    parts["chain"].append(np.full(size, chain_count, dtype=np.int64))
+                    parts["heating"].append((part["phase"] == "heating").to_numpy())
+                    for name in DRIVERS:
+                        parts[name].append(part[name].to_numpy().astype(np.float64))
+                    keys.append(part.select("event_id", "time_utc"))
+                    position += size
+                chain_count += 1
+            key_frame = (
+                pl.concat(keys)
+                if keys
+                else pl.DataFrame(schema={"event_id": pl.String, "time_utc": pl.Datetime("us")})
+            )
+            wagons.append(
+                _Wagon(
+                    wagon=data.wagon,
+                    data=None if batched else data,
+                    event_ids=wanted,
+                    spans=spans,
+                    batched=batched,
+                    start=start,
+                    stop=position,
+                    keys=key_frame.with_row_index("position"),
+                )
+            )
+        n = position
+
+        def joined(name: str, dtype: Any) -> np.ndarray:
+            return np.concatenate(parts[name]) if parts[name] else np.zeros(0, dtype=dtype)
+
+        time_utc = joined("time", "datetime64[us]")
+        # wagon-day blocks: the wagon's index and the UTC day of the second
+        day = time_utc.astype("datetime64[D]").astype(np.int64)
+        wagon_of = np.zeros(n, dtype=np.int64)
+        for i, w in enumerate(wagons):
+            wagon_of[w.start : w.stop] = i
+        _, blocks = np.unique(np.stack([wagon_of, day]), axis=1, return_inverse=True)
+        return cls(
+            config=config,
+            base=base,
+            wagons=wagons,
+            event_ids=event_ids,
+            event=joined("event", np.int64),
+            time_utc=time_utc,
+            measured_c=joined("measured", np.float64),
+            blocks=np.asarray(blocks, dtype=np.int64).reshape(-1),
+            chains=joined("chain", np.int64),
+            heating=joined("heating", bool),
+            drivers={name: joined(name, np.float64) for name in DRIVERS},
+        )
+
+    # ------------------------------------------------------------------ evaluation
+    def predict(self, effects: EffectSet) -> FloatArray:
+        """The predicted sensor temperature at every second, with ``effects`` (NaN where
+        nothing is predicted)."""
+        return self.predict_many([effects])[0]
+
+    def residual(self, effects: EffectSet) -> FloatArray:
+        """measured - predicted at every second (NaN where nothing is predicted)."""
+        return self.measured_c - self.predict(effects)
+
+    def residuals(self, effect_sets: Sequence[EffectSet]) -> list[FloatArray]:
+        """:meth:`residual` of each effect set: one pass over the cached data (a
+        finite-difference Jacobian's perturbed vectors together)."""
+        return [self.measured_c - p for p in self.predict_many(effect_sets)]
+
+    def predict_many(self, effect_sets: Sequence[EffectSet]) -> list[FloatArray]:
+        out = [np.full(self.seconds, np.nan) for _ in effect_sets]
+        self.evaluations += len(effect_sets)
+        for w in self.wagons:
+            model = _model(w.wagon, self.base.solver, self.base.refinement)
+            for i, effects in enumerate(effect_sets):
+                target = out[i][w.start : w.stop]
+                if w.batched and isinstance(model, ReducedModel):
+                    at = 0
+                    for span in w.spans:
+                        values = self._run_span(span, model, effects)
+                        target[at : at + values.size] = values
+                        at += values.size
+                else:
+                    target[:] = self._reference(w, model, effects)
+        return out
+
+    def _run_span(self, span: _Span, model: ReducedModel, effects: EffectSet) -> FloatArray:
+        """The span's chain with ``effects``, in one kernel call; the predictions at its
+        seconds. An effect depending on the block's temperature: fixed-point iteration over
+        the whole chain (the face temperature of one pass feeding the heat input of the next,
+        until the sensor changes by less than ``FIXED_POINT_TOL_K``, as
+        :func:`~fleetbrake.model.timeline.simulate_timeline` iterates each run): the same
+        fixed point, to that tolerance."""
+        if not effects.state_dependent:
+            return self._run_span_once(span, model, effects, None)[0]
+        # warm start: the face temperature the last fixed point of this span converged to (a
+        # fit's next parameters are close; the fixed point reached is the same, to the
+        # tolerance)
+        contact: FloatArray | None = span.contact
+        previous: FloatArray | None = None
+        for _ in range(FIXED_POINT_MAX_ITERATIONS):
+            values, run_contact = self._run_span_once(span, model, effects, contact)
+            if previous is not None and float(np.nanmax(np.abs(values - previous))) < (
+                FIXED_POINT_TOL_K
+            ):
+                break
+            previous, contact = values, run_contact
+        span.contact = run_contact
+        return values
+
+    def _run_span_once(
+        self,
+        span: _Span,
+        model: ReducedModel,
+        effects: EffectSet,
+        contact: FloatArray | None,
+    ) -> tuple[FloatArray, FloatArray]:
+        """One pass of the span's chain (``contact``: the face temperature of the pass before,
+        None: none yet); its predictions at its seconds and its face temperature."""
+        lag = effects.get("sensor_lag")
+        block = EffectSet(tuple(e for e in effects if e.name != "sensor_lag"))
+        faces = model.face_names
+        fine, coarse = span.fine, span.coarse
+        if contact is not None:
+            last = fine.flux_w_m2.size
+            fine = fine.replace(contact_c=contact[:last])
+            coarse = [
+                c.replace(contact_c=np.interp(at, np.arange(a, b + 1), contact[a : b + 1]))
+                for c, (a, b, at) in zip(coarse, span.coarse_at, strict=True)
+            ]
+        loads = [_loading(block.apply_to_inputs(fine), faces)]
+        loads += [_loading(block.apply_to_inputs(c), faces) for c in coarse]
+        flux = np.concatenate([x.flux for x in loads])[span.gather]
+        air = np.concatenate([x.air for x in loads])[span.gather]
+        h = np.concatenate([x.h for x in loads], axis=0)[span.gather]
+        # a convection varying inside a piece is rounded, piece by piece (simulate_timeline's)
+        starts = span.step_offsets[:-1]
+        varying = np.maximum.reduceat(h, starts, axis=0) != np.minimum.reduceat(h, starts, axis=0)
+        if varying.any():
+            rows = np.repeat(varying, np.diff(span.step_offsets), axis=0)
+            h = np.where(rows, np.round(h / H_QUANTUM_W_M2K) * H_QUANTUM_W_M2K, h)
+        pieces = ChainPieces(
+            a=span.piece_a,
+            b=span.piece_b,
+            dt_s=span.piece_dt,
+            step_offsets=span.step_offsets,
+            at=span.at,
+            at_offsets=span.at_offsets,
+            flux_w_m2=flux,
+            ambient_c=air,
+            h_w_m2k=h,
+            window_continuation=span.continuation,
+            window_length=span.length,
+        )
+        chain = self.config.chain
+        rule = ChainRule(
+            anchor_s=chain.anchor_s,
+            anchor_min_readings=chain.anchor_min_readings,
+            window_s=chain.window_s,
+            tolerance_k=ANCHOR_TOLERANCE_K,
+            lag_tau_s=None if lag is None else float(getattr(lag, "tau_s", 0.0)),
+        )
+        run = model.simulate_chain(
+            pieces, trusted_c=span.trusted_c, ambient_c=span.ambient_c, rule=rule
+        )
+        _count(1)
+        values = np.asarray(run.window_sensor_c, dtype=np.float64)[span.select]
+        return values, np.asarray(run.contact_mean_c, dtype=np.float64)
+
+    def _reference(self, w: _Wagon, model: Model, effects: EffectSet) -> FloatArray:
+        """The wagon's seconds predicted by ``predict_wagon`` (what the kernel path cannot
+        run), read at its seconds by (event, second)."""
+        assert w.data is not None
+        rev = Revision("candidate", effects, self.base.solver, self.base.refinement)
+        frame = predict_wagon(
+            w.data, model, rev, self.config, event_ids=w.event_ids, timeline=False
+        ).predictions
+        _count(len(w.data.spans))
+        got = w.keys.join(
+            frame.select("event_id", "time_utc", "predicted_sensor_c"),
+            on=["event_id", "time_utc"],
+            how="left",
+        ).sort("position")
+        return got["predicted_sensor_c"].fill_null(np.nan).to_numpy().astype(np.float64)
+
+    # ------------------------------------------------------------------ views
+    def frame(self, effects: EffectSet, predicted: FloatArray | None = None) -> pl.DataFrame:
+        """The seconds as prediction rows (``event_id``, ``time_utc``, ``phase``,
+        ``measured_sensor_c``, ``predicted_sensor_c`` and the drivers), for the evidence."""
+        if predicted is None:
+            predicted = self.predict(effects)
+        ids = np.asarray(self.event_ids, dtype=object)
+        return pl.DataFrame(
+            {
+                "event_id": pl.Series(ids[self.event] if self.seconds else [], dtype=pl.String),
+                "time_utc": pl.Series(self.time_utc, dtype=pl.Datetime("us")),
+                "phase": np.where(self.heating, "heating", "cooling"),
+                "measured_sensor_c": self.measured_c,
+                "predicted_sensor_c": predicted,
+                **{name: self.drivers[name] for name in DRIVERS},
+            }
+        )
+
+    def subset(self, keep: np.ndarray) -> np.ndarray:
+        """Boolean mask of the seconds whose event index is in ``keep``."""
+        return np.isin(self.event, keep)
+
+
+def _times(series: WagonSeries, k: np.ndarray) -> np.ndarray:
+    return np.datetime64(series.t0, "us") + (k.astype(np.int64) * 1_000_000).astype(
+        "timedelta64[us]"
+    )
+
+
+def store(data: FitData, path: Path) -> Path:
+    """Write ``data`` for an engine's workers to read once each (:func:`stored`)."""
+    with open(path, "wb") as fh:
+        pickle.dump(data, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    return path
+
+
+_STORED: dict[str, FitData] = {}
+
+
+def stored(path: str | Path) -> FitData:
+    """The data :func:`store` wrote at ``path``, read once per process."""
+    key = str(path)
+    if key not in _STORED:
+        with open(key, "rb") as fh:
+            if len(_STORED) >= 3:  # a run's fit, screening and holdout data at most
+                _STORED.clear()
+            _STORED[key] = pickle.load(fh)
+    return _STORED[key]

@@ -1,0 +1,167 @@
+"""The close loop's fit data (``fleetbrake.closeloop.fitdata``) and its engines: the cached
+arrays evaluated with the chain kernel predict what the simulation stage's ``predict_wagon``
+predicts, second for second; a close loop on the local engine's workers chooses what one in
+this process chooses."""
+
+from __future__ import annotations
+
+import datetime as dt
+import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+import pytest
+
+from conftest import TEST_REFINEMENT
+from fleetbrake.app.run import run_fleet
+from fleetbrake.closeloop import fitdata
+from fleetbrake.closeloop.fitdata import FitData
+from fleetbrake.closeloop.loop import CloseLoopConfig, _event_sets, run_close_loop
+from fleetbrake.model.effects import (
+    AmbientOffset,
+    ConvectionSpeed,
+    EffectSet,
+    FrictionTemperature,
+    HolderConduction,
+    SensorLag,
+)
+from fleetbrake.simulation.predictions import (
+    Revision,
+    SimulationConfig,
+    current_revision,
+    load_wagon,
+    model_for,
+    predict_wagon,
+    stored_wagons,
+)
+from fleetbrake.synth.generator import SynthConfig, generate_fleet
+from fleetbrake.warehouse.connection import open_warehouse
+
+START = dt.date(2024, 3, 4)
+HOLDOUT = START + dt.timedelta(days=1)
+
+
+@dataclass
+class Fleet:
+    db: Path
+    simulation: SimulationConfig
+
+
+@pytest.fixture(scope="module")
+def fleet(
+    tmp_path_factory: pytest.TempPathFactory, reduced_model_for: Any, rom_cache_dir: Path
+) -> Iterator[Fleet]:
+    """Two wagons x 2 days with an undeclared convection and the anomalies, run."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        out = tmp_path_factory.mktemp("clfleet")
+        effects = EffectSet((ConvectionSpeed(gain=2.0, exponent=0.8),))
+        config = SynthConfig(wagons=2, days=2, seed=4, effects=effects, anomalies=True)
+        generate_fleet(out / "fleet", config, rom=reduced_model_for)
+        simulation = SimulationConfig(refinement=TEST_REFINEMENT)
+        run_fleet(out / "fleet", out / "fleet.duckdb", simulation=simulation, progress=False)
+        yield Fleet(out / "fleet.duckdb", simulation)
+
+
+EFFECT_SETS = [
+    EffectSet(),
+    EffectSet((ConvectionSpeed(gain=2.3, exponent=0.75),)),
+    EffectSet((SensorLag(tau_s=40.0),)),
+    EffectSet((HolderConduction(h_holder_extra_w_m2k=80.0), AmbientOffset(offset_k=1.5))),
+    EffectSet((ConvectionSpeed(gain=1.5, exponent=0.9), SensorLag(tau_s=25.0))),
+]
+
+
+@pytest.mark.usefixtures("rom_env")
+def test_fit_data_predicts_what_predict_wagon_predicts(fleet: Fleet) -> None:
+    """For the fit events, the cached arrays run through the chain kernel give the
+    prediction ``predict_wagon`` gives at every second with a measurement (to 1e-9 K), for
+    effects acting on the heat input, the convection, the air and the sensor; a
+    state-dependent effect (fixed point over the whole chain instead of run by run) to the
+    fixed point's tolerance."""
+    config = CloseLoopConfig(HOLDOUT, simulation=fleet.simulation)
+    with open_warehouse(fleet.db) as wh:
+        wagons = stored_wagons(wh)
+        base = current_revision(wh, refinement=TEST_REFINEMENT)
+        fit, _, _ = _event_sets(wh, base.name, config)
+        loaded = {w: load_wagon(wh, wagons[w], fleet.simulation) for w in fit["wagon_id"]}
+    assert fit.height > 10 and len(loaded) == 2
+    data = FitData.build(loaded, fit, fleet.simulation, base)
+    assert all(w.batched for w in data.wagons)  # the kernel path, not the fallback
+    # the blocks are wagon-days: each holds one wagon's seconds of one day
+    for block in np.unique(data.blocks):
+        days = data.time_utc[data.blocks == block].astype("datetime64[D]")
+        assert np.unique(days).size == 1
+    calls = fitdata.kernel_calls()
+    for effects in [*EFFECT_SETS, EffectSet((FrictionTemperature(fade_per_k=1.5e-3),))]:
+        rev = Revision("candidate", effects, base.solver, base.refinement)
+        frames = [
+            predict_wagon(
+                loaded[w.wagon.wagon_id],
+                model_for(w.wagon, base.solver, base.refinement),
+                rev,
+                fleet.simulation,
+                event_ids=w.event_ids,
+                timeline=False,
+            ).predictions
+            for w in data.wagons
+        ]
+        reference = pl.concat(frames).filter(pl.col("measured_sensor_c").is_not_null())
+        ours = data.frame(effects)
+        assert ours.height == reference.height == data.seconds
+        joined = ours.join(
+            reference.select("event_id", "time_utc", reference_c="predicted_sensor_c"),
+            on=["event_id", "time_utc"],
+            how="left",
+        )
+        difference = (joined["predicted_sensor_c"] - joined["reference_c"]).abs()
+        assert difference.null_count() == 0
+        tolerance = 5e-3 if effects.state_dependent else 1e-9
+        assert float(difference.max()) <= tolerance, (str(effects), difference.max())
+        # the drivers are the prediction rows' own
+        for name in ("speed_kmh", "brake_pressure_bar", "ambient_c"):
+            np.testing.assert_allclose(
+                ours[name].to_numpy(),
+                ours.join(reference, on=["event_id", "time_utc"])[f"{name}_right"].to_numpy(),
+            )
+    # one kernel call per span per evaluation (more for the fixed point)
+    assert fitdata.kernel_calls() - calls >= len(EFFECT_SETS) * len(data.wagons)
+
+
+@pytest.fixture
+def rom_env(monkeypatch: pytest.MonkeyPatch, rom_cache_dir: Path) -> None:
+    monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+
+
+@pytest.mark.usefixtures("rom_env")
+def test_local_and_inline_engines_close_the_loop_alike(fleet: Fleet, tmp_path: Path) -> None:
+    """The candidates fitted on two worker processes (the data read by each once, from the
+    file the run writes) give the revision, effect and parameters of a close loop run in
+    this process."""
+    config = CloseLoopConfig(
+        HOLDOUT,
+        simulation=fleet.simulation,
+        candidates=("convection_speed", "sensor_lag", "ambient_offset"),
+        max_nfev=6,
+        reflag=False,
+    )
+    reports = {}
+    for engine in ("inline", "local"):
+        db = tmp_path / f"{engine}.duckdb"
+        shutil.copy(fleet.db, db)
+        reports[engine] = run_close_loop(
+            db, HOLDOUT, tmp_path / f"{engine}.json", config=config, engine=engine, workers=2
+        )
+    inline, local = reports["inline"], reports["local"]
+    assert inline["effect"] == local["effect"] == "convection_speed", inline["candidates"]
+    assert inline["new_revision"] == local["new_revision"]
+    assert inline["parameters"].keys() == local["parameters"].keys()
+    for name, value in inline["parameters"].items():
+        assert local["parameters"][name] == pytest.approx(value, rel=1e-6), name
+    assert [c["effect"] for c in inline["candidates"]] == [c["effect"] for c in local["candidates"]]
+    assert inline["cost"]["candidates_fitted"] == local["cost"]["candidates_fitted"]
+    assert inline["cost"]["kernel_calls"] == local["cost"]["kernel_calls"] > 0
