@@ -5,7 +5,9 @@ The flags read what the simulation stored (the revision's timeline and predictio
 simulate. One module per concern: :mod:`~fleetbrake.flags.config` (thresholds, the TOML file),
 :mod:`~fleetbrake.flags.series` (what is read of a wagon), :mod:`~fleetbrake.flags.stats`
 (what the detectors measure), the detector families :mod:`~fleetbrake.flags.sensor`,
-:mod:`~fleetbrake.flags.brakes` and :mod:`~fleetbrake.flags.overheating`, and
+:mod:`~fleetbrake.flags.brakes` and :mod:`~fleetbrake.flags.overheating`, the virtual
+sensor's opinion :mod:`~fleetbrake.flags.estimated` (brakes from the unexplained heat power,
+sensor faults dated by the innovations), and
 :mod:`~fleetbrake.flags.judge` (a wagon judged, its flags stored: :func:`raise_flags`; each
 wagon a partition the parent reads, :func:`judge_task` a pure function an engine runs).
 """
@@ -19,6 +21,17 @@ from fleetbrake.flags.config import (
     FlagConfigError,
     load_flag_config,
 )
+from fleetbrake.flags.estimated import (
+    EstimateOnGrid,
+    combine_opinions,
+    date_sensor_faults,
+    declared_heat_w,
+    estimate_on_grid,
+    estimate_span,
+    find_dragging_estimated,
+    find_innovation_faults,
+    find_weak_estimated,
+)
 from fleetbrake.flags.judge import (
     FlagOutcome,
     FlagTask,
@@ -27,6 +40,7 @@ from fleetbrake.flags.judge import (
     judge_task,
     judge_wagon,
     raise_flags,
+    wagon_residual_spread,
 )
 from fleetbrake.flags.overheating import find_overheating
 from fleetbrake.flags.records import Finding, Flag, FlagReport
@@ -46,6 +60,7 @@ __all__ = [
     "CONFIG_KEYS",
     "FLAG_KINDS",
     "SEVERITIES",
+    "EstimateOnGrid",
     "EventStat",
     "Finding",
     "Flag",
@@ -56,15 +71,23 @@ __all__ = [
     "FlagTask",
     "Segment",
     "SpanTimeline",
+    "combine_opinions",
+    "date_sensor_faults",
+    "declared_heat_w",
+    "estimate_on_grid",
+    "estimate_span",
     "event_stats",
     "find_dragging",
+    "find_dragging_estimated",
     "find_drift",
     "find_dropouts",
     "find_frozen",
+    "find_innovation_faults",
     "find_loose",
     "find_out_of_range",
     "find_overheating",
     "find_weak",
+    "find_weak_estimated",
     "flag_ids",
     "flag_task",
     "heat_flow_corrected",
@@ -76,4 +99,5 @@ __all__ = [
     "raise_flags",
     "segment_stats",
     "unsure_mask",
+    "wagon_residual_spread",
 ]

@@ -22,9 +22,10 @@ __all__ = ["find_dragging", "find_weak"]
 def find_weak(
     wagon_id: str, stats: Sequence[EventStat], config: FlagConfig = DEFAULT_FLAG_CONFIG
 ) -> list[Finding]:
-    """Runs of weak brakings (measured rise below ``weak_ratio`` x the predicted one) with no
-    normal braking between them; brakings not judged or with a small predicted rise neither
-    count nor break a run."""
+    """Runs of weak brakings (measured rise below ``weak_ratio`` x the predicted one, and short
+    of it by ``weak_min_deficit_k``) with no normal braking between them; brakings not judged,
+    with a small predicted rise or a shortfall within ``weak_min_deficit_k`` neither count nor
+    break a run."""
     out = []
     run: list[EventStat] = []
 
@@ -58,6 +59,8 @@ def find_weak(
         if not e.judged or e.p_rise < config.weak_min_predicted_rise_k:
             continue
         if e.ratio < config.weak_ratio:
+            if e.p_rise - e.m_rise < config.weak_min_deficit_k:
+                continue  # within the model's error: neither weak nor normal
             run.append(e)
         else:
             close()

@@ -193,6 +193,53 @@ class FlagConfig:
     """K: a dragging flag whose heating beyond the model adds up to this is ``alarm``, else
     ``warning``."""
 
+    weak_min_deficit_k: float = 0.3
+    """K: ... and falls short of the predicted rise by at least this (raised to
+    ``residual_factor`` x the revision's residual spread: a model error no larger than the
+    residual is not a weak brake)."""
+
+    # ---- the estimator's opinion (the virtual sensor, fleetbrake.model.estimator)
+    estimator: bool = True
+    """Judge the brakes and the sensor on the virtual sensor's estimate too (the unexplained
+    heat power and the innovations); false: the timeline's detectors alone."""
+    est_drag_min_power_w: float = 60.0
+    """W: a dragging brake is unexplained heat power into the block whose lower 95 % bound
+    stays above this ..."""
+    est_drag_min_s: int = 300
+    """s: ... for at least this long (seconds with the cylinder released, moving faster than
+    ``drag_min_speed_kmh``; short interruptions up to ``est_drag_join_s`` are bridged) ..."""
+    est_drag_join_s: int = 120
+    """s: ... such runs closer than this are one."""
+    est_weak_fraction: float = 0.25
+    """A braking is weak for the estimator when the unexplained energy over its window is
+    below minus this share of the declared braking energy, ..."""
+    est_weak_bound_fraction: float = 0.1
+    """... and its upper bound (the power's upper 95 % bounds summed over the window) below
+    minus this share of it."""
+    est_weak_min_kj: float = 50.0
+    """kJ: brakings declaring less heat into the block than this are not judged by the
+    estimator (their missing heat is lost in the noise)."""
+    est_tail_s: int = 300
+    """s: a braking's window for the estimator runs from activation to this long after the
+    release (or the next activation): the time the filter takes to see the heat."""
+    est_nis_window_s: int = 60
+    """s: the normalised innovations (nu^2 / S) are averaged over windows of this many valid
+    readings ..."""
+    est_nis_max: float = 25.0
+    """... and a window whose mean is above this (after scaling by the revision's residual
+    spread) while the unexplained power cannot follow it is a sensor that stopped reading
+    the block."""
+    est_settle_s: int = 1800
+    """s: the estimator's first seconds of each span (the filter converging from its prior)
+    are not judged."""
+
+    # ---- residual scaling (issue 13)
+    residual_factor: float = 4.0
+    """Thresholds in kelvin of the brake and drift detectors are at least this many times the
+    wagon's residual spread for the revision (the median over its brakings of the rms of
+    measured - predicted, :func:`fleetbrake.flags.judge.wagon_residual_spread`): with a model
+    no better than that, smaller differences are model error."""
+
     # ---- overheating
     contact_limit_c: float = 400.0
     """degC: predicted wheel-block contact maximum above which a braking is overheating
@@ -228,6 +275,23 @@ class FlagConfig:
             if f.type == "float":
                 object.__setattr__(self, f.name, float(getattr(self, f.name)))
 
+    def scaled(self, residual_spread_k: float | None) -> FlagConfig:
+        """These thresholds with those in kelvin that a model error could reach raised to
+        ``residual_factor`` x ``residual_spread_k`` (the revision's residual spread; None or
+        not finite: unchanged). Drift rates are raised to ``residual_factor`` x the spread
+        per hour. A threshold above that stays as it is."""
+        if residual_spread_k is None or not math.isfinite(residual_spread_k):
+            return self
+        floor = self.residual_factor * max(float(residual_spread_k), 0.0)
+        raised = {
+            name: max(getattr(self, name), floor)
+            for name in _RESIDUAL_SCALED
+            if getattr(self, name) < floor
+        }
+        if self.drift_min_rate_k_per_h < floor:
+            raised["drift_min_rate_k_per_h"] = min(floor, 0.5 * self.drift_max_rate_k_per_h)
+        return dataclasses.replace(self, **raised) if raised else self
+
 
 _FRACTIONS = {
     "heat_flow_min_explained",
@@ -237,8 +301,20 @@ _FRACTIONS = {
     "responsive_ratio",
     "weak_alarm_ratio",
     "min_valid_fraction",
+    "est_weak_fraction",
+    "est_weak_bound_fraction",
 }
 
+
+_RESIDUAL_SCALED = (
+    "weak_min_deficit_k",
+    "drag_min_excess_k",
+    "drag_event_excess_k",
+    "drift_min_change_k",
+    "loose_min_drop_k",
+    "frozen_min_change_k",
+)
+"""The thresholds in kelvin :meth:`FlagConfig.scaled` raises with the residual spread."""
 
 _MAY_BE_ZERO = {"p_quiet_bar", "settle_s", "fault_merge_gap_s"}
 
@@ -255,6 +331,8 @@ MOVED_KEYS: dict[str, str] = {
 
 def _check_field(name: str, kind: object, value: object) -> str | None:
     """Why ``value`` cannot be field ``name`` (declared type ``kind``), or None."""
+    if kind == "bool":
+        return None if isinstance(value, bool) else f"must be true or false, got {_shown(value)}"
     if kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
             return f"must be an integer, got {_shown(value)}"

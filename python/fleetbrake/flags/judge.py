@@ -24,6 +24,14 @@ only readings the steps before found good):
    predicted), weak (brakings heating far less than predicted; consecutive ones are one flag).
 4. **Overheating** (:mod:`fleetbrake.flags.overheating`): the predicted contact maximum of a
    braking over ``contact_limit_c``.
+5. **The virtual sensor's opinion** (:mod:`fleetbrake.flags.estimated`, ``config.estimator``):
+   the stored estimates of the revision when current (``contact_estimates``), else computed in
+   the partition; its dragging and weak brakes combined with steps 3's into one flag per
+   anomaly, its innovations dating the sensor faults of steps 1-2.
+
+Every threshold in kelvin a model error could reach is first raised to ``residual_factor`` x
+the wagon's residual spread for the revision (:func:`wagon_residual_spread`, computed in its
+partition; :meth:`FlagConfig.scaled`).
 
 A wagon without a registry entry, or whose timeline of the revision is missing or older than
 its data, is judged on its readings only (step 1; the report's notes say so). Flags are
@@ -38,6 +46,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import statistics
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -45,8 +54,21 @@ import numpy as np
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
+from fleetbrake.errors import FleetbrakeError
 from fleetbrake.flags.brakes import find_dragging, find_weak
 from fleetbrake.flags.config import DEFAULT_FLAG_CONFIG, FlagConfig
+from fleetbrake.flags.estimated import (
+    EstimateOnGrid,
+    combine_opinions,
+    date_sensor_faults,
+    declared_heat_w,
+    estimate_on_grid,
+    estimate_span,
+    find_dragging_estimated,
+    find_innovation_faults,
+    find_weak_estimated,
+    sensor_noise_k,
+)
 from fleetbrake.flags.overheating import find_overheating
 from fleetbrake.flags.records import Finding, Flag, FlagReport
 from fleetbrake.flags.sensor import (
@@ -61,8 +83,10 @@ from fleetbrake.flags.sensor import (
 from fleetbrake.flags.series import SpanTimeline, spans_of
 from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
 from fleetbrake.fleet.registry import Registry, WagonConfig
+from fleetbrake.model.rom import ReducedModel
 from fleetbrake.simulation.chains import constant_runs
-from fleetbrake.simulation.predictions import Mapper, revision
+from fleetbrake.simulation.estimates import estimated_wagons, estimation_data_keys
+from fleetbrake.simulation.predictions import Mapper, Revision, revision
 from fleetbrake.simulation.series import BoolArray, WagonSeries, runs
 from fleetbrake.simulation.store import (
     StoredTimeline,
@@ -107,6 +131,8 @@ class _SpanVerdict:
     """Segments with every sensor fault left out (for the brakes)."""
     faults: list[tuple[int, int]]
     unsure: BoolArray
+    estimate: EstimateOnGrid | None = None
+    """The virtual sensor's estimate of the span (None: the timeline's detectors alone)."""
 
 
 def _readings_only(series: WagonSeries, config: FlagConfig) -> list[Finding]:
@@ -115,9 +141,16 @@ def _readings_only(series: WagonSeries, config: FlagConfig) -> list[Finding]:
     return merge_sensor_faults(found + find_frozen(series, config), config)
 
 
-def _judge_span(series: WagonSeries, timeline: SpanTimeline, config: FlagConfig) -> _SpanVerdict:
-    """Steps 1-2 of the module docstring on one span: the sensor faults, and the segments of
-    the timeline for the brakes."""
+def _judge_span(
+    series: WagonSeries,
+    timeline: SpanTimeline,
+    config: FlagConfig,
+    estimate: EstimateOnGrid | None = None,
+    residual_spread_k: float | None = None,
+) -> _SpanVerdict:
+    """Steps 1-2 of the module docstring on one span: the sensor faults (dated by the
+    estimate's innovations when there is one), and the segments of the timeline for the
+    brakes."""
     findings = find_out_of_range(series, config) + find_dropouts(series, config)
     broken = _mask_of(series, findings)  # out of range or missing: no readings
     frozen_runs = np.zeros(series.n, dtype=bool)
@@ -144,6 +177,10 @@ def _judge_span(series: WagonSeries, timeline: SpanTimeline, config: FlagConfig)
     rest = [s for s in segments if not loose_mask[s.start : s.stop].any()]
     drift = find_drift(series, heat_flow_corrected(rest, config), config)
     findings = merge_sensor_faults([*findings, *loose, *drift], config)
+    if estimate is not None:
+        scale_k = max(sensor_noise_k(series.measured_c), residual_spread_k or 0.0)
+        failed = find_innovation_faults(series, estimate, config, scale_k=scale_k)
+        findings = date_sensor_faults(series, findings, failed, config)
     fault_mask = _mask_of(series, findings)
     segments = segment_stats(
         series,
@@ -154,7 +191,7 @@ def _judge_span(series: WagonSeries, timeline: SpanTimeline, config: FlagConfig)
         unsure=unsure,
         invalid=fault_mask | frozen_runs,
     )
-    return _SpanVerdict(series, findings, segments, runs(fault_mask), unsure)
+    return _SpanVerdict(series, findings, segments, runs(fault_mask), unsure, estimate)
 
 
 def judge_wagon(
@@ -163,17 +200,27 @@ def judge_wagon(
     predictions: pl.DataFrame | None = None,
     events: pl.DataFrame | None = None,
     config: FlagConfig = DEFAULT_FLAG_CONFIG,
+    estimates: Sequence[EstimateOnGrid | None] | None = None,
+    wagon: WagonConfig | None = None,
+    residual_spread_k: float | None = None,
 ) -> list[Finding]:
     """Every finding of one wagon (the steps of the module docstring), from its spans of data
     with their stored timelines (:func:`fleetbrake.flags.series.load_spans`), the revision's
     ``predictions`` of its brakings and its ``events``. A span without a timeline is judged
-    on its readings only, and the brakings only when every span has one."""
+    on its readings only, and the brakings only when every span has one. ``estimates`` (one
+    per span, on its grid) and ``wagon`` (its registry entry, for the declared heat) add the
+    virtual sensor's opinion (:mod:`fleetbrake.flags.estimated`); ``residual_spread_k`` sets
+    the innovations' scale where it exceeds the sensor's noise (``config`` is expected
+    already scaled by it: :meth:`FlagConfig.scaled`)."""
     if not spans:
         return []
     if any(timeline is None for _, timeline in spans):
         return [f for series, _ in spans for f in _readings_only(series, config)]
+    own = list(estimates) if estimates is not None else [None] * len(spans)
     verdicts = [
-        _judge_span(series, timeline, config) for series, timeline in spans if timeline is not None
+        _judge_span(series, timeline, config, est, residual_spread_k)
+        for (series, timeline), est in zip(spans, own, strict=True)
+        if timeline is not None
     ]
     wagon_id = spans[0][0].wagon_id
     findings = [f for v in verdicts for f in v.findings]
@@ -182,13 +229,39 @@ def judge_wagon(
         excluded = [(v.series.utc(a), v.series.utc(b)) for v in verdicts for a, b in v.faults]
         unsure = [span for v in verdicts for span in _spans_utc(v.series, v.unsure)]
         stats = event_stats(predictions, events, config, excluded=excluded, unsure=unsure)
-    findings += find_weak(wagon_id, stats, config)
+    brakes = find_weak(wagon_id, stats, config)
+    theirs: list[Finding] = []
     for v in verdicts:
         t0, t1 = v.series.t0, v.series.utc(v.series.n)
-        own = [e for e in stats if t0 <= e.start_utc < t1]
-        findings += find_dragging(v.series, v.segments, own, config, excluded=v.faults)
+        in_span = [e for e in stats if t0 <= e.start_utc < t1]
+        brakes += find_dragging(v.series, v.segments, in_span, config, excluded=v.faults)
+        if v.estimate is not None and wagon is not None:
+            rises = {e.event_id: e.p_rise for e in in_span} if stats else None
+            theirs += _estimator_brakes(v, wagon, config, rises)
+    findings += combine_opinions(brakes, theirs, config.drag_merge_gap_s)
     findings += find_overheating(wagon_id, stats, config)
     return findings
+
+
+def _estimator_brakes(
+    v: _SpanVerdict,
+    wagon: WagonConfig,
+    config: FlagConfig,
+    predicted_rise_k: Mapping[str, float] | None,
+) -> list[Finding]:
+    """The estimator's dragging and weak brakes of one span: sensor faults and the
+    ``est_settle_s`` after each (the unexplained power recovering from readings that were not
+    the block's) and the unsure seconds (heat a data gap may have hidden) left out."""
+    assert v.estimate is not None
+    n = v.series.n
+    excluded = [(a, min(b + config.est_settle_s, n)) for a, b in v.faults]
+    excluded += runs(v.unsure)
+    found = find_dragging_estimated(v.series, v.estimate, config, excluded=excluded)
+    heat = declared_heat_w(wagon, v.series)
+    found += find_weak_estimated(
+        v.series, v.estimate, heat, config, excluded=excluded, predicted_rise_k=predicted_rise_k
+    )
+    return found
 
 
 def flag_ids(wagon_id: str, findings: Sequence[Finding]) -> list[Flag]:
@@ -241,6 +314,17 @@ class FlagTask:
     """Its ``timeline`` rows (``q_simulation_timeline.sql``)."""
     predictions: pa.Table | None = None
     """Its ``predictions`` of the revision (``q_flags_predictions.sql``)."""
+    wagon: WagonConfig | None = None
+    """Its registry entry (the declared heat of its brakings, the estimator's model)."""
+    rev: Revision | None = None
+    """The revision (its effects and mesh, for an estimate computed in the partition)."""
+    residual_spread_k: float | None = None
+    """A residual spread given by the caller (tests); None: the wagon's own, computed in the
+    partition from its ``predictions`` (:func:`wagon_residual_spread`). The thresholds
+    scale with it (:meth:`FlagConfig.scaled`)."""
+    estimates: pa.Table | None = None
+    """Its stored virtual-sensor estimates of the revision (``q_flags_estimates.sql``),
+    current with its data; None: computed here when ``config.estimator`` (and a timeline)."""
 
     def __str__(self) -> str:  # how an engine names the partition in an error
         return f"wagon {self.wagon_id}"
@@ -253,6 +337,8 @@ class FlagOutcome:
     wagon_id: str
     flags: list[Flag]
     notes: list[str]
+    residual_spread_k: float | None = None
+    """The wagon's residual spread its thresholds were scaled with (None: none)."""
 
 
 def _frame(table: pa.Table) -> pl.DataFrame:
@@ -265,6 +351,10 @@ def judge_task(task: FlagTask) -> FlagOutcome:
     """One wagon judged from its partition's arrays, no database: a pure function of the
     task, so an engine can run it in a worker process."""
     samples, events = _frame(task.samples), _frame(task.events)
+    spread = task.residual_spread_k
+    if spread is None and task.data_key is not None and task.predictions is not None:
+        spread = wagon_residual_spread(_frame(task.predictions))
+    config = task.config.scaled(spread)
     stored: StoredTimeline | None = None
     if task.segments is not None and task.timeline is not None and task.data_key is not None:
         stored = stored_timeline(
@@ -278,7 +368,7 @@ def judge_task(task: FlagTask) -> FlagOutcome:
         task.wagon_id, samples, events, ambient_default_c=task.ambient_c, stored=stored
     )
     if not spans:
-        return FlagOutcome(task.wagon_id, [], [])
+        return FlagOutcome(task.wagon_id, [], [], spread)
     notes = [] if task.note is None else [f"wagon {task.wagon_id}: {task.note}"]
     predictions = None
     if stored is not None and task.predictions is not None:
@@ -288,13 +378,58 @@ def judge_task(task: FlagTask) -> FlagOutcome:
                 f"wagon {task.wagon_id}: no predictions of revision {task.revision}; brakings "
                 "not judged for weak brakes, dragging in brakings or overheating"
             )
+    estimates = None
+    if stored is not None:
+        try:
+            estimates = _estimates(task, spans, config)
+        except FleetbrakeError as error:  # the timeline's detectors still judge the wagon
+            notes.append(f"wagon {task.wagon_id}: no virtual-sensor opinion: {error}")
     findings = judge_wagon(
         spans,
         predictions=predictions,
         events=events if stored is not None else None,
-        config=task.config,
+        config=config,
+        estimates=estimates,
+        wagon=task.wagon,
+        residual_spread_k=spread,
     )
-    return FlagOutcome(task.wagon_id, flag_ids(task.wagon_id, findings), notes)
+    return FlagOutcome(task.wagon_id, flag_ids(task.wagon_id, findings), notes, spread)
+
+
+_ROMS: dict[tuple[object, ...], ReducedModel] = {}
+"""The reduced models this process made for estimates computed in the partition."""
+
+
+def _rom(wagon: WagonConfig, refinement: float) -> ReducedModel:
+    key = (wagon.geometry, wagon.block, wagon.sensor_point_m, refinement)
+    rom = _ROMS.get(key)
+    if rom is None:
+        if len(_ROMS) >= 8:
+            _ROMS.clear()
+        rom = _ROMS[key] = ReducedModel.for_wagon(wagon, refinement=refinement)
+    return rom
+
+
+def _estimates(
+    task: FlagTask,
+    spans: Sequence[tuple[WagonSeries, SpanTimeline | None]],
+    config: FlagConfig,
+) -> list[EstimateOnGrid | None] | None:
+    """The virtual sensor's estimate of each span: the stored one when the task has it, else
+    computed here (:func:`fleetbrake.flags.estimated.estimate_span`); None when
+    ``config.estimator`` is off or the wagon has no registry entry."""
+    if not config.estimator or task.wagon is None:
+        return None
+    if task.estimates is not None:
+        frame = _frame(task.estimates)
+        return [estimate_on_grid(series, frame, config) for series, _ in spans]
+    if task.rev is None:
+        return None
+    rom = _rom(task.wagon, task.rev.refinement)
+    return [
+        estimate_span(series, rom, task.wagon, task.rev.effects, config=config)
+        for series, _ in spans
+    ]
 
 
 def flag_task(
@@ -306,10 +441,15 @@ def flag_task(
     ambient_c: float,
     note: str | None,
     data_key: str | None,
+    wagon: WagonConfig | None = None,
+    rev: Revision | None = None,
+    residual_spread_k: float | None = None,
+    estimated: bool = False,
 ) -> FlagTask:
     """The wagon's partition, read from the warehouse (by the parent: workers never open
     it); with ``data_key`` (the wagon's timeline of the revision is current) its timeline,
-    segments and predictions too."""
+    segments and predictions too, and with ``estimated`` (its stored estimates of the
+    revision are current) those."""
     params = {"wagon_id": wagon_id}
     timed = {"wagon_id": wagon_id, "revision": revision_name}
 
@@ -329,6 +469,10 @@ def flag_task(
         segments=arrow("q_simulation_timeline_segments", timed) if current else None,
         timeline=arrow("q_simulation_timeline", timed) if current else None,
         predictions=arrow("q_flags_predictions", timed) if current else None,
+        wagon=wagon,
+        rev=rev,
+        residual_spread_k=residual_spread_k,
+        estimates=arrow("q_flags_estimates", timed) if current and estimated else None,
     )
 
 
@@ -352,7 +496,7 @@ def raise_flags(
     :func:`judge_task` on it (default: the builtin ``map``, in this process; an engine's
     workers otherwise), and the parent stores every wagon's flags at the end, in bulk. The
     flags are the same with any engine."""
-    revision(wh, revision_name)  # the revision must exist
+    rev = revision(wh, revision_name)  # the revision must exist
     if isinstance(registry, Registry):
         wagons_by_id: Mapping[str, WagonConfig] = registry.wagons
         default_ambient_c = float(registry.defaults["ambient_temp_c"])
@@ -366,6 +510,7 @@ def raise_flags(
     report = FlagReport(wagons=wanted)
     keys = data_keys(wh)
     done = simulated_wagons(wh, revision_name)
+    current_estimates = _current_estimates(wh, revision_name)
 
     def tasks() -> Iterator[FlagTask]:
         for wagon_id in wanted:
@@ -395,17 +540,75 @@ def raise_flags(
                 ambient_c=ambient,
                 note=note,
                 data_key=data_key,
+                wagon=wagon,
+                rev=rev,
+                estimated=wagon_id in current_estimates,
             )
 
     outcomes = map(judge_task, tasks()) if engine is None else engine.map(judge_task, tasks())
     new: list[Flag] = []
+    spreads: list[float] = []
     for outcome in outcomes:
         report.notes += outcome.notes
         new += outcome.flags
+        if outcome.residual_spread_k is not None:
+            spreads.append(outcome.residual_spread_k)
+    if spreads:  # for the report only: each wagon was judged with its own
+        report.residual_spread_k = float(statistics.median(spreads))
     _store(wh, report.wagons, new)
     report.flags = new
     logger.info("flags of %d wagons judged: %d flags", len(report.wagons), len(new))
     return report
+
+
+RESIDUAL_MIN_READINGS = 30
+"""Brakings with fewer valid readings in their window do not count in the residual spread."""
+
+
+RESIDUAL_SPREAD_CAP_K = 0.5
+"""K: a wagon's residual spread is at most this (5 x the sensor noise), so that a fault
+spanning the whole wagon (a drift over most of its brakings) cannot raise its own thresholds
+out of reach."""
+
+
+def wagon_residual_spread(predictions: pl.DataFrame) -> float | None:
+    """One wagon's residual spread for a revision, K: the median over its brakings (with at
+    least :data:`RESIDUAL_MIN_READINGS` valid readings) of the rms of measured - predicted
+    over each window of its ``predictions``; None without any. A function of the wagon's
+    own data and the revision only, so another wagon's late file cannot move its flags."""
+    if predictions.height == 0:
+        return None
+    valid = predictions.filter(
+        pl.col("measured_sensor_c").is_not_null() & pl.col("predicted_sensor_c").is_not_null()
+    )
+    per_event = (
+        valid.with_columns(
+            ((pl.col("measured_sensor_c") - pl.col("predicted_sensor_c")) ** 2).alias("sq")
+        )
+        .group_by("event_id")
+        .agg(pl.col("sq").mean().sqrt().alias("rms_k"), pl.len().alias("readings"))
+        .filter(pl.col("readings") >= RESIDUAL_MIN_READINGS)
+    )
+    if per_event.height == 0:
+        return None
+    value = per_event["rms_k"].median()
+    if value is None:
+        return None
+    return min(float(value), RESIDUAL_SPREAD_CAP_K)  # type: ignore[arg-type]
+
+
+def _current_estimates(wh: Warehouse, revision_name: str) -> set[str]:
+    """The wagons whose stored virtual-sensor estimates of the revision are current with
+    their data (none when the warehouse has no estimation tables)."""
+    present = wh.con.execute(sql("q_flags_has_estimates")).fetchone()
+    if present is None or int(present[0]) < 2:
+        return set()
+    keys = estimation_data_keys(wh)
+    return {
+        wagon_id
+        for wagon_id, stored in estimated_wagons(wh, revision_name).items()
+        if keys.get(wagon_id) == stored.data_key
+    }
 
 
 _FLAG_SCHEMA = pl.Schema(

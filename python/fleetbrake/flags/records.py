@@ -50,6 +50,9 @@ class FlagReport:
     flags: list[Flag] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     """Wagons judged only in part (no registry entry, no predictions), naming the wagon."""
+    residual_spread_k: float | None = None
+    """The median of the judged wagons' residual spreads (each wagon's thresholds were
+    scaled with its own; None: none known)."""
 
     def count(self, kind: str | None = None) -> int:
         return sum(1 for f in self.flags if kind is None or f.kind == kind)
