@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fleetbrake.errors import FleetbrakeError
+from fleetbrake.model.estimator import noise_from_second_differences
 
 __all__ = [
     "HELD_OUT_MARGIN",
@@ -482,8 +483,7 @@ def noise_from_residual(
         raise SelectionError(
             f"noise_from_residual: {d2.size} second differences within blocks; need 10"
         )
-    mad = float(np.median(np.abs(d2 - np.median(d2))))
-    return 1.4826 * mad / math.sqrt(6.0)
+    return noise_from_second_differences(d2)
 
 
 # ---------------------------------------------------------------------------- adequacy

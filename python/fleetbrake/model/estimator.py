@@ -111,6 +111,7 @@ __all__ = [
     "estimate_contact",
     "fit_noise",
     "measurement_noise",
+    "noise_from_second_differences",
     "prepare",
     "run_numpy",
     "rust_available",
@@ -1409,6 +1410,14 @@ def measurement_noise(
     d2 = (y[2:] - 2.0 * y[1:-1] + y[:-2])[same]
     if d2.size < min_differences:
         return None
+    return noise_from_second_differences(d2)
+
+
+def noise_from_second_differences(d2: FloatArray) -> float:
+    """White noise's σ from its second differences ``x[t+1] - 2 x[t] + x[t-1]`` (variance
+    6 σ²), scaled robustly: the median absolute deviation x 1.4826, divided by √6. Shared by
+    the estimator's σ_v (:func:`measurement_noise`, on readings) and the close loop's
+    ``noise_from_residual`` (on residuals)."""
     mad = float(np.median(np.abs(d2 - np.median(d2))))
     return 1.4826 * mad / math.sqrt(6.0)
 
