@@ -33,8 +33,10 @@ wheel: setup  ## build the wheel into dist/ (what users install)
 	rm -f $(WHEEL_DIR)/fleetbrake-*.whl
 	$(VENV)/bin/maturin build --release -q --out $(WHEEL_DIR)
 
-demo: build  ## synthetic fleet through the whole pipeline into $(DEMO_OUT)/
-	$(VENV)/bin/fleetbrake demo --out $(DEMO_OUT)
+# --force: `make demo` again replaces the previous demo's results; it wipes only a directory a
+# demo made (or an empty one), never anything else (docs/demo.md).
+demo: build  ## synthetic fleet through the whole pipeline into $(DEMO_OUT)/ (again: replaced)
+	$(VENV)/bin/fleetbrake demo --out $(DEMO_OUT) --force
 
 test: build test-rust test-python  ## every test that matters (slow ones skipped)
 
