@@ -101,6 +101,60 @@ def inline_db(
     return db
 
 
+FE_REFINEMENT = 0.2
+"""The full model's mesh that writes the full-FE fleets (409 hex20 nodes, as ``test_closeloop``:
+another mesh and another integrator than the reduced model the stage estimates with)."""
+
+
+@pytest.fixture(scope="module")
+def full_model_for() -> Callable[..., object]:
+    """``full_model_for(wagon)``: the full FE model of the wagon's block at ``FE_REFINEMENT``,
+    assembled once per block for the module."""
+    from fleetbrake.fleet.registry import WagonConfig
+    from fleetbrake.model.rom import FullModelRunner
+
+    models: dict[tuple[object, ...], FullModelRunner] = {}
+
+    def get(wagon: WagonConfig) -> FullModelRunner:
+        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)
+        if key not in models:
+            models[key] = FullModelRunner.for_wagon(wagon, refinement=FE_REFINEMENT)
+        return models[key]
+
+    return get
+
+
+@pytest.fixture(scope="module")
+def full_fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    full_model_for: Callable[..., object],
+    rom_cache_dir: Path,
+) -> Iterator[Path]:
+    """``fleet``'s wagons, day and anomalies (seed 1: SGG-0002's dragging brake) written by
+    the full FE model (solver ``full``; some 20 s)."""
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
+
+    root = tmp_path_factory.mktemp("estimates-full") / "fleet"
+    config = SynthConfig(wagons=3, days=1, seed=1, solver="full", refinement=FE_REFINEMENT)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        generate_fleet(root, config, rom=full_model_for)  # type: ignore[arg-type]
+        yield root
+
+
+@pytest.fixture(scope="module")
+def full_db(
+    full_fleet: Path,
+    tmp_path_factory: pytest.TempPathFactory,
+    rom_refinement: float,
+    rom_cache_dir: Path,
+) -> Path:
+    db = tmp_path_factory.mktemp("estimates-full-db") / "full.duckdb"
+    report = _run(full_fleet, db, InlineEngine(), rom_refinement, rom_cache_dir)
+    assert report.estimation is not None and report.estimation.wagons_estimated
+    return db
+
+
 def _query(db: Path, text: str, params: dict[str, Any] | None = None) -> pl.DataFrame:
     con = duckdb.connect(str(db), read_only=True)
     try:
@@ -116,7 +170,9 @@ def _tables(db: Path) -> dict[str, pl.DataFrame]:
     }
 
 
-def test_run_fills_v_contact_estimates_one_row_per_logged_second(inline_db: Path) -> None:
+def test_run_fills_v_contact_estimates_one_row_per_logged_second(
+    fleet: Path, inline_db: Path
+) -> None:
     described = _query(inline_db, "DESCRIBE v_contact_estimates")
     assert list(zip(described["column_name"], described["column_type"], strict=True)) == (
         VIEW_COLUMNS
@@ -140,13 +196,14 @@ def test_run_fills_v_contact_estimates_one_row_per_logged_second(inline_db: Path
     assert per_wagon.height >= 3
     assert per_wagon["rows"].to_list() == per_wagon["seconds"].to_list()
     assert per_wagon["distinct_seconds"].to_list() == per_wagon["seconds"].to_list()
-    # every logged second at the sample's time; the innovation only with a valid reading
+    # every logged second at the sample's time; the innovation only with a valid reading, and
+    # with every valid reading but a frozen sensor's (the truth's frozen faults)
     ((unmatched, wrong_innovation, nulls),) = _query(
         inline_db,
         """
         SELECT
             count(*) FILTER (WHERE s.time_utc IS NULL),
-            count(*) FILTER (WHERE (e.innovation_k IS NULL) <> (s.block_temp_c IS NULL)),
+            count(*) FILTER (WHERE e.innovation_k IS NOT NULL AND s.block_temp_c IS NULL),
             count(*) FILTER (WHERE e.smoothed_contact_mean_c IS NULL OR e.contact_mean_c IS NULL)
         FROM v_contact_estimates AS e
         LEFT JOIN (
@@ -156,6 +213,26 @@ def test_run_fills_v_contact_estimates_one_row_per_logged_second(inline_db: Path
         """,
     ).rows()
     assert (unmatched, wrong_innovation, nulls) == (0, 0, 0)
+    skipped = _query(
+        inline_db,
+        """
+        SELECT e.wagon_id, e.time_utc
+        FROM v_contact_estimates AS e
+        JOIN samples AS s USING (wagon_id, time_utc)
+        WHERE e.innovation_k IS NULL AND s.block_temp_c IS NOT NULL
+        """,
+    )
+    from fleetbrake.synth.truth import load_truth
+
+    frozen = [
+        a for a in load_truth(fleet).anomalies if a.kind == "sensor_fault" and a.subtype == "frozen"
+    ]
+    inside = pl.lit(False)
+    for a in frozen:
+        inside |= (pl.col("wagon_id") == a.wagon_id) & pl.col("time_utc").is_between(
+            a.start_utc, a.end_utc
+        )
+    assert skipped.filter(~inside).height == 0
     ((bad_bounds,),) = _query(
         inline_db,
         """
@@ -215,8 +292,10 @@ def test_local_engine_equals_inline_and_a_second_run_adds_nothing(
 
 
 def test_a_late_file_reestimates_only_its_wagon(
-    fleet: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
+    fleet: Path, inline_db: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
 ) -> None:
+    """A late file re-estimates its wagon only, and the estimates end where one run over all
+    the files ends (what ``watch`` then ``run`` does, file by file)."""
     copy = tmp_path / "fleet"
     shutil.copytree(fleet, copy)
     logs = sorted((copy / "logs").glob("SGG-0003/*.csv*"))
@@ -242,9 +321,16 @@ def test_a_late_file_reestimates_only_its_wagon(
     # the late file's seconds are estimated now
     grown = after["contact_estimates"].filter(pl.col("wagon_id") == "SGG-0003").height
     assert grown > before["contact_estimates"].filter(pl.col("wagon_id") == "SGG-0003").height
+    assert after["contact_estimates"].equals(_tables(inline_db)["contact_estimates"])
 
 
 def test_a_dragging_brake_shows_as_unexplained_power(fleet: Path, inline_db: Path) -> None:
+    _assert_drag_found(fleet, inline_db)
+
+
+def _assert_drag_found(fleet: Path, inline_db: Path) -> None:
+    """The fleet's dragging brake as unexplained power: its smoothed mean near the true
+    power, its lower bound above 0, none the hours before."""
     from fleetbrake.fleet.registry import WagonConfig
     from fleetbrake.synth.truth import load_truth
 
@@ -290,9 +376,16 @@ def declared_fleet(
 ) -> Iterator[Path]:
     """One wagon-day following the declared model: no anomaly, noise-free readings and
     inputs, no damaged or missing data."""
+    root = tmp_path_factory.mktemp("declared") / "fleet"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        _generate_declared(root, reduced_model_for, "rom")
+        yield root
+
+
+def _generate_declared(root: Path, model: Callable[..., object], solver: str) -> None:
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
-    root = tmp_path_factory.mktemp("declared") / "fleet"
     config = SynthConfig(
         wagons=1,
         days=1,
@@ -314,16 +407,30 @@ def declared_fleet(
         unregistered_wagon=False,
         bad_registry_entry=False,
         odd_columns=False,
+        solver=solver,  # type: ignore[arg-type]
+        **({"refinement": FE_REFINEMENT} if solver == "full" else {}),  # type: ignore[arg-type]
     )
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
-        generate_fleet(root, config, rom=reduced_model_for)
-        yield root
+    generate_fleet(root, config, rom=model)  # type: ignore[arg-type]
 
 
 def test_identity_noise_free_declared_readings_give_the_models_prediction(
     declared_fleet: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
 ) -> None:
+    _assert_identity(declared_fleet, tmp_path, rom_refinement, rom_cache_dir, model_error_k=0.0)
+
+
+def _assert_identity(
+    declared_fleet: Path,
+    tmp_path: Path,
+    rom_refinement: float,
+    rom_cache_dir: Path,
+    *,
+    model_error_k: float,
+) -> None:
+    """With noise-free readings of a fleet following the declared model, the estimate is
+    the model's prediction within its band (plus ``model_error_k``: how far the model that
+    wrote the fleet is from the estimator's reduced one) and the unexplained power within
+    its bounds of zero."""
     db = tmp_path / "declared.duckdb"
     given = EstimationConfig(noise=EstimatorNoise(measurement_k=0.1, power_w_per_sqrt_s=3.0))
     _run(declared_fleet, db, InlineEngine(), rom_refinement, rom_cache_dir, given)
@@ -354,15 +461,19 @@ def test_identity_noise_free_declared_readings_give_the_models_prediction(
         half = (both[f"{prefix}contact_mean_hi_c"] - both[f"{prefix}contact_mean_lo_c"]).to_numpy()
         # inside the band around the model's prediction at every second (0.02 K: the log's
         # rounding of the readings), and a band that says something
-        assert np.all(np.abs(mean - model) <= 0.5 * half + 0.02), prefix
+        assert np.all(np.abs(mean - model) <= 0.5 * half + 0.02 + model_error_k), prefix
         assert np.mean(half / 2 / Z95) < 1.0, prefix
         # the stored open-loop timeline (re-anchored by uniform shifts) is within ~1 K of it
         assert np.all(np.abs(mean - timeline) <= 0.5 * half + 1.5), prefix
-    lo, hi = both["unexplained_power_lo_w"].to_numpy(), both["unexplained_power_hi_w"].to_numpy()
-    assert np.all((lo <= 0) & (hi >= 0))
-    lo = both["smoothed_unexplained_power_lo_w"].to_numpy()
-    hi = both["smoothed_unexplained_power_hi_w"].to_numpy()
-    assert np.all((lo <= 0) & (hi >= 0))
+    # (every second for the model itself; the FE model's error shows in a few: 97 % and 96 %
+    # of the seconds on this one)
+    least = 1.0 if model_error_k == 0 else 0.95
+    for prefix in ("", "smoothed_"):
+        lo = both[f"{prefix}unexplained_power_lo_w"].to_numpy()
+        hi = both[f"{prefix}unexplained_power_hi_w"].to_numpy()
+        share = float(np.mean((lo <= 0) & (hi >= 0)))
+        print(f"{prefix}unexplained power within its bounds of 0: {share:.4f}")
+        assert share >= least, prefix
 
 
 def test_a_wagons_results_do_not_depend_on_when_the_others_arrived(
@@ -495,3 +606,125 @@ def test_the_close_loops_revision_gets_its_own_sigma_w_by_maximum_likelihood(
     assert sorted(report.wagons_estimated) == sorted(
         _query(inline_db, "SELECT wagon_id FROM estimated_wagons")["wagon_id"].to_list()
     )
+
+
+def _freeze_reading(root: Path, wagon_id: str, start: dt.datetime, end: dt.datetime) -> float:
+    """Rewrite ``wagon_id``'s log files so that its reading holds, from ``start`` to ``end``,
+    the value it had at ``start`` (a stuck thermistor); returns that value."""
+    import csv
+    import gzip
+    import io
+
+    def stamp(t: dt.datetime) -> str:
+        return t.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+    first, last = stamp(start), stamp(end)
+    value: str | None = None
+    for path in sorted((root / "logs" / wagon_id).glob("*.csv*")):
+        zipped = path.suffix == ".gz"
+        text = (gzip.decompress(path.read_bytes()) if zipped else path.read_bytes()).decode()
+        rows = list(csv.reader(io.StringIO(text)))
+        column = rows[0].index("block_temp_c")
+        touched = False
+        for row in sorted(rows[1:], key=lambda r: r[0]):
+            if len(row) > column and first <= row[0] <= last:
+                if value is None:
+                    value = row[column]
+                row[column], touched = value, True
+        if touched:
+            out = io.StringIO()
+            csv.writer(out, lineterminator="\n").writerows(rows)
+            data = out.getvalue().encode()
+            path.write_bytes(gzip.compress(data) if zipped else data)
+    assert value is not None
+    return float(value)
+
+
+def test_a_frozen_thermistor_skips_the_update_and_is_still_flagged(
+    fleet: Path, inline_db: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
+) -> None:
+    """A thermistor stuck for an hour around the wagon's hottest braking (SGG-0001, healthy):
+    its readings are masked out of the estimator's updates (no innovation), so the contact
+    estimate follows the model, its band widening while it runs blind, instead of diving
+    towards the stuck value; the flags still report the frozen sensor (one run detector,
+    ``constant_runs``, for both)."""
+    from fleetbrake.synth.truth import load_truth
+
+    wagon = "SGG-0001"
+    truth = (
+        load_truth(fleet)
+        .series(wagon)
+        .select(
+            pl.col("time_utc").cast(pl.Datetime("us")), pl.col("contact_mean_c").alias("true_c")
+        )
+    )
+    assert not [a for a in load_truth(fleet).anomalies if a.wagon_id == wagon]
+    peak = truth.sort("true_c", descending=True)["time_utc"][0]
+    start, end = peak - dt.timedelta(minutes=30), peak + dt.timedelta(minutes=30)
+    copy = tmp_path / "fleet"
+    shutil.copytree(fleet, copy)
+    stuck_c = _freeze_reading(copy, wagon, start, end)
+    db = tmp_path / "fleet.duckdb"
+    _run(copy, db, InlineEngine(), rom_refinement, rom_cache_dir)
+    query = "SELECT * FROM contact_estimates WHERE wagon_id = $w ORDER BY time_utc"
+    est = _query(db, query, {"w": wagon}).join(truth, on="time_utc")
+    normal = _query(inline_db, query, {"w": wagon}).join(truth, on="time_utc")
+    window = pl.col("time_utc").is_between(start + dt.timedelta(seconds=1), end)
+    frozen = est.filter(window)
+    assert frozen.height > 1500
+    assert frozen["true_c"].max() > stuck_c + 30  # the block heats while the reading sticks
+    # the stuck readings skipped the update
+    assert frozen["innovation_k"].null_count() == frozen.height
+    # no dip: the smoothed and the live estimates hold the truth within their bands
+    true = frozen["true_c"].to_numpy()
+    for prefix in ("", "smoothed_"):
+        mean = frozen[f"{prefix}contact_mean_c"].to_numpy()
+        half = (
+            (frozen[f"{prefix}contact_mean_hi_c"] - frozen[f"{prefix}contact_mean_lo_c"]) / 2
+        ).to_numpy()
+        assert float(np.mean(np.abs(mean - true) <= half + 0.5)) > 0.95, prefix
+        assert float(mean.min()) > float(true.min()) - 5.0, prefix
+
+    # the band widens while blind: wider than before it and than with the readings
+    def half_width(frame: pl.DataFrame) -> float:
+        return float(((frame["contact_mean_hi_c"] - frame["contact_mean_lo_c"]) / 2).median())
+
+    before = est.filter(pl.col("time_utc").is_between(start - dt.timedelta(hours=1), start))
+    assert half_width(frozen) > 1.5 * half_width(before)
+    assert half_width(frozen) > 1.5 * half_width(normal.filter(window))
+    # and the flag still fires, on the same readings
+    flags = _query(
+        db,
+        "SELECT * FROM flags WHERE wagon_id = $w AND kind = 'sensor_fault' "
+        "AND start_utc < $end AND end_utc > $start",
+        {"w": wagon, "start": start, "end": end},
+    )
+    assert flags.height >= 1 and any("frozen" in e for e in flags["evidence"]), flags
+
+
+def test_a_full_fe_fleets_dragging_brake_shows_as_unexplained_power(
+    full_fleet: Path, full_db: Path, rom_refinement: float, rom_cache_dir: Path
+) -> None:
+    """The drag check on a fleet the full FE model wrote (the stage estimates with the reduced
+    one), and a second run adds nothing there either."""
+    _assert_drag_found(full_fleet, full_db)
+    before = _tables(full_db)
+    again = _run(full_fleet, full_db, InlineEngine(), rom_refinement, rom_cache_dir)
+    assert again.estimation is not None and again.estimation.wagons_estimated == []
+    assert _tables(full_db)["contact_estimates"].equals(before["contact_estimates"])
+
+
+def test_identity_on_a_full_fe_fleet_following_the_declared_model(
+    tmp_path: Path,
+    full_model_for: Callable[..., object],
+    rom_refinement: float,
+    rom_cache_dir: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The identity check with the readings of the full FE model (another mesh, integrated in
+    time): the estimate is its contact temperature within the band and the FE model's
+    distance from the reduced one (about 0.2 K at a hard braking's peak, ``test_closeloop``)."""
+    monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+    root = tmp_path / "fleet"
+    _generate_declared(root, full_model_for, "full")
+    _assert_identity(root, tmp_path, rom_refinement, rom_cache_dir, model_error_k=0.5)

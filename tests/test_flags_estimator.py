@@ -298,11 +298,12 @@ def judge_fleet(
     rom_cache_dir: Path,
 ) -> Iterator[Callable[..., Judged]]:
     """``judge_fleet(seed=, wagons=, days=, anomalies=, solver=, effects=)``: generate,
-    ingest, simulate with the declared model, raise the flags with today's detectors and with
-    the new ones; memoised per arguments."""
+    ingest, simulate and estimate (the virtual sensor's stage) with the declared model, raise
+    the flags with today's detectors and with the new ones; memoised per arguments."""
     from conftest import TEST_REFINEMENT
     from fleetbrake.flags import raise_flags
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.estimates import EstimationConfig, estimate_wagons
     from fleetbrake.simulation.predictions import (
         SimulationConfig,
         current_revision,
@@ -344,13 +345,10 @@ def judge_fleet(
             registry = load_fleet_registry(out / "fleet")
             outcomes = []
             with open_warehouse(out / "fleet.duckdb") as wh:
-                simulate_events(
-                    wh,
-                    registry,
-                    current_revision(wh, refinement=TEST_REFINEMENT),
-                    SimulationConfig(refinement=TEST_REFINEMENT),
-                    progress=False,
-                )
+                rev = current_revision(wh, refinement=TEST_REFINEMENT)
+                sim = SimulationConfig(refinement=TEST_REFINEMENT)
+                simulate_events(wh, registry, rev, sim, progress=False)
+                estimate_wagons(wh, registry, rev, EstimationConfig(chain=sim.chain))
                 observable = {id(a): _observable(wh, truth, a) for a in truth.anomalies}
                 spread = _uncapped_spread(wh, registry.wagons)
                 for label, flag_config in (("today", TODAY), ("new", FlagConfig())):
@@ -453,7 +451,9 @@ def test_the_flags_read_the_stored_estimates_when_they_are_current(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """After the estimation stage (``contact_estimates``), the flags read its rows of the
-    wagons whose data they are current with, and judge with them no worse than today."""
+    wagons whose data they are current with, and judge with them no worse than today; before
+    it (or with estimates older than the data) they judge without the virtual sensor: the
+    stage is the one place a wagon is estimated."""
     from conftest import TEST_REFINEMENT
     from fleetbrake.flags import raise_flags
     from fleetbrake.flags.judge import _current_estimates
@@ -477,8 +477,10 @@ def test_the_flags_read_the_stored_estimates_when_they_are_current(
         simulate_events(
             wh, registry, rev, SimulationConfig(refinement=TEST_REFINEMENT), progress=False
         )
-        assert _current_estimates(wh, rev.name) == set()  # none stored yet: computed in the judge
-        computed = raise_flags(wh, registry, rev.name)
+        assert _current_estimates(wh, rev.name) == set()  # none stored yet: no opinion
+        alone = raise_flags(wh, registry, rev.name)
+        assert alone.flags and not any(f.detail == "estimator" for f in alone.flags)
+        assert not any("virtual sensor" in f.evidence for f in alone.flags)
         estimate_wagons(wh, registry, rev)
         assert _current_estimates(wh, rev.name) == set(registry.wagons)
         stored = raise_flags(wh, registry, rev.name)
@@ -489,7 +491,7 @@ def test_the_flags_read_the_stored_estimates_when_they_are_current(
             Outcome("today", today.flags, truth, observable, {"flags": 0.0}),
             Outcome(name, report.flags, truth, observable, {"flags": 0.0}),
         )
-        for name, report in (("computed", computed), ("stored", stored))
+        for name, report in (("stored", stored),)
     ]
     for j in judged:
         _compare([j])

@@ -117,3 +117,98 @@ def test_a_late_file_through_the_local_engine_changes_only_its_wagon(
     finally:
         con.close()
     assert len(after["samples"]) > len(before["samples"])
+
+
+def test_a_unit_of_files_judges_its_wagons_and_the_stale_ones_only(
+    fleet: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
+) -> None:
+    """``run_fleet(files=...)`` (a unit of ``fleetbrake watch``) judges the flags of the
+    wagons its files changed, plus any wagon whose flags are older than its timeline (a unit
+    stopped before its flags), and leaves the others' flags as they were; the flags equal
+    those of a whole run."""
+    import shutil
+
+    import duckdb
+
+    copy = tmp_path / "fleet"
+    shutil.copytree(fleet, copy)
+    by_wagon = sorted((copy / "logs").glob("*/*.csv*"))
+    late = by_wagon[0]
+    held = tmp_path / late.name
+    late.rename(held)
+    db, whole_db = tmp_path / "fleet.duckdb", tmp_path / "whole.duckdb"
+    wagon = late.parent.name
+
+    def flags(path: Path) -> list[tuple[object, ...]]:
+        con = duckdb.connect(str(path), read_only=True)
+        try:
+            return con.execute(
+                "SELECT flag_id, wagon_id, kind, severity, start_utc, end_utc, evidence "
+                "FROM flags ORDER BY flag_id"
+            ).fetchall()
+        finally:
+            con.close()
+
+    with InlineEngine() as engine:
+        _run(copy, db, engine, rom_refinement, rom_cache_dir)
+        con = duckdb.connect(str(db))
+        try:  # another wagon's flags judged before its timeline was written: stale
+            other = con.execute(
+                "SELECT min(wagon_id) FROM flagged_wagons WHERE wagon_id <> $w", {"w": wagon}
+            ).fetchall()[0][0]
+            con.execute(
+                "UPDATE flagged_wagons SET updated_utc = TIMESTAMP '2000-01-01' "
+                "WHERE wagon_id = $w",
+                {"w": other},
+            )
+        finally:
+            con.close()
+        held.rename(late)
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+            unit = run_fleet(
+                copy,
+                db,
+                simulation=SimulationConfig(refinement=rom_refinement),
+                progress=False,
+                engine=engine,
+                files=[late.relative_to(copy).as_posix()],
+            )
+            again = run_fleet(
+                copy,
+                db,
+                simulation=SimulationConfig(refinement=rom_refinement),
+                progress=False,
+                engine=engine,
+                files=[],
+            )
+        _run(copy, whole_db, engine, rom_refinement, rom_cache_dir)
+    assert unit.flags is not None and again.flags is not None
+    assert unit.flags.wagons == sorted({wagon, other})
+    assert again.flags.wagons == []  # nothing changed, nothing stale
+    assert flags(db) == flags(whole_db) and flags(db)
+
+
+def test_large_arrow_tables_cross_to_the_workers_as_mapped_files_and_leave_nothing() -> None:
+    """The local engine ships a large Arrow table (a partition's data, a result's rows) as an
+    Arrow IPC file in its own directory, read back mapped and removed at once: the table
+    arrives equal, no file is left, and the directory goes with the engine."""
+    from operator import methodcaller
+
+    import numpy as np
+    import pyarrow as pa
+
+    from fleetbrake.engine import local
+
+    n = 200_000  # 8 bytes x 2 columns x n > SHIPPED_MIN_BYTES
+    table = pa.table({"a": np.arange(n, dtype=np.float64), "b": np.arange(n) % 7})
+    assert table.nbytes >= local.SHIPPED_MIN_BYTES
+    small = table.slice(0, 10)
+    with LocalEngine(1) as engine:
+        back = list(engine.map(methodcaller("combine_chunks"), [table, small, table]))
+        directory = engine._ship_dir
+        assert directory is not None and Path(directory).is_dir()
+        assert list(Path(directory).iterdir()) == []  # each file removed as it was read
+    assert [t.equals(u) for t, u in zip(back, [table, small, table], strict=True)] == [True] * 3
+    assert not Path(directory).exists()
+    assert local._ship_dir is None  # pickled as usual again

@@ -719,3 +719,89 @@ def test_the_prediction_rows_are_built_as_one_row_per_window_second(fleet: Fleet
             assert got["measured_sensor_c"].null_count() == want["measured_sensor_c"].null_count()
             compared += got.height
     assert compared > 10_000
+
+
+def test_a_chunk_is_cut_into_each_wagons_rows_sorted_as_its_own_query_sorts_them() -> None:
+    """``store.wagon_parts``: rows of several wagons in any stored order (a wagon's rows in
+    several runs, a late file's among another wagon's) come out per wagon, sorted by the keys
+    with ties kept in stored order, without the cut columns; a wagon without rows gets an
+    empty table of the same columns."""
+    import pyarrow as pa
+
+    from fleetbrake.simulation.store import wagon_part, wagon_parts
+
+    rng = np.random.default_rng(3)
+    n = 400
+    wagon = rng.choice(["A", "B", "C"], size=n)
+    time = rng.integers(0, 50, size=n)  # ties: the file_id and then the stored order decide
+    file_id = rng.integers(0, 3, size=n)
+    table = pa.table({"wagon_id": wagon, "time": time, "file_id": file_id, "row": np.arange(n)})
+    parts = wagon_parts(table, ["A", "B", "C", "D"], ["time", "file_id"], ["file_id"])
+    for w in ("A", "B", "C"):
+        mine = np.flatnonzero(wagon == w)
+        order = mine[np.lexsort((mine, file_id[mine], time[mine]))]  # stable by stored order
+        assert parts[w].column_names == ["time", "row"]
+        assert parts[w].column("row").to_pylist() == order.tolist()
+        assert wagon_part(table, w, ["time", "file_id"], ["file_id"]).equals(parts[w])
+    assert parts["D"].num_rows == 0 and parts["D"].column_names == ["time", "row"]
+
+
+def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
+    fleet: Fleet,
+) -> None:
+    """The simulation's and the flags' chunks (one query per table for several wagons) cut
+    into the very tables the per-wagon queries read (``wagon_task``, ``flag_task``), and
+    the flags judged by chunks of one wagon or of all are the same."""
+    from fleetbrake.flags import judge
+    from fleetbrake.flags.config import FlagConfig
+    from fleetbrake.simulation import predictions as p
+    from fleetbrake.simulation.store import data_keys, simulated_wagons
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        rev = p.current_revision(wh, refinement=fleet.config.refinement)
+        p.simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
+        keys, done = data_keys(wh), simulated_wagons(wh, rev.name)
+        wagons = [fleet.registry.wagons[w] for w in sorted(keys) if w in fleet.registry.wagons]
+        assert len(wagons) >= 2
+        todo = [(w, keys[w.wagon_id], "model") for w in wagons]
+        chunk = p.wagon_chunk(wh, todo, rev, fleet.config)
+        assert str(chunk).startswith("wagons ")
+        for task, (w, key, model) in zip(p.chunk_tasks(chunk), todo, strict=True):
+            alone = p.wagon_task(wh, w, rev, fleet.config, data_key=key, model_key=model)
+            assert task.samples.num_rows > 0 and task.events.num_rows > 0
+            assert task.samples.equals(alone.samples) and task.events.equals(alone.events)
+        ids = sorted(keys)  # the unregistered wagon too: its readings alone
+        heads = [
+            judge._FlagHead(
+                w,
+                7.0,
+                None,
+                done[w].data_key if w in done else None,
+                fleet.registry.wagons.get(w),
+                False,
+            )
+            for w in ids
+        ]
+        config = FlagConfig()
+        flag_chunk = judge.flag_chunk(wh, heads, rev.name, config, rev)
+        for task, head in zip(judge.chunk_tasks(flag_chunk), heads, strict=True):
+            alone = judge.flag_task(
+                wh,
+                head.wagon_id,
+                rev.name,
+                config,
+                ambient_c=head.ambient_c,
+                note=None,
+                data_key=head.data_key,
+                wagon=head.wagon,
+                rev=rev,
+            )
+            for name in ("samples", "events", "segments", "timeline", "predictions"):
+                mine, theirs = getattr(task, name), getattr(alone, name)
+                assert (mine is None) == (theirs is None), name
+                assert mine is None or mine.equals(theirs), (head.wagon_id, name)
+        by_one = judge.raise_flags(wh, fleet.registry, rev.name, chunk_rows=1)
+        by_all = judge.raise_flags(wh, fleet.registry, rev.name)
+    assert by_one.flags == by_all.flags and by_one.notes == by_all.notes
+    assert by_all.flags

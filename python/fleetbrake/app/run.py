@@ -144,7 +144,8 @@ def run_fleet(
 
     ``files``: ingest only these paths (relative to ``fleet_dir``, as ``v_files.path``)
     instead of scanning ``logs/`` (a unit of ``fleetbrake watch``); the later stages are
-    the same as without it.
+    the same as without it, but for the flags, which judge only the wagons the unit changed
+    (:func:`_unit_wagons`) instead of every wagon.
     """
     from fleetbrake.flags import FlagConfig, load_flag_config
     from fleetbrake.ingest.files import load_fleet_registry
@@ -177,6 +178,26 @@ def run_fleet(
                 estimation,
             )
     raise AssertionError("unreachable")  # ExitStack may swallow exceptions, for mypy
+
+
+def _unit_wagons(
+    wh: Warehouse,
+    revision_name: str,
+    ingest: IngestReport,
+    sim: SimulationReport,
+    estimated: EstimationReport,
+) -> list[str]:
+    """The wagons a unit of files must judge: those of its ingested files, those the
+    simulation and the estimation recomputed, and any whose flags are older than their data,
+    timeline or estimates (:func:`fleetbrake.flags.judge.stale_wagons`: a unit stopped
+    before its flags). A wagon's flags depend only on its own data and the revision, so the
+    others' stored flags stand (``fleetbrake watch``'s units judge these alone; a whole
+    ``run`` judges every wagon, with the flag thresholds it is given)."""
+    from fleetbrake.flags.judge import stale_wagons
+
+    wagons = {r.wagon_id for r in ingest.ingested if r.wagon_id is not None}
+    wagons |= set(sim.wagons_simulated) | set(estimated.wagons_estimated)
+    return sorted(wagons | set(stale_wagons(wh, revision_name)))
 
 
 def _stages(
@@ -225,7 +246,16 @@ def _stages(
                 engine=engine,
             )
         with _clock(stage_s, "flags"):
-            flags = raise_flags(wh, registry, rev.name, flag_config, engine=engine)
+            flags = raise_flags(
+                wh,
+                registry,
+                rev.name,
+                flag_config,
+                engine=engine,
+                wagons=(
+                    None if files is None else _unit_wagons(wh, rev.name, ingest, sim, estimated)
+                ),
+            )
     except duckdb.Error as error:
         raise WarehouseError(f"{db_path}: {error}") from error
     return RunReport(

@@ -25,7 +25,8 @@ run: the generation runs first in this process, so its peak is reset before the 
 ``getrusage(RUSAGE_SELF)``, generation included: ``peak_rss_self_source`` says which).
 ``peak_rss_workers_mb`` is the largest resident set of any of this process's descendants
 (the engine's workers; 0 with one worker, which runs inline), sampled every
-``SAMPLE_S`` by psutil, as is ``peak_rss_by_stage_mb`` (each stage's largest writer and
+``SAMPLE_S`` by psutil (the descendants listed again every ``CHILDREN_EVERY`` samples and
+as each stage begins), as is ``peak_rss_by_stage_mb`` (each stage's largest writer and
 worker resident sets: the stage that holds more than a partition shows there). Not
 ``getrusage(RUSAGE_CHILDREN)``: Linux hands a child that ``exec``s the high-water mark of
 the process it was started from, so every worker looked as large as the writer was when the
@@ -54,10 +55,16 @@ from typing import Any
 from fleetbrake.app.progress import generation_bar
 from fleetbrake.bench import BenchConfigError, require_extra
 
-__all__ = ["SAMPLE_S", "bench_fleet", "print_figures"]
+__all__ = ["CHILDREN_EVERY", "SAMPLE_S", "bench_fleet", "print_figures"]
 
 SAMPLE_S = 0.05
 """How often the memory sampler reads the resident sets (seconds)."""
+
+CHILDREN_EVERY = 20
+"""The sampler lists this process's descendants every this many samples (and as each stage
+begins), and reads the listed ones' resident sets at every sample: listing them walks every
+process of the machine (``/proc``), which at every sample cost the writer about 2 processor
+seconds per 100 wagon-days (``docs/benchmarks.md``)."""
 
 
 class _MemorySampler:
@@ -75,15 +82,20 @@ class _MemorySampler:
         """Processor seconds of the writer and of the workers (alive then) in each stage."""
         self._cpu_mark: tuple[float, float] | None = None
         self._child_cpu: dict[int, float] = {}
+        self._children: list[Any] = []
+        self._samples = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rss-sampler", daemon=True)
 
-    def _sample(self) -> None:
+    def _sample(self, *, list_children: bool = False) -> None:
         try:
             mine = self._me.memory_info().rss / 2**20
-            children = self._me.children(recursive=True)
+            self._samples += 1
+            if list_children or self._samples % CHILDREN_EVERY == 0:
+                self._children = self._me.children(recursive=True)
         except self._error:
             return
+        children = self._children
         largest = 0.0
         for child in children:
             try:
@@ -108,7 +120,7 @@ class _MemorySampler:
 
     def on_stage(self, stage: str) -> None:
         """The stage before ends, ``stage`` begins (``run_fleet(on_stage=)``)."""
-        self._sample()
+        self._sample(list_children=True)
         writer, workers = _cpu_s(resource.RUSAGE_SELF), self.workers_cpu_s
         if self._cpu_mark is not None:
             before = self.cpu_s.setdefault(self.stage, [0.0, 0.0])

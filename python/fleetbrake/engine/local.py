@@ -1,7 +1,11 @@
 """The engine that runs partitions in a pool of worker processes on this machine.
 
 Workers are started with ``spawn`` (never ``fork``: the parent may already run polars' and
-Rayon's threads, which a forked child would inherit as locks held by no one). Each worker's
+Rayon's threads, which a forked child would inherit as locks held by no one).
+Large Arrow tables (a partition's data, a result's rows) cross between the processes as Arrow
+IPC files in the engine's own directory (in ``/dev/shm``), mapped by the reader, not pickled
+through the pipe (:func:`_ship_table`); the directory goes with the engine (and, should its
+process be killed, with the next engine started on the machine). Each worker's
 initializer, which runs before it unpickles any task and so before its first polars or
 extension call, sets one thread per library (``RAYON_NUM_THREADS``, ``POLARS_MAX_THREADS``
 and the BLAS ones = 1: the processes are the parallelism) and ignores SIGINT, so a Ctrl-C is
@@ -15,15 +19,20 @@ few partitions' data whatever the fleet's size.
 from __future__ import annotations
 
 import importlib
+import itertools
 import logging
 import multiprocessing
 import os
+import shutil
 import signal
 import sys
+import tempfile
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from typing import TypeVar
+from multiprocessing.reduction import ForkingPickler
+from pathlib import Path
+from typing import Any, TypeVar
 
 from fleetbrake.engine.base import (
     EngineConfigError,
@@ -32,7 +41,7 @@ from fleetbrake.engine.base import (
     partition_error,
 )
 
-__all__ = ["WORKER_THREAD_ENV", "LocalEngine"]
+__all__ = ["SHIPPED_MIN_BYTES", "WORKER_THREAD_ENV", "LocalEngine"]
 
 logger = logging.getLogger(__name__)
 
@@ -50,8 +59,77 @@ WORKER_THREAD_ENV: dict[str, str] = {
 """Set in every worker before its first task: one thread per library and process."""
 
 
-def _init_worker(env: dict[str, str], preload: tuple[str, ...]) -> None:
+SHIPPED_MIN_BYTES = 1 << 20
+"""An Arrow table of at least this many bytes crosses between the writer and a worker as a
+file (:func:`_ship_table`), a smaller one pickled."""
+
+_ship_dir: str | None = None
+"""Where this process writes the Arrow tables it ships (the engine's directory); None:
+tables are pickled as usual."""
+_shipped = itertools.count()
+
+
+def _ship_table(table: Any) -> tuple[Any, ...]:
+    """How ``multiprocessing`` pickles an Arrow table between the engine's processes: a
+    large one is written once as an Arrow IPC file in the engine's directory (in memory,
+    ``/dev/shm`` where there is one) and the other side maps it (:func:`_load_shipped`),
+    instead of being copied into a pickle, through the pipe and out of the pickle again
+    (the writer spent about a third of its processor time on that: ``docs/benchmarks.md``)."""
+    import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
+
+    if _ship_dir is None or table.nbytes < SHIPPED_MIN_BYTES:
+        return table.__reduce__()  # type: ignore[no-any-return,unused-ignore]
+    path = os.path.join(_ship_dir, f"{os.getpid()}-{next(_shipped)}.arrow")
+    with pa.OSFile(path, "wb") as sink, pa.ipc.new_file(sink, table.schema) as writer:
+        writer.write_table(table)
+    return _load_shipped, (path,)
+
+
+def _load_shipped(path: str) -> Any:
+    """The table :func:`_ship_table` wrote, mapped (no copy); the file is removed at once
+    (the mapping keeps its pages until the table is dropped)."""
+    import pyarrow as pa
+
+    try:
+        return pa.ipc.open_file(pa.memory_map(path)).read_all()
+    finally:
+        os.unlink(path)
+
+
+def _ship_tables_through(directory: str | None) -> None:
+    """Ship this process's large Arrow tables through ``directory`` (None: pickle them)."""
+    global _ship_dir
+    import pyarrow as pa
+
+    _ship_dir = directory
+    ForkingPickler.register(pa.Table, _ship_table)
+
+
+def _ship_root() -> str | None:
+    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+
+
+def _remove_stale_ship_dirs(root: str | None) -> None:
+    """Remove the directories of engines whose process is gone (killed before closing)."""
+    for path in Path(root or tempfile.gettempdir()).glob(f"{_SHIP_PREFIX}*"):
+        try:
+            pid = int(path.name[len(_SHIP_PREFIX) :].split("-")[0])
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except (ValueError, OSError):
+            continue
+
+
+_SHIP_PREFIX = "fleetbrake-engine-"
+
+
+def _init_worker(
+    env: dict[str, str], preload: tuple[str, ...], ship_dir: str | None = None
+) -> None:
     os.environ.update(env)
+    if ship_dir is not None:
+        _ship_tables_through(ship_dir)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if "polars" in sys.modules:  # imported by the parent's main module: its pool is lazy
         logger.debug("worker %d: polars imported before the initializer", os.getpid())
@@ -86,6 +164,7 @@ class LocalEngine:
         self._preload = preload
         self._pool: ProcessPoolExecutor | None = None
         self._closed = False
+        self._ship_dir: str | None = None
 
     @property
     def workers(self) -> int:
@@ -95,13 +174,25 @@ class LocalEngine:
         if self._closed:
             raise RuntimeError("LocalEngine: closed")
         if self._pool is None:
+            root = _ship_root()
+            _remove_stale_ship_dirs(root)
+            self._ship_dir = tempfile.mkdtemp(prefix=f"{_SHIP_PREFIX}{os.getpid()}-", dir=root)
+            _ship_tables_through(self._ship_dir)
             self._pool = ProcessPoolExecutor(
                 max_workers=self._workers,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=_init_worker,
-                initargs=(WORKER_THREAD_ENV, self._preload),
+                initargs=(WORKER_THREAD_ENV, self._preload, self._ship_dir),
             )
         return self._pool
+
+    def _remove_ship_dir(self) -> None:
+        """The pool is down: the tables still in its directory were never read."""
+        directory, self._ship_dir = self._ship_dir, None
+        if directory is not None:
+            if _ship_dir == directory:
+                _ship_tables_through(None)
+            shutil.rmtree(directory, ignore_errors=True)
 
     def start(self) -> None:
         """Start the workers now (and import ``preload`` in them) without waiting for them,
@@ -191,6 +282,7 @@ class LocalEngine:
                 process.terminate()
         for process in processes:
             process.join(timeout=5)
+        self._remove_ship_dir()
         logger.info("local engine: %d workers terminated", len(processes))
 
     def close(self) -> None:
@@ -203,6 +295,7 @@ class LocalEngine:
                 self._pool = pool
                 self._terminate()
                 raise
+            self._remove_ship_dir()
 
     def __enter__(self) -> LocalEngine:
         return self

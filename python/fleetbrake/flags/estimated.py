@@ -15,8 +15,9 @@ declared inputs do not explain as an unknown input).
 
 Each takes an :class:`EstimateOnGrid`: the columns of ``v_contact_estimates``
 (``shared/spec/interface.md`` v2) on the 1 Hz grid of the wagon's series
-(:func:`estimate_on_grid` from such a frame; :func:`estimate_span` computes one in the
-judge's partition with the estimator when the stage's table is not there).
+(:func:`estimate_on_grid` from the stage's stored rows: the estimation stage,
+:mod:`fleetbrake.simulation.estimates`, is the one place a wagon is estimated; a wagon whose
+stored estimates are not current with its data is judged without this opinion).
 """
 
 from __future__ import annotations
@@ -33,20 +34,13 @@ from fleetbrake.flags.config import DEFAULT_FLAG_CONFIG, FlagConfig
 from fleetbrake.flags.records import Finding
 from fleetbrake.flags.text import at_text, duration_text, speeds_text, when_text
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.effects import EffectSet
-from fleetbrake.model.estimator import (
-    EstimatorConfig,
-    EstimatorNoise,
-    estimate_contact,
-)
-from fleetbrake.model.estimator import WagonSeries as EstimatorSeries
 from fleetbrake.model.physics import (
     KMH_TO_M_S,
     block_flux_w_m2,
     block_force_n,
     frictional_flux_w_m2,
 )
-from fleetbrake.model.rom import ReducedModel
+from fleetbrake.simulation.estimates import reading_noise_k
 from fleetbrake.simulation.series import BoolArray, FloatArray, WagonSeries, merge_spans, runs
 
 __all__ = [
@@ -54,7 +48,6 @@ __all__ = [
     "EstimateOnGrid",
     "declared_heat_w",
     "estimate_on_grid",
-    "estimate_span",
     "find_dragging_estimated",
     "find_innovation_faults",
     "find_weak_estimated",
@@ -73,10 +66,6 @@ ESTIMATE_COLUMNS: tuple[str, ...] = (
     "innovation_k",
 )
 """The columns of ``v_contact_estimates`` the detectors read (with ``time_utc``)."""
-
-MIN_NOISE_K = 0.02
-"""K: the smallest thermistor noise the in-partition estimate assumes (a logger's
-resolution of 0.01 K and a perfectly still reading would give less)."""
 
 
 @dataclass(frozen=True)
@@ -123,99 +112,14 @@ def estimate_on_grid(
 
 
 # --------------------------------------------------------------------------------------------
-# The estimate computed in the judge's partition
+# The sensor's noise
 
 
 def sensor_noise_k(measured_c: FloatArray) -> float:
-    """The thermistor's noise from its readings: the standard deviation a Gaussian noise
-    would have given the median reading-to-reading difference (robust to the block's own
-    changes), at least :data:`MIN_NOISE_K`."""
-    d = np.diff(measured_c)
-    d = np.abs(d[np.isfinite(d)])
-    if d.size < 10:
-        return 0.1
-    return max(float(np.median(d)) / (0.6745 * math.sqrt(2.0)), MIN_NOISE_K)
-
-
-def _filled(values: FloatArray, default: float) -> FloatArray:
-    ok = np.isfinite(values)
-    if ok.all():
-        return values
-    if not ok.any():
-        return np.full(values.size, default)
-    idx = np.arange(values.size)
-    return np.interp(idx, idx[ok], values[ok])
-
-
-def estimate_span(
-    series: WagonSeries,
-    rom: ReducedModel,
-    wagon: WagonConfig,
-    effects: EffectSet,
-    *,
-    invalid: BoolArray | None = None,
-    noise_k: float | None = None,
-    config: FlagConfig = DEFAULT_FLAG_CONFIG,
-) -> EstimateOnGrid:
-    """The virtual sensor's estimate of one span after the fact (smoothed contact temperature
-    and unexplained power, filtered innovations), computed here with the estimator (what the
-    estimation stage stores, for a judge that has no stored one): the
-    logged seconds of ``series``, the readings at ``invalid`` seconds (sensor faults found
-    before) left out, the thermistor's noise ``noise_k`` (default: :func:`sensor_noise_k`
-    of the readings), the unexplained power's diffusion at the estimator's floor."""
-    at = np.flatnonzero(series.present)
-    reading = series.measured_c.copy()
-    if invalid is not None:
-        reading[invalid] = np.nan
-    noise = sensor_noise_k(series.measured_c) if noise_k is None else noise_k
-    est_config = EstimatorConfig(noise=EstimatorNoise(measurement_k=noise))
-    grid = {name: np.full(series.n, np.nan) for name in ESTIMATE_COLUMNS}
-    settled = np.zeros(series.n, dtype=bool)
-    if at.size < 2 or not np.isfinite(reading[at]).any():
-        return EstimateOnGrid(settled=settled, **grid)
-    est = estimate_contact(
-        rom,
-        wagon,
-        EstimatorSeries.of(
-            time_s=at.astype(np.float64),
-            p_bar=np.maximum(_filled(series.pressure_bar[at], 0.0), 0.0),
-            speed_kmh=np.maximum(_filled(series.speed_kmh[at], 0.0), 0.0),
-            ambient_c=_filled(series.ambient_c[at], float(wagon.ambient_temp_c)),
-            reading_c=reading[at],
-            wagon_id=series.wagon_id,
-        ),
-        effects=effects,
-        config=est_config,
-        smooth=True,
-    )
-
-    def after_the_fact(smoothed: FloatArray | None, filtered: FloatArray) -> FloatArray:
-        return filtered if smoothed is None else smoothed
-
-    grid["contact_mean_c"][at] = after_the_fact(est.smoothed_contact_mean_c, est.contact_mean_c)
-    grid["contact_mean_lo_c"][at] = after_the_fact(
-        est.smoothed_contact_mean_lo_c, est.contact_mean_lo_c
-    )
-    grid["contact_mean_hi_c"][at] = after_the_fact(
-        est.smoothed_contact_mean_hi_c, est.contact_mean_hi_c
-    )
-    grid["contact_max_c"][at] = after_the_fact(est.smoothed_contact_max_c, est.contact_max_c)
-    grid["contact_max_hi_c"][at] = after_the_fact(
-        est.smoothed_contact_max_hi_c, est.contact_max_hi_c
-    )
-    grid["unexplained_power_w"][at] = after_the_fact(
-        est.smoothed_unexplained_power_w, est.unexplained_power_w
-    )
-    grid["unexplained_power_lo_w"][at] = after_the_fact(
-        est.smoothed_unexplained_power_lo_w, est.unexplained_power_lo_w
-    )
-    grid["unexplained_power_hi_w"][at] = after_the_fact(
-        est.smoothed_unexplained_power_hi_w, est.unexplained_power_hi_w
-    )
-    grid["innovation_k"][at] = est.innovation_k
-    settled[at] = True
-    settled[: at[0] + config.est_settle_s] = False
-    return EstimateOnGrid(settled=settled, **grid)
+    """The thermistor's noise from its readings on a 1 Hz grid: the estimation stage's σ_v
+    rule (:func:`fleetbrake.simulation.estimates.reading_noise_k`), so that the innovations
+    are judged against the noise the estimator ran with."""
+    return reading_noise_k(np.arange(measured_c.size, dtype=np.float64), measured_c)
 
 
 def declared_heat_w(wagon: WagonConfig, series: WagonSeries) -> FloatArray:

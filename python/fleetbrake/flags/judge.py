@@ -25,8 +25,8 @@ only readings the steps before found good):
 4. **Overheating** (:mod:`fleetbrake.flags.overheating`): the predicted contact maximum of a
    braking over ``contact_limit_c``.
 5. **The virtual sensor's opinion** (:mod:`fleetbrake.flags.estimated`, ``config.estimator``):
-   the stored estimates of the revision when current (``contact_estimates``), else computed in
-   the partition; its dragging and weak brakes combined with steps 3's into one flag per
+   the stored estimates of the revision when current (``contact_estimates``; none otherwise:
+   the estimation stage is the one place a wagon is estimated); its dragging and weak brakes combined with steps 3's into one flag per
    anomaly, its innovations dating the sensor faults of steps 1-2.
 
 Every threshold in kelvin a model error could reach is first raised to ``residual_factor`` x
@@ -35,9 +35,11 @@ partition; :meth:`FlagConfig.scaled`).
 
 A wagon without a registry entry, or whose timeline of the revision is missing or older than
 its data, is judged on its readings only (step 1; the report's notes say so). Flags are
-recomputed per wagon (a partition: the parent reads it as Arrow, :func:`judge_task`, pure and
-picklable, judges it, on an engine's workers with ``engine=``) and the wagons' rows of
-``flags`` replaced in one transaction;
+recomputed per wagon (a partition: the parent reads a chunk of wagons as Arrow, one query
+per table, :func:`flag_chunk`; :func:`judge_chunk`, pure and picklable, cuts it into the
+wagons' tasks and :func:`judge_task` judges each alone, on an engine's workers with
+``engine=``) and the wagons' rows of ``flags`` replaced in one transaction, with when they
+were judged (``flagged_wagons``: :func:`stale_wagons`);
 ``flag_id`` is ``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>`` (``-2``, ... if taken), so the
 same data give the same ids, and a flag found again keeps its ``detected_utc``.
 """
@@ -63,7 +65,6 @@ from fleetbrake.flags.estimated import (
     date_sensor_faults,
     declared_heat_w,
     estimate_on_grid,
-    estimate_span,
     find_dragging_estimated,
     find_innovation_faults,
     find_weak_estimated,
@@ -83,28 +84,37 @@ from fleetbrake.flags.sensor import (
 from fleetbrake.flags.series import SpanTimeline, spans_of
 from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
 from fleetbrake.fleet.registry import Registry, WagonConfig
-from fleetbrake.model.rom import ReducedModel
 from fleetbrake.simulation.chains import constant_runs
 from fleetbrake.simulation.estimates import estimated_wagons, estimation_data_keys
 from fleetbrake.simulation.predictions import Mapper, Revision, revision
 from fleetbrake.simulation.series import BoolArray, WagonSeries, runs
 from fleetbrake.simulation.store import (
     StoredTimeline,
+    chunk_table,
     data_keys,
+    sample_rows,
     simulated_wagons,
     stored_timeline,
     utc_now,
+    wagon_chunks,
+    wagon_parts,
 )
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
+    "FLAG_CHUNK_ROWS",
+    "FlagChunk",
     "FlagOutcome",
     "FlagTask",
+    "chunk_tasks",
+    "flag_chunk",
     "flag_ids",
     "flag_task",
+    "judge_chunk",
     "judge_task",
     "judge_wagon",
     "raise_flags",
+    "stale_wagons",
 ]
 
 logger = logging.getLogger(__name__)
@@ -317,14 +327,14 @@ class FlagTask:
     wagon: WagonConfig | None = None
     """Its registry entry (the declared heat of its brakings, the estimator's model)."""
     rev: Revision | None = None
-    """The revision (its effects and mesh, for an estimate computed in the partition)."""
+    """The revision (unused by the judge since the estimates are always the stage's)."""
     residual_spread_k: float | None = None
     """A residual spread given by the caller (tests); None: the wagon's own, computed in the
     partition from its ``predictions`` (:func:`wagon_residual_spread`). The thresholds
     scale with it (:meth:`FlagConfig.scaled`)."""
     estimates: pa.Table | None = None
     """Its stored virtual-sensor estimates of the revision (``q_flags_estimates.sql``),
-    current with its data; None: computed here when ``config.estimator`` (and a timeline)."""
+    current with its data; None: the wagon is judged without the virtual sensor's opinion."""
 
     def __str__(self) -> str:  # how an engine names the partition in an error
         return f"wagon {self.wagon_id}"
@@ -396,40 +406,18 @@ def judge_task(task: FlagTask) -> FlagOutcome:
     return FlagOutcome(task.wagon_id, flag_ids(task.wagon_id, findings), notes, spread)
 
 
-_ROMS: dict[tuple[object, ...], ReducedModel] = {}
-"""The reduced models this process made for estimates computed in the partition."""
-
-
-def _rom(wagon: WagonConfig, refinement: float) -> ReducedModel:
-    key = (wagon.geometry, wagon.block, wagon.sensor_point_m, refinement)
-    rom = _ROMS.get(key)
-    if rom is None:
-        if len(_ROMS) >= 8:
-            _ROMS.clear()
-        rom = _ROMS[key] = ReducedModel.for_wagon(wagon, refinement=refinement)
-    return rom
-
-
 def _estimates(
     task: FlagTask,
     spans: Sequence[tuple[WagonSeries, SpanTimeline | None]],
     config: FlagConfig,
 ) -> list[EstimateOnGrid | None] | None:
-    """The virtual sensor's estimate of each span: the stored one when the task has it, else
-    computed here (:func:`fleetbrake.flags.estimated.estimate_span`); None when
-    ``config.estimator`` is off or the wagon has no registry entry."""
-    if not config.estimator or task.wagon is None:
+    """The virtual sensor's estimate of each span: the stored one (the estimation stage's,
+    :mod:`fleetbrake.simulation.estimates`) when the task has it; None when it has none
+    current, ``config.estimator`` is off or the wagon has no registry entry."""
+    if not config.estimator or task.wagon is None or task.estimates is None:
         return None
-    if task.estimates is not None:
-        frame = _frame(task.estimates)
-        return [estimate_on_grid(series, frame, config) for series, _ in spans]
-    if task.rev is None:
-        return None
-    rom = _rom(task.wagon, task.rev.refinement)
-    return [
-        estimate_span(series, rom, task.wagon, task.rev.effects, config=config)
-        for series, _ in spans
-    ]
+    frame = _frame(task.estimates)
+    return [estimate_on_grid(series, frame, config) for series, _ in spans]
 
 
 def flag_task(
@@ -476,6 +464,122 @@ def flag_task(
     )
 
 
+FLAG_CHUNK_ROWS = 200_000
+"""Samples per chunk of wagons the flags read together (:class:`FlagChunk`): one query per
+table and chunk instead of one per table and wagon (the per-wagon queries decompressed the
+stored row groups a wagon shares with its neighbours once per wagon: 35 ms of the writer's
+processor time per wagon-day, against about 10 ms per chunk's share)."""
+
+
+@dataclass(frozen=True)
+class _FlagHead:
+    """What a wagon's task holds besides its tables (:func:`flag_task`'s arguments)."""
+
+    wagon_id: str
+    ambient_c: float
+    note: str | None
+    data_key: str | None
+    wagon: WagonConfig | None
+    estimated: bool
+
+
+@dataclass(frozen=True)
+class FlagChunk:
+    """Several wagons' partitions of the flags read together, one Arrow table per table with
+    a ``wagon_id`` column (``q_*_chunk_*.sql``, in stored order): :func:`chunk_tasks` cuts
+    it into the wagons' :class:`FlagTask` (the same tables :func:`flag_task` reads), which
+    :func:`judge_chunk` judges one by one. Picklable: an engine ships it to a worker."""
+
+    heads: tuple[_FlagHead, ...]
+    revision: str
+    config: FlagConfig
+    rev: Revision | None
+    samples: pa.Table
+    events: pa.Table
+    segments: pa.Table
+    timeline: pa.Table
+    predictions: pa.Table
+    estimates: pa.Table | None
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        ids = [h.wagon_id for h in self.heads]
+        return f"wagon {ids[0]}" if len(ids) == 1 else "wagons " + ", ".join(ids)
+
+
+def flag_chunk(
+    wh: Warehouse,
+    heads: Sequence[_FlagHead],
+    revision_name: str,
+    config: FlagConfig,
+    rev: Revision | None,
+) -> FlagChunk:
+    """The chunk's partitions, read from the warehouse with one query per table (by the
+    parent: workers never open it); the timelines, segments and predictions of the wagons
+    whose timeline is current, the estimates of those whose stored estimates are too."""
+    ids = [h.wagon_id for h in heads]
+    current = [h.wagon_id for h in heads if h.data_key is not None]
+    estimated = [h.wagon_id for h in heads if h.data_key is not None and h.estimated]
+    timed = {"revision": revision_name}
+    return FlagChunk(
+        heads=tuple(heads),
+        revision=revision_name,
+        config=config,
+        rev=rev,
+        samples=chunk_table(wh, "q_simulation_chunk_samples", ids),
+        events=chunk_table(wh, "q_simulation_chunk_events", ids),
+        segments=chunk_table(wh, "q_simulation_chunk_timeline_segments", current, **timed),
+        timeline=chunk_table(wh, "q_simulation_chunk_timeline", current, **timed),
+        predictions=chunk_table(wh, "q_flags_chunk_predictions", current, **timed),
+        estimates=(
+            chunk_table(wh, "q_flags_chunk_estimates", estimated, **timed) if estimated else None
+        ),
+    )
+
+
+def chunk_tasks(chunk: FlagChunk) -> list[FlagTask]:
+    """The chunk cut into its wagons' tasks: each wagon's rows sorted as the per-wagon
+    queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`), so each task is the
+    one :func:`flag_task` reads (a test compares them)."""
+    ids = [h.wagon_id for h in chunk.heads]
+    samples = wagon_parts(chunk.samples, ids, ["time_utc", "file_id"], ["file_id"])
+    events = wagon_parts(chunk.events, ids, ["start_utc"])
+    segments = wagon_parts(chunk.segments, ids, ["start_utc"])
+    timeline = wagon_parts(chunk.timeline, ids, ["time_utc"])
+    predictions = wagon_parts(chunk.predictions, ids, ["event_id", "time_utc"])
+    estimates = (
+        wagon_parts(chunk.estimates, ids, ["time_utc"]) if chunk.estimates is not None else {}
+    )
+    tasks = []
+    for head in chunk.heads:
+        w = head.wagon_id
+        current = head.data_key is not None
+        tasks.append(
+            FlagTask(
+                wagon_id=w,
+                revision=chunk.revision,
+                ambient_c=head.ambient_c,
+                samples=samples[w],
+                events=events[w],
+                config=chunk.config,
+                note=head.note,
+                data_key=head.data_key,
+                segments=segments[w] if current else None,
+                timeline=timeline[w] if current else None,
+                predictions=predictions[w] if current else None,
+                wagon=head.wagon,
+                rev=chunk.rev,
+                estimates=estimates.get(w) if current and head.estimated else None,
+            )
+        )
+    return tasks
+
+
+def judge_chunk(chunk: FlagChunk) -> list[FlagOutcome]:
+    """Each wagon of the chunk judged (:func:`judge_task`), in the chunk's order: a pure
+    function of the chunk, so an engine can run it in a worker process."""
+    return [judge_task(task) for task in chunk_tasks(chunk)]
+
+
 def raise_flags(
     wh: Warehouse,
     registry: Registry | Mapping[str, WagonConfig],
@@ -484,6 +588,7 @@ def raise_flags(
     *,
     wagons: Iterable[str] | None = None,
     engine: Mapper | None = None,
+    chunk_rows: int = FLAG_CHUNK_ROWS,
 ) -> FlagReport:
     """Recompute the flags of ``wagons`` (default: every wagon with samples) from their
     samples, events and what the simulation stored for ``revision_name`` (its timeline and
@@ -492,10 +597,12 @@ def raise_flags(
     only (a note in the report names it). Raises
     :class:`fleetbrake.simulation.predictions.UnknownRevisionError` for an unknown revision.
 
-    Each wagon is a partition: the parent reads it (:func:`flag_task`), ``engine.map`` runs
-    :func:`judge_task` on it (default: the builtin ``map``, in this process; an engine's
-    workers otherwise), and the parent stores every wagon's flags at the end, in bulk. The
-    flags are the same with any engine."""
+    Each wagon is judged alone, from its own partition. The parent reads the partitions a
+    chunk of wagons at a time (about ``chunk_rows`` samples: :func:`flag_chunk`, one query
+    per table), ``engine.map`` runs :func:`judge_chunk` on each chunk (default: the builtin
+    ``map``, in this process; an engine's workers otherwise), and the parent stores every
+    wagon's flags at the end, in bulk. The flags are the same with any engine and chunk
+    size."""
     rev = revision(wh, revision_name)  # the revision must exist
     if isinstance(registry, Registry):
         wagons_by_id: Mapping[str, WagonConfig] = registry.wagons
@@ -512,50 +619,42 @@ def raise_flags(
     done = simulated_wagons(wh, revision_name)
     current_estimates = _current_estimates(wh, revision_name)
 
-    def tasks() -> Iterator[FlagTask]:
-        for wagon_id in wanted:
-            wagon = wagons_by_id.get(wagon_id)
-            ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
-            simulated = done.get(wagon_id) if wagon is not None else None
-            data_key: str | None = None
-            if wagon is None:
-                note: str | None = "no valid registry entry; only its readings were judged"
-            elif simulated is None:
-                note = (
-                    f"not simulated with revision {revision_name}; only its readings were "
-                    "judged (the flags read the simulation's timeline: run the simulation first)"
-                )
-            elif simulated.data_key != keys.get(wagon_id):
-                note = (
-                    f"its data changed since it was simulated with revision {revision_name}; "
-                    "only its readings were judged (run the simulation first)"
-                )
-            else:
-                note, data_key = None, simulated.data_key
-            yield flag_task(
-                wh,
-                wagon_id,
-                revision_name,
-                config,
-                ambient_c=ambient,
-                note=note,
-                data_key=data_key,
-                wagon=wagon,
-                rev=rev,
-                estimated=wagon_id in current_estimates,
+    def head(wagon_id: str) -> _FlagHead:
+        wagon = wagons_by_id.get(wagon_id)
+        ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
+        simulated = done.get(wagon_id) if wagon is not None else None
+        data_key: str | None = None
+        if wagon is None:
+            note: str | None = "no valid registry entry; only its readings were judged"
+        elif simulated is None:
+            note = (
+                f"not simulated with revision {revision_name}; only its readings were "
+                "judged (the flags read the simulation's timeline: run the simulation first)"
             )
+        elif simulated.data_key != keys.get(wagon_id):
+            note = (
+                f"its data changed since it was simulated with revision {revision_name}; "
+                "only its readings were judged (run the simulation first)"
+            )
+        else:
+            note, data_key = None, simulated.data_key
+        return _FlagHead(wagon_id, ambient, note, data_key, wagon, wagon_id in current_estimates)
 
-    outcomes = map(judge_task, tasks()) if engine is None else engine.map(judge_task, tasks())
+    def chunks() -> Iterator[FlagChunk]:
+        for ids in wagon_chunks(wanted, sample_rows(wh), chunk_rows):
+            yield flag_chunk(wh, [head(w) for w in ids], revision_name, config, rev)
+
+    outcomes = map(judge_chunk, chunks()) if engine is None else engine.map(judge_chunk, chunks())
     new: list[Flag] = []
     spreads: list[float] = []
-    for outcome in outcomes:
+    for outcome in (one for chunk in outcomes for one in chunk):
         report.notes += outcome.notes
         new += outcome.flags
         if outcome.residual_spread_k is not None:
             spreads.append(outcome.residual_spread_k)
     if spreads:  # for the report only: each wagon was judged with its own
         report.residual_spread_k = float(statistics.median(spreads))
-    _store(wh, report.wagons, new)
+    _store(wh, report.wagons, new, revision_name)
     report.flags = new
     logger.info("flags of %d wagons judged: %d flags", len(report.wagons), len(new))
     return report
@@ -626,15 +725,30 @@ _FLAG_SCHEMA = pl.Schema(
 )
 
 
-def _store(wh: Warehouse, wagons: Sequence[str], flags: Sequence[Flag]) -> None:
-    """Replace the flags of ``wagons`` in one transaction; a flag identical to a stored one
-    keeps its ``detected_utc``."""
+def stale_wagons(wh: Warehouse, revision_name: str) -> list[str]:
+    """The wagons with samples whose flags were never judged with ``revision_name``, or were
+    judged before a file of theirs was ingested or their timeline or estimates of the
+    revision were written (``q_flags_stale_wagons.sql``; ``flagged_wagons`` records each
+    judgement): what a unit of files must judge besides its own wagons, so that a unit that
+    stopped between its simulation and its flags leaves nothing stale behind."""
+    rows = wh.con.execute(sql("q_flags_stale_wagons"), {"revision": revision_name}).fetchall()
+    return [str(r[0]) for r in rows]
+
+
+def _store(wh: Warehouse, wagons: Sequence[str], flags: Sequence[Flag], revision_name: str) -> None:
+    """Replace the flags of ``wagons`` in one transaction, recording that they were judged
+    with ``revision_name`` (``flagged_wagons``); a flag identical to a stored one keeps its
+    ``detected_utc``."""
     now = utc_now()
     wagon_ids = list(wagons)
     with wh.transaction() as con:
         old = con.execute(sql("q_flags_stored"), {"wagon_ids": wagon_ids}).fetchall()
         kept = {tuple(r[:7]): r[7] for r in old}
         con.execute(sql("q_flags_delete"), {"wagon_ids": wagon_ids})
+        judged = {"wagon_ids": wagon_ids, "revision": revision_name, "updated_utc": now}
+        con.execute(sql("q_flags_delete_flagged_wagons"), {"wagon_ids": wagon_ids})
+        if wagon_ids:
+            con.execute(sql("q_flags_insert_flagged_wagons"), judged)
         if not flags:
             return
         rows = pl.DataFrame(

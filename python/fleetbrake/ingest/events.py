@@ -556,11 +556,11 @@ def _detect_tasks(
             yield _DetectTask(wagon_id, (), config, last=True)
         for i, group in enumerate(groups):
             samples = _samples(wh, wagon_id, group[0].from_utc, group[-1].to_utc)
-            times = samples["time_utc"]
+            times = samples["time_utc"].to_numpy()  # sorted; numpy: no Series per lookup
             slices = []
             for member in group:
-                lo = times.search_sorted(member.from_utc, side="left")
-                hi = times.search_sorted(member.to_utc, side="right")
+                lo = int(np.searchsorted(times, np.datetime64(member.from_utc, "us"), "left"))
+                hi = int(np.searchsorted(times, np.datetime64(member.to_utc, "us"), "right"))
                 slices.append(samples.slice(lo, hi - lo))
             yield _DetectTask(wagon_id, tuple(slices), config, last=i == len(groups) - 1)
 

@@ -148,8 +148,10 @@ class IngestConfig:
     partition_files: int = 8
     """A wagon's new files are read in partitions of at most this many files (a worker's unit
     of work, committed by the writer at once: see :func:`ingest_fleet`)."""
-    batch_rows: int = 250_000
-    """Whole partitions are committed together until they hold this many rows (see _Batch)."""
+    batch_rows: int = 1_000_000
+    """Whole partitions are committed together until they hold this many rows (see _Batch):
+    DuckDB's writer spends about half the processor time per row on transactions of 0.7 M
+    rows and more as on transactions of 0.2 M (``docs/benchmarks.md``)."""
     batch_files: int = 500
     """... or this many files."""
     verify_hashes: bool = False

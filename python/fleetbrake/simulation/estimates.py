@@ -13,8 +13,8 @@ smoother on the reduced model's state, augmented with the unexplained friction-f
 power; ``docs/estimator.md``), over every logged second of the wagon's whole data as one
 series: the declared inputs are the simulation's (the same 1 Hz grid, the speed's running
 median of :class:`~fleetbrake.simulation.chains.ChainParams`), the revision's effects
-applied; missing and faulty readings skip the update; an unlogged interval longer than
-``max_interpolated_gap_s`` is a standstill.
+applied; missing, faulty and frozen readings (:func:`frozen_readings`) skip the update; an
+unlogged interval longer than ``max_interpolated_gap_s`` is a standstill.
 
 Stored (``warehouse/sql/schema_estimates.sql``):
 
@@ -71,7 +71,7 @@ from fleetbrake.model.estimator import (
 )
 from fleetbrake.model.estimator import WagonSeries as EstimatorSeries
 from fleetbrake.model.rom import ReducedModel
-from fleetbrake.simulation.chains import ChainParams
+from fleetbrake.simulation.chains import ChainParams, constant_runs
 from fleetbrake.simulation.predictions import Mapper, Revision
 from fleetbrake.simulation.series import WagonSeries, running_median
 from fleetbrake.simulation.store import utc_now
@@ -93,6 +93,8 @@ __all__ = [
     "estimation_data_keys",
     "estimator_series",
     "fit_revision_noise",
+    "frozen_readings",
+    "reading_noise_k",
     "replace_estimates",
     "revision_power_noise",
     "stored_noise",
@@ -124,6 +126,15 @@ class EstimationConfig:
     (``docs/estimator.md``: the maximum-likelihood fits on generated fleets behind it)."""
     min_measurement_noise_k: float = 0.02
     """σ_v's floor (a sensor whose log is rounded, or nearly noise-free, still has this)."""
+    frozen_min_s: int = 120
+    """s: readings unchanged (to within ``frozen_resolution_k``) this long are a frozen
+    sensor's and skip the update (:func:`frozen_readings`; the flags' ``frozen_min_s``)."""
+    frozen_resolution_k: float = 0.01
+    """K: the resolution a frozen reading repeats to (the flags' ``frozen_resolution_k``)."""
+    frozen_noise_k: float = 0.03
+    """K: ... when the sensor's noise outside such runs is at least this (a noisy sensor
+    cannot repeat itself that long; a near noise-free one can: its runs are kept; the flags'
+    ``frozen_noise_k``)."""
     noise_fit_wagons: int = 5
     """:func:`fit_revision_noise`: how many wagons σ_w is fitted on (spread over the sorted
     ids of the wagons with fit days), each on its own; the revision's is the median."""
@@ -144,6 +155,10 @@ class EstimationConfig:
         if not (self.power_noise_w_per_sqrt_s > 0 and self.min_measurement_noise_k > 0):
             raise ValueError(
                 "EstimationConfig.power_noise_w_per_sqrt_s and min_measurement_noise_k must be > 0"
+            )
+        if self.frozen_min_s < 2 or not self.frozen_resolution_k > 0:
+            raise ValueError(
+                "EstimationConfig.frozen_min_s must be >= 2 and frozen_resolution_k > 0"
             )
         if self.batch_rows < 1:
             raise ValueError("EstimationConfig.batch_rows must be >= 1")
@@ -247,12 +262,14 @@ def estimator_series(
     chain: ChainParams,
     *,
     max_s: float | None = None,
+    config: EstimationConfig | None = None,
 ) -> tuple[EstimatorSeries, dt.datetime | None]:
     """The wagon's logged seconds as the estimator's series (seconds since the first
     sample, returned with it; None without samples): the simulation's 1 Hz grid per span
     (:meth:`WagonSeries.spans_from_frame`), its interpolated pressure and air, the running
     median of its speed, the valid readings (NaN where missing or faulty), at the seconds with
-    a sample row. ``max_s``: only the first this many seconds."""
+    a sample row, the readings of a frozen sensor (:func:`frozen_readings`, with ``config``'s
+    numbers) NaN too. ``max_s``: only the first this many seconds."""
     spans = WagonSeries.spans_from_frame(
         wagon.wagon_id,
         samples,
@@ -278,7 +295,45 @@ def estimator_series(
     if max_s is not None:
         keep = values["time_s"] < max_s
         values = {name: v[keep] for name, v in values.items()}
+    frozen = frozen_readings(values["time_s"], values["reading_c"], config)
+    values["reading_c"] = np.where(frozen, np.nan, values["reading_c"])
     return EstimatorSeries(wagon_id=wagon.wagon_id, **values), t0
+
+
+def _on_grid(time_s: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``values`` at their whole seconds on a 1 Hz grid from the first (NaN elsewhere), and
+    each value's index there."""
+    k = np.rint(time_s - time_s[0]).astype(np.int64)
+    grid = np.full(int(k[-1]) + 1, np.nan)
+    grid[k] = values
+    return grid, k
+
+
+def frozen_readings(
+    time_s: np.ndarray, reading_c: np.ndarray, config: EstimationConfig | None = None
+) -> np.ndarray:
+    """Which readings a frozen sensor gave (True: skip the update): runs of readings
+    unchanged to within ``frozen_resolution_k`` for ``frozen_min_s`` or more
+    (:func:`~fleetbrake.simulation.chains.constant_runs`, the detector the flags'
+    ``find_frozen`` uses), when the sensor's noise outside them
+    (:func:`~fleetbrake.model.estimator.measurement_noise`) is at least ``frozen_noise_k``;
+    all False for a sensor quiet enough to repeat itself (or whose noise cannot be told)."""
+    config = config or EstimationConfig()
+    out = np.zeros(reading_c.size, dtype=bool)
+    if reading_c.size < config.frozen_min_s:
+        return out
+    grid, k = _on_grid(time_s, reading_c)
+    found = constant_runs(grid, config.frozen_min_s, config.frozen_resolution_k)
+    if not found:
+        return out
+    stuck = np.zeros(grid.size, dtype=bool)
+    for a, b, _ in found:
+        stuck[a:b] = True
+    rest = np.where(stuck, np.nan, grid)
+    noise = measurement_noise(np.arange(grid.size, dtype=np.float64), rest)
+    if noise is None or noise < config.frozen_noise_k:
+        return out
+    return stuck[k]
 
 
 def _model_key(wagon: WagonConfig, rev: Revision, config: EstimationConfig, power: float) -> str:
@@ -295,6 +350,7 @@ def _model_key(wagon: WagonConfig, rev: Revision, config: EstimationConfig, powe
             "power_noise_w_per_sqrt_s": power,
             "given_noise": None if config.noise is None else dataclasses.asdict(config.noise),
             "min_measurement_noise_k": config.min_measurement_noise_k,
+            "frozen": [config.frozen_min_s, config.frozen_resolution_k, config.frozen_noise_k],
             "speed_median_samples": config.chain.speed_median_samples,
             "bridge_max_s": config.chain.bridge_max_s,
             "kernel": config.kernel,
@@ -438,7 +494,9 @@ def estimate_wagon(task: EstimateTask) -> EstimateResult:
     """One wagon estimated from its partition, no database: a pure function of the task (the
     reduced model made, or read from its cache, once per process)."""
     wagon = task.wagon
-    series, t0 = estimator_series(wagon, _frame(task.samples), task.config.chain)
+    series, t0 = estimator_series(
+        wagon, _frame(task.samples), task.config.chain, config=task.config
+    )
     noise = wagon_noise(series, task.config, task.power_noise_w_per_sqrt_s)
     est = _estimate(wagon, series, task.rev, task.config, noise)
     rows = _rows(wagon.wagon_id, task.rev.name, t0, est)
@@ -466,9 +524,21 @@ def wagon_noise(
     differences) and the revision's σ_w. A function of the wagon's data alone."""
     if config.noise is not None:
         return config.noise
-    found = measurement_noise(series.time_s, series.reading_c)
+    sigma_v = reading_noise_k(series.time_s, series.reading_c, config)
+    return EstimatorNoise(sigma_v, power_noise_w_per_sqrt_s)
+
+
+def reading_noise_k(
+    time_s: np.ndarray, reading_c: np.ndarray, config: EstimationConfig | None = None
+) -> float:
+    """σ_v (K) from a wagon's readings (NaN: none): :func:`~fleetbrake.model.estimator.
+    measurement_noise`, at least ``min_measurement_noise_k``, the estimator's default with
+    fewer than 10 second differences. The one rule of the stage and of the flags'
+    innovation scale (``flags.estimated.sensor_noise_k``)."""
+    config = config or EstimationConfig()
+    found = measurement_noise(time_s, reading_c)
     sigma_v = config.estimator.noise.measurement_k if found is None else found
-    return EstimatorNoise(max(sigma_v, config.min_measurement_noise_k), power_noise_w_per_sqrt_s)
+    return max(sigma_v, config.min_measurement_noise_k)
 
 
 def stored_noise(wh: Warehouse, revision: str) -> StoredNoise | None:
@@ -535,7 +605,9 @@ def fit_revision_noise(
         wagon = wagons[wagon_id]
         samples = wh.con.sql(sql("q_simulation_wagon_samples"), params={"wagon_id": wagon_id}).pl()
         samples = samples.filter(pl.col("time_utc").dt.date().is_in(sorted(days[wagon_id])))
-        series, _ = estimator_series(wagon, samples, config.chain, max_s=config.noise_fit_s)
+        series, _ = estimator_series(
+            wagon, samples, config.chain, max_s=config.noise_fit_s, config=config
+        )
         if int(np.isfinite(series.reading_c).sum()) < _MIN_FIT_READINGS:
             continue
         sigma_v = wagon_noise(series, dataclasses.replace(config, noise=None), 1.0).measurement_k

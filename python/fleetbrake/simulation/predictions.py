@@ -27,10 +27,12 @@ numbers in :class:`~fleetbrake.simulation.chains.ChainParams`):
 The close loop re-simulates candidates with the same functions (:func:`load_wagon`,
 :func:`predict_wagon`), so its fits and the stored predictions agree.
 
-The wagon is the unit of work: the parent reads a wagon's samples and events as Arrow
-(:func:`wagon_task`), :func:`simulate_wagon` (pure, picklable, no database) turns them into the
-rows' columns, each span in one call of the reduced model's chain kernel, and the parent writes
-them in bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``);
+The wagon is the unit of work: the parent reads a chunk of wagons' samples and events as
+Arrow, one query per table (:func:`wagon_chunk`; :func:`wagon_task` reads one wagon's, the
+same tables), :func:`simulate_chunk` cuts it into the wagons' tasks and
+:func:`simulate_wagon` (pure, picklable, no database) turns each into the rows' columns,
+each span in one call of the reduced model's chain kernel, and the parent writes them in
+bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``);
 ``simulate_events(engine=...)`` runs the partitions on
 an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
 """
@@ -68,14 +70,18 @@ from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 from fleetbrake.simulation.store import (
     WagonRows,
     WagonWrite,
+    chunk_table,
     data_keys,
     forget_wagon,
     replace_wagons,
+    sample_rows,
     simulated_wagons,
     stored_wagon_ids,
     table_rows,
     utc_now,
+    wagon_chunks,
     wagon_events,
+    wagon_parts,
     wagon_samples,
 )
 from fleetbrake.warehouse.connection import Warehouse, sql
@@ -87,20 +93,24 @@ __all__ = [
     "SimulationConfig",
     "SimulationReport",
     "UnknownRevisionError",
+    "WagonChunk",
     "WagonData",
     "WagonPrediction",
     "WagonResult",
     "WagonTask",
+    "chunk_tasks",
     "current_revision",
     "ensure_declared",
     "load_wagon",
     "model_for",
     "predict_wagon",
     "revision",
+    "simulate_chunk",
     "simulate_events",
     "simulate_wagon",
     "store_registry",
     "stored_wagons",
+    "wagon_chunk",
     "wagon_task",
 ]
 
@@ -140,11 +150,17 @@ class SimulationConfig:
     """What a new ``declared`` revision predicts with: the reduced model (default), or the
     full finite-element model (the reference; a thousand times slower). A revision keeps the
     solver it was made with."""
-    batch_rows: int = 250_000
+    batch_rows: int = 1_000_000
     """The stage writes several wagons per transaction, up to about this many rows (of
     ``predictions``, ``timeline`` and ``timeline_segments``) in each; a wagon is never split
     (a larger one is written alone), so each stays whole-old or whole-new. 1: one wagon per
-    transaction. Changes no row."""
+    transaction. Changes no row. DuckDB's writer spends about half the processor time per
+    row on transactions of 0.7 M rows and more as on transactions of 0.2 M
+    (``docs/benchmarks.md``)."""
+    chunk_rows: int = 200_000
+    """The parent reads the wagons' samples and events a chunk of wagons at a time, about
+    this many samples (one query per table and chunk, :class:`WagonChunk`), and a worker
+    simulates the chunk's wagons one by one. Changes no row."""
 
 
 @dataclass
@@ -638,6 +654,76 @@ def simulate_wagon(task: WagonTask) -> WagonResult:
     )
 
 
+@dataclass(frozen=True)
+class WagonChunk:
+    """Several wagons' partitions of the simulation stage read together: the chunk's
+    samples and events as one Arrow table each, with ``wagon_id`` (``q_simulation_chunk_*``,
+    in stored order), and each wagon's entry and keys. :func:`chunk_tasks` cuts it into the
+    wagons' :class:`WagonTask` (the tables :func:`wagon_task` reads: a test compares them),
+    which :func:`simulate_chunk` simulates one by one. Picklable."""
+
+    wagons: tuple[tuple[WagonConfig, str, str], ...]
+    """(entry, data key, model key) of each wagon, in order."""
+    samples: pa.Table
+    events: pa.Table
+    rev: Revision
+    config: SimulationConfig
+    reference: bool = False
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        ids = [w.wagon_id for w, _, _ in self.wagons]
+        return f"wagon {ids[0]}" if len(ids) == 1 else "wagons " + ", ".join(ids)
+
+
+def wagon_chunk(
+    wh: Warehouse,
+    wagons: Iterable[tuple[WagonConfig, str, str]],
+    rev: Revision,
+    config: SimulationConfig,
+    *,
+    reference: bool = False,
+) -> WagonChunk:
+    """The chunk's partitions, read from the warehouse with one query per table (by the
+    parent: workers never open it)."""
+    todo = tuple(wagons)
+    ids = [w.wagon_id for w, _, _ in todo]
+    return WagonChunk(
+        wagons=todo,
+        samples=chunk_table(wh, "q_simulation_chunk_samples", ids),
+        events=chunk_table(wh, "q_simulation_chunk_events", ids),
+        rev=rev,
+        config=config,
+        reference=reference,
+    )
+
+
+def chunk_tasks(chunk: WagonChunk) -> list[WagonTask]:
+    """The chunk cut into its wagons' tasks, each wagon's rows sorted as the per-wagon
+    queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
+    ids = [wagon.wagon_id for wagon, _, _ in chunk.wagons]
+    samples = wagon_parts(chunk.samples, ids, ["time_utc", "file_id"], ["file_id"])
+    events = wagon_parts(chunk.events, ids, ["start_utc"])
+    return [
+        WagonTask(
+            wagon=wagon,
+            samples=samples[wagon.wagon_id],
+            events=events[wagon.wagon_id],
+            rev=chunk.rev,
+            config=chunk.config,
+            data_key=data_key,
+            model_key=model_key,
+            reference=chunk.reference,
+        )
+        for wagon, data_key, model_key in chunk.wagons
+    ]
+
+
+def simulate_chunk(chunk: WagonChunk) -> list[WagonResult]:
+    """Each wagon of the chunk simulated (:func:`simulate_wagon`), in order: a pure function
+    of the chunk, so an engine can run it in a worker process."""
+    return [simulate_wagon(task) for task in chunk_tasks(chunk)]
+
+
 class Mapper(Protocol):
     """What runs the stage's partitions: an object with ``map(fn, items)`` yielding
     ``fn(item)`` in the order of ``items`` (a :class:`fleetbrake.engine.Engine`)."""
@@ -709,13 +795,16 @@ def simulate_events(
     show = progress if progress is not None else os.isatty(1)
     from rich.progress import Progress
 
-    tasks = (
-        wagon_task(
-            wh, wagon, rev, config, data_key=data_key, model_key=model_key, reference=reference
-        )
-        for wagon, data_key, model_key in todo
+    counts = sample_rows(wh)
+    by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
+    chunks = (
+        wagon_chunk(wh, [by_id[w] for w in ids], rev, config, reference=reference)
+        for ids in wagon_chunks(list(by_id), counts, config.chunk_rows)
     )
-    results = map(simulate_wagon, tasks) if engine is None else engine.map(simulate_wagon, tasks)
+    done_chunks = (
+        map(simulate_chunk, chunks) if engine is None else engine.map(simulate_chunk, chunks)
+    )
+    results = (result for chunk in done_chunks for result in chunk)
     holding = stored_wagon_ids(wh, rev.name)  # the others' rows are only inserted
 
     def write(batch: list[WagonWrite]) -> None:

@@ -17,11 +17,12 @@ from). A wagon's rows of one revision are replaced together, in one transaction.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
+import pyarrow.compute as pc  # type: ignore[import-untyped]
 
 from fleetbrake.warehouse.connection import Warehouse, sql
 
@@ -31,17 +32,22 @@ __all__ = [
     "TimelineSpan",
     "WagonRows",
     "WagonWrite",
+    "chunk_table",
     "data_keys",
     "forget_wagon",
     "load_timeline",
     "replace_wagon",
     "replace_wagons",
+    "sample_rows",
     "simulated_wagons",
     "stored_timeline",
     "stored_wagon_ids",
     "table_rows",
     "utc_now",
+    "wagon_chunks",
     "wagon_events",
+    "wagon_part",
+    "wagon_parts",
     "wagon_samples",
 ]
 
@@ -112,6 +118,75 @@ def simulated_wagons(wh: Warehouse, revision: str) -> dict[str, SimulatedWagon]:
     """The wagons simulated with ``revision``, and from what."""
     rows = wh.con.execute(sql("q_simulation_simulated_wagons"), {"revision": revision}).fetchall()
     return {str(r[0]): SimulatedWagon(str(r[0]), r[1], r[2], int(r[3]), r[4]) for r in rows}
+
+
+def sample_rows(wh: Warehouse) -> dict[str, int]:
+    """Each wagon with samples: how many it has (what the stages' chunks are sized by)."""
+    rows = wh.con.execute(sql("q_simulation_wagon_sample_rows")).fetchall()
+    return {str(wagon_id): int(n) for wagon_id, n in rows}
+
+
+def wagon_chunks(
+    wagon_ids: Sequence[str], rows: Mapping[str, int], max_rows: int
+) -> Iterator[list[str]]:
+    """``wagon_ids`` in order, cut into chunks of about ``max_rows`` samples (``rows``: each
+    wagon's count, :func:`sample_rows`), at least one wagon each: the stages read a chunk's
+    partitions with one query per table instead of one per wagon and table."""
+    chunk: list[str] = []
+    held = 0
+    for wagon_id in wagon_ids:
+        n = rows.get(wagon_id, 0)
+        if chunk and held + n > max_rows:
+            yield chunk
+            chunk, held = [], 0
+        chunk.append(wagon_id)
+        held += n
+    if chunk:
+        yield chunk
+
+
+def chunk_table(wh: Warehouse, name: str, wagon_ids: Sequence[str], **params: str) -> pa.Table:
+    """The rows of ``wagon_ids`` that the chunk query ``name`` (``q_*_chunk_*.sql``, with a
+    ``wagon_id`` column) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
+    values: dict[str, object] = {"wagon_ids": list(wagon_ids), **params}
+    return wh.con.sql(sql(name), params=values).to_arrow_table()
+
+
+def wagon_part(
+    table: pa.Table, wagon_id: str, order_by: Sequence[str], drop: Sequence[str] = ()
+) -> pa.Table:
+    """One wagon's rows of a chunk's table (:func:`chunk_table`), sorted by ``order_by`` (a
+    stable sort: rows equal in it stay in stored order), without ``wagon_id`` and ``drop``:
+    the table the per-wagon query (the chunk query's namesake) reads, no database needed.
+    (:func:`wagon_parts` cuts every wagon's at once, for a fraction of the cost.)"""
+    return wagon_parts(table, [wagon_id], order_by, drop)[wagon_id]
+
+
+def wagon_parts(
+    table: pa.Table, wagon_ids: Sequence[str], order_by: Sequence[str], drop: Sequence[str] = ()
+) -> dict[str, pa.Table]:
+    """:func:`wagon_part` of each of ``wagon_ids`` (an empty table for a wagon without
+    rows). The stored order holds each wagon's rows in a few runs (its files were written
+    together), so the table is cut at the runs of ``wagon_id`` (one pass, no comparison of
+    every row with every wagon) and each wagon's runs are joined and sorted."""
+    column = table.column("wagon_id")
+    runs: dict[str, list[pa.Table]] = {w: [] for w in wagon_ids}
+    if table.num_rows:
+        encoded = pc.run_end_encode(column.combine_chunks())
+        ends = encoded.run_ends.to_pylist()
+        start = 0
+        for value, end in zip(encoded.values.to_pylist(), ends, strict=True):
+            if value in runs:
+                runs[value].append(table.slice(start, end - start))
+            start = end
+    keys = [(name, "ascending") for name in order_by]
+    parts = {}
+    for wagon_id, pieces in runs.items():
+        part = pa.concat_tables(pieces) if pieces else table.slice(0, 0)
+        if part.num_rows > 1:
+            part = part.take(pc.sort_indices(part, sort_keys=keys))
+        parts[wagon_id] = part.drop_columns(["wagon_id", *drop])
+    return parts
 
 
 def wagon_samples(wh: Warehouse, wagon_id: str) -> pl.DataFrame:

@@ -89,6 +89,15 @@ CREATE TABLE IF NOT EXISTS flags (
     detected_utc TIMESTAMP NOT NULL
 );
 
+-- When each wagon's flags were last judged (every judged wagon, flagged or not), with which
+-- revision: a unit of `fleetbrake watch` judges the wagons whose files, timeline or estimates
+-- were written since (q_flags_stale_wagons.sql), not the whole fleet.
+CREATE TABLE IF NOT EXISTS flagged_wagons (
+    wagon_id       VARCHAR   NOT NULL,
+    model_revision VARCHAR   NOT NULL,
+    updated_utc    TIMESTAMP NOT NULL   -- when its flags were judged (rewritten every time)
+);
+
 -- The registry entries the last `run` used (so that commands given only --db, like
 -- close-loop, simulate each wagon as `run` did).
 CREATE TABLE IF NOT EXISTS wagon_registry (

@@ -1,0 +1,18 @@
+-- Several wagons' virtual-sensor estimates of revision $revision (a chunk), as
+-- q_flags_estimates.sql reads one wagon's (the same columns: a test compares them), with
+-- wagon_id; the reader splits them by wagon and sorts each by time_utc.
+-- Parameters: $wagon_ids (a list), $revision.
+SELECT
+    wagon_id,
+    time_utc,
+    coalesce(smoothed_contact_mean_c, contact_mean_c)                AS contact_mean_c,
+    coalesce(smoothed_contact_mean_lo_c, contact_mean_lo_c)          AS contact_mean_lo_c,
+    coalesce(smoothed_contact_mean_hi_c, contact_mean_hi_c)          AS contact_mean_hi_c,
+    coalesce(smoothed_contact_max_c, contact_max_c)                  AS contact_max_c,
+    coalesce(smoothed_contact_max_hi_c, contact_max_hi_c)            AS contact_max_hi_c,
+    coalesce(smoothed_unexplained_power_w, unexplained_power_w)      AS unexplained_power_w,
+    coalesce(smoothed_unexplained_power_lo_w, unexplained_power_lo_w) AS unexplained_power_lo_w,
+    coalesce(smoothed_unexplained_power_hi_w, unexplained_power_hi_w) AS unexplained_power_hi_w,
+    innovation_k
+FROM contact_estimates
+WHERE list_contains($wagon_ids, wagon_id) AND model_revision = $revision;
