@@ -376,6 +376,51 @@ def test_a_heat_flow_the_model_has_wrong_is_taken_out_before_drifts_are_judged()
     assert heat_flow_corrected(clean) == clean
 
 
+def day_windows(days: int, rate_at: dict[int, float]) -> tuple[WagonSeries, list[Segment]]:
+    """``days`` days of settled quiet windows (600 s, from ``T0``, 08:00 UTC), the block 30 K
+    above the air; window k's measured - predicted changes at ``rate_at.get(k, 0)`` K/h plus
+    a little noise."""
+    rng = np.random.default_rng(5)
+    count = days * 144
+    series = make_series(np.full(600 * count, 40.0))
+    windows = [window(k, 30.0, rate_at.get(k, 0.0) + rng.normal(0.0, 0.2)) for k in range(count)]
+    return series, windows
+
+
+def sunny(k: int) -> bool:
+    """Window k (from 08:00) lies between 09:00 and 13:00 UTC."""
+    return 6 <= k % 144 < 30
+
+
+def test_a_misfit_that_comes_back_at_the_same_hour_every_day_is_no_drift() -> None:
+    """Sunshine the model lacks: measured - predicted rises at +3.5 K/h every day from 09:00
+    to 13:00 and not otherwise. A drift happens once; this comes and goes with the hour of
+    day: a model error, not a sensor fault."""
+    series, windows = day_windows(3, {k: 3.5 for k in range(3 * 144) if sunny(k)})
+    assert find_drift(series, windows) == []
+    # one day of data cannot tell: a drift stays a drift
+    one_day, windows = day_windows(1, {k: 3.5 for k in range(144) if sunny(k)})
+    (f,) = find_drift(one_day, windows)
+    assert f.detail == "drift"
+    # the same trend on one day only, at that hour: a drift
+    once, windows = day_windows(3, {k: 3.5 for k in range(144, 2 * 144) if sunny(k)})
+    (g,) = find_drift(once, windows)
+    assert g.start_utc.date() == (T0 + dt.timedelta(days=1)).date()
+
+
+def test_a_drift_growing_in_time_is_not_taken_for_a_heat_flow() -> None:
+    """The block warms over the run while the offset grows: the rates follow the excess over
+    the air, but they follow the time better still, as a growing offset's do."""
+    hot = [window(k, 40.0 + 8.0 * k, 3.0 + 0.9 * k) for k in range(8)]
+    hot[3] = dataclasses.replace(hot[3], p_start=10.0 + 90.0, p_end=10.0 + 90.0)  # a hot one
+    series = make_series(np.full(600 * 8, 40.0))
+    (f,) = find_drift(series, hot)
+    assert f.detail == "drift"
+    # rates that follow the block's excess and not the time: a heat flow
+    scattered = [window(k, e, 0.08 * e) for k, e in enumerate([40, 90, 50, 100, 45, 95, 55, 85])]
+    assert find_drift(series, scattered) == []
+
+
 def test_drift_between_frequent_brakings_must_show_in_them_too() -> None:
     n, period = 6000, 720
     events = [(f"E{k}", k, k + 60) for k in range(600, n - 300, period)]

@@ -7,7 +7,7 @@ noisy elsewhere, or while the model has the block change), dropping out
 the reading falls towards the air much faster than the block can cool, or stays at the air in
 a braking) and drifting (:func:`find_drift`: measured - predicted changing steadily, of one
 sign, in a way no braking's aftermath and no heat flow of the block explains,
-:func:`heat_flow_corrected`). Faults close together are one flag
+:func:`heat_flow_corrected`, and not again at the same hours on other days). Faults close together are one flag
 (:func:`merge_sensor_faults`).
 """
 
@@ -381,7 +381,10 @@ def _explained_by_heat_flow(run: Sequence[Segment], config: FlagConfig) -> bool:
     """Whether the quiet windows' rates follow the block's excess over the air (rate = k x
     excess) much better than they are constant (``drift_heat_flow_ratio``), over a wide
     enough range of excess (``drift_heat_flow_min_spread``): a heat flow the model has wrong
-    (convection, holder), not a sensor drifting."""
+    (convection, holder), not a sensor drifting; unless they follow a rate growing steadily
+    in time better still: a drifting offset, which the timeline, re-anchored at every
+    segment, relaxes away at a rate that grows with the offset (when the block warms over
+    the run as the offset grows, the excess follows the time and both fit)."""
     rates = np.array([s.slope_k_per_h for s in run])
     excess = np.array([0.5 * (s.p_start + s.p_end) - s.ambient_c for s in run])
     if not np.all(np.isfinite(excess)) or excess.min() <= 0:
@@ -391,7 +394,63 @@ def _explained_by_heat_flow(run: Sequence[Segment], config: FlagConfig) -> bool:
     k = float(rates @ excess) / float(excess @ excess)
     proportional = float(np.sum((rates - k * excess) ** 2))
     constant = float(np.sum((rates - rates.mean()) ** 2))
-    return proportional < config.drift_heat_flow_ratio * constant
+    if not proportional < config.drift_heat_flow_ratio * constant:
+        return False
+    hours = np.array([0.5 * (s.start + s.stop) for s in run]) / 3600.0
+    line = np.column_stack([np.ones_like(hours), hours - hours[0]])
+    coef = np.linalg.lstsq(line, rates, rcond=None)[0]
+    growing = float(coef[1]) * float(np.sign(rates.mean())) > 0
+    in_time = float(np.sum((rates - line @ coef) ** 2))
+    return not (growing and in_time < proportional)
+
+
+DRIFT_HOUR_MARGIN_H = 1.5
+"""h: the hours of day of a run's quiet windows, widened by this on each side, are where
+:func:`_recurs_daily` looks on the wagon's other days."""
+
+
+def _recurs_daily(
+    series: WagonSeries, run: Sequence[Segment], segments: Sequence[Segment], config: FlagConfig
+) -> bool:
+    """Whether the run's misfit comes back with the hour of day: on the wagon's other days
+    (windows at least 12 h from the run), its quiet windows at the same hours of day (those
+    of the run's quiet windows, ``DRIFT_HOUR_MARGIN_H`` wider) change at the run's sign too,
+    by at least a quarter of ``drift_min_rate_k_per_h`` (median of at least
+    ``drift_min_windows`` windows), and by that much more than its quiet windows at the other
+    hours of the day (the misfit comes and goes with the hour). A calibration drift happens
+    once and does not return at the same hour the next day; a heat input the model lacks
+    that follows the hour of day (sunshine) does: a model error, not a sensor fault. A
+    function of the wagon's own segments only (with a single day of data it cannot tell, and
+    a drift stays a drift)."""
+    sign = float(np.sign(run[-1].slope_k_per_h))
+
+    def hour(s: Segment) -> float:
+        t = series.utc((s.start + s.stop) // 2)
+        return t.hour + t.minute / 60.0 + t.second / 3600.0
+
+    def quiet(s: Segment) -> bool:
+        return s.kind == "quiet" and s.judged and math.isfinite(s.slope_k_per_h)
+
+    hours = [hour(s) for s in run if quiet(s)]
+    if not hours:
+        return False
+    lo, hi = min(hours) - DRIFT_HOUR_MARGIN_H, max(hours) + DRIFT_HOUR_MARGIN_H
+    first, last = run[0].start, run[-1].stop
+    same: list[float] = []
+    other: list[float] = []
+    for s in segments:
+        if not quiet(s) or first - 12 * 3600 < s.start < last + 12 * 3600:
+            continue
+        h = hour(s)
+        at_hours = any(lo <= h + turn <= hi for turn in (-24.0, 0.0, 24.0))
+        (same if at_hours else other).append(sign * s.slope_k_per_h)
+    if len(same) < config.drift_min_windows or len(other) < config.drift_min_windows:
+        return False
+    then, elsewhen = float(np.median(same)), float(np.median(other))
+    return (
+        then >= config.drift_min_rate_k_per_h / 4
+        and then - elsewhen >= config.drift_min_rate_k_per_h / 4
+    )
 
 
 def find_drift(
@@ -406,7 +465,8 @@ def find_drift(
     ``drift_min_windows`` segments, one of them a quiet window, is a drift when no braking's
     aftermath explains it (one of its windows starts long after a braking, or every braking in
     it drifts along: a weak brake's do not, they fall far behind the model) and no heat flow
-    does (:func:`_explained_by_heat_flow`)."""
+    does (:func:`_explained_by_heat_flow`), and it does not come back at the same hours on the
+    wagon's other days (:func:`_recurs_daily`: a heat input by the hour of day)."""
     out = []
     run: list[Segment] = []
 
@@ -428,6 +488,8 @@ def find_drift(
         ]
         along = bool(brakings) and all(id(s) in members for s in brakings)
         if not (settled or along) or _explained_by_heat_flow(quiet, config):
+            return
+        if _recurs_daily(series, run, segments, config):
             return
         start, end = series.utc(run[0].start), series.utc(run[-1].stop)
         where = (

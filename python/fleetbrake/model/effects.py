@@ -354,7 +354,9 @@ class FrictionTemperature(Effect):
     loses friction as the contact heats; the temperature sensitivity of friction pairs in
     e.g. Day, *Braking of Road Vehicles*, 2014). Acts on the heat input and depends on the
     block's state: the simulation solves it by fixed-point iteration. Free parameter:
-    ``fade_per_k`` (c).
+    ``fade_per_k`` (c), admissible from 0 up (``LIMITS``): a fade; a friction that grows as
+    the contact heats is not this law, and a fit that wants c < 0 is following some other
+    misfit (one that comes with the hour of day, say) through the face temperature.
     """
 
     name: ClassVar[str] = "friction_temperature"
@@ -363,7 +365,7 @@ class FrictionTemperature(Effect):
         "fade_per_k": (5.0e-4, 2.5e-3),
     }
     LIMITS: ClassVar[Mapping[str, tuple[float | None, float | None]]] = {
-        "fade_per_k": (-0.01, 0.01),
+        "fade_per_k": (0.0, 0.01),
     }
     state_dependent: ClassVar[bool] = True
     REFERENCE_C: ClassVar[float] = 20.0
