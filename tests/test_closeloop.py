@@ -317,5 +317,8 @@ def test_a_full_solver_database_stays_full(tmp_path, full_model_for):
     }
     # the baseline the candidates were measured against is the stored one, second for second
     assert report["residual"]["rmse_k"] == pytest.approx(report["fit"]["rmse_before_k"], rel=1e-9)
-    chosen = next(c for c in report["candidates"] if c["effect"] == report["effect"])
+    # the candidates name their law (two laws share a vocabulary name): the chosen one by it
+    label = "+".join(f"{e['name']}[{e['law']}]" for e in report["effects"])
+    chosen = next(c for c in report["candidates"] if c["label"] == label)
+    assert chosen["effect"] == report["effect"]
     assert chosen["rmse_fit_k"] == pytest.approx(report["fit"]["rmse_after_k"], abs=1e-5)

@@ -10,7 +10,14 @@ import datetime as dt
 import numpy as np
 import pytest
 
-from fleetbrake.closeloop.loop import CloseLoopConfig, CloseLoopConfigError, _fit, _steps
+from fleetbrake.closeloop.loop import (
+    Candidate,
+    CloseLoopConfig,
+    CloseLoopConfigError,
+    _fit,
+    _steps,
+    refit_moved,
+)
 from fleetbrake.model.effects import EFFECT_ORDER, EffectSet, HeatPartition
 
 ALPHA_DECLARED = 0.7455
@@ -200,3 +207,95 @@ def test_outlier_rule_leaves_nothing_out_of_a_uniform_misfit():
     bulk[[7, 40, 41, 42, 43, 44, 45]] = [9.0, 3.0, 3.1, 3.2, 3.3, 3.4, 3.5]
     worst, _ = outlier_events(bulk, 0.1, max_fraction=0.05)
     assert worst.tolist() == [7, 45, 44, 43, 42]
+
+
+def _chosen(fit) -> Candidate:  # type: ignore[no-untyped-def]
+    return Candidate(fit.effects, float(np.sqrt(np.mean(fit.residual**2))), 0.0, 1, fitted=fit)
+
+
+def test_a_refit_inside_the_fits_uncertainty_keeps_the_revision():
+    """After re-flagging, the close loop refits the chosen effect on the events usable then and
+    makes the revision again only when a parameter moved by more than ``refit_tolerance``
+    times its 95 % interval's half-width. Forty brakings of alpha 0.72 (0.05 K of noise), two
+    of them with data the flags missed (15 % of the rise too high): chosen on every event, the
+    wild pair biases alpha, and the refit on the 38 clean events moves it far beyond its
+    interval (made again); chosen on the 38 clean events, a refit on 36 of them (two good
+    events more judged unusable) moves it by a fraction of its interval (kept)."""
+    from fleetbrake.closeloop.selection import blocked_intervals
+
+    brakings = ThreeBrakings(alphas=(0.72,) * 40, drop_above=1.0)
+    for wild in (3, 11):
+        brakings.measured[wild] = brakings.measured[wild] + 0.15 * brakings.rise_k
+    event = np.repeat(np.arange(40), brakings.rise_k.size)
+
+    def fit_without(*gone: int):  # type: ignore[no-untyped-def]
+        keep = ~np.isin(event, gone)
+        return _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14, keep=keep)
+
+    def intervals(fit):  # type: ignore[no-untyped-def]
+        return blocked_intervals(fit.jacobian, fit.aligned, fit.x, fit.names, event[fit.scored])
+
+    everything, clean, fewer = fit_without(), fit_without(3, 11), fit_without(3, 11, 20, 30)
+    lo, hi = intervals(clean).intervals["heat_partition.alpha"]
+    half = 0.5 * (hi - lo)
+    assert abs(everything.x[0] - clean.x[0]) > 2 * half
+    assert refit_moved(_chosen(everything), clean, intervals(clean), 0.25) == [
+        "heat_partition.alpha"
+    ]
+    assert 0 < abs(fewer.x[0] - clean.x[0]) < 0.25 * half
+    assert refit_moved(_chosen(clean), fewer, intervals(fewer), 0.25) == []
+    # the tolerance is a share of the interval: none at all makes every move count
+    assert refit_moved(_chosen(clean), fewer, intervals(fewer), 0.0) == ["heat_partition.alpha"]
+
+
+def test_a_refit_move_of_an_undetermined_parameter_or_a_new_one():
+    """A parameter whose interval is unbounded (the data do not determine it) never counts
+    as moved; one the chosen candidate lacks always does."""
+    from fleetbrake.closeloop.selection import BlockedIntervals
+
+    chosen = Candidate(EffectSet((HeatPartition(alpha=0.70),)), 0.1, 0.0, 1)
+    refit = _fit(ThreeBrakings((0.72,) * 3, 1.0), EffectSet(), [HeatPartition], None, 14)
+    assert refit.x[0] != pytest.approx(0.70, abs=1e-3)
+    unbounded = BlockedIntervals({"heat_partition.alpha": (-np.inf, np.inf)}, {}, {}, {}, 3, {})
+    assert refit_moved(chosen, refit, unbounded, 0.25) == []
+    assert refit_moved(Candidate(EffectSet(), 0.1, 0.0, 0), refit, unbounded, 0.25) == [
+        "heat_partition.alpha"
+    ]
+    with pytest.raises(CloseLoopConfigError, match="refit_tolerance must be >= 0"):
+        CloseLoopConfig(dt.date(2024, 3, 6), refit_tolerance=-0.1)
+
+
+def test_brakings_over_a_frozen_gps_speed_are_left_out_of_the_fit() -> None:
+    """An event braking while the logged speed repeats one value to the last digit (a GPS
+    that froze) has an unknown heat input: the close loop leaves it out of fit and holdout.
+    A braking whose speed jitters as a live GPS does is kept, and so is a frozen speed with
+    the brake released."""
+    from types import SimpleNamespace
+
+    from fleetbrake.closeloop.loop import _unknown_heat_events
+    from fleetbrake.simulation.series import WagonSeries
+
+    n = 600
+    rng = np.random.default_rng(3)
+    speed = 60.0 + rng.normal(0.0, 0.3, n)
+    pressure = np.zeros(n)
+    pressure[100:160] = 2.0  # event A: speed frozen over it
+    speed[95:170] = 52.28
+    pressure[300:360] = 2.0  # event B: live speed
+    speed[450:520] = 41.0  # frozen speed, brake released: no event there
+    pressure[530:560] = 1.5  # event C: after the frozen stretch ended
+    series = WagonSeries(
+        wagon_id="SGG-0001",
+        t0=dt.datetime(2024, 3, 1),
+        present=np.ones(n, dtype=bool),
+        speed_kmh=speed,
+        pressure_bar=pressure,
+        ambient_c=np.full(n, 10.0),
+        measured_c=np.full(n, 20.0),
+        fault=np.zeros(n, dtype=bool),
+        raw_c=np.full(n, np.nan),
+        speed_raw_kmh=speed.copy(),
+        events=[("A", 100, 160, True), ("B", 300, 360, True), ("C", 530, 560, True)],
+    )
+    loaded = {"SGG-0001": SimpleNamespace(spans=[series])}
+    assert _unknown_heat_events(loaded) == frozenset({"A"})  # type: ignore[arg-type]

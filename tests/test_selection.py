@@ -10,10 +10,12 @@ import pytest
 
 from fleetbrake.closeloop.report import render_markdown, verdict
 from fleetbrake.closeloop.selection import (
+    EFFECT_NULLS,
     SelectionError,
     adequacy,
     block_folds,
     blocked_cv_rmse,
+    blocked_intervals,
     distinguishable_from_null,
     effective_sample_size,
     held_out_residual,
@@ -193,6 +195,103 @@ def test_distinguishable_from_null():
     assert distinguishable_from_null(intervals, {})
 
 
+def perturbed_blocks(rng, n_blocks=12, length=2000, rho=0.5, sigma=0.1, spread=0.0075):
+    """A linear model whose parameters move from block to block (``truth`` + N(0, spread)
+    per block: the best parameters of a reduced model differ from one wagon-day to the next)
+    with AR(1) noise: (J, residual at the least-squares fit, x, blocks, truth)."""
+    from scipy.signal import lfilter
+
+    truth = np.array([1.0, 2.0])
+    t = np.linspace(0.0, 1.0, length)
+    xs, ys = [], []
+    for _ in range(n_blocks):
+        x = np.column_stack(
+            [
+                np.sin(2 * np.pi * t * rng.uniform(0.5, 1.5) + rng.uniform(0, 6)) + 1.5,
+                t * rng.uniform(0.5, 2.0),
+            ]
+        )
+        innovations = rng.normal(scale=sigma * np.sqrt(1 - rho * rho), size=length)
+        noise = lfilter([1.0], [1.0, -rho], innovations)
+        xs.append(x)
+        ys.append(x @ (truth + rng.normal(scale=spread, size=2)) + noise)
+    jac, y = np.vstack(xs), np.concatenate(ys)
+    fitted = np.linalg.lstsq(jac, y, rcond=None)[0]
+    blocks = np.repeat(np.arange(n_blocks), length)
+    return jac, jac @ fitted - y, fitted, blocks, truth
+
+
+def test_blocked_intervals_cover_block_wise_parameters_the_jacobian_misses():
+    # the parameters move a little from block to block (less than the noise shows): the
+    # n_eff Jacobian interval sees only the noise and misses the mean; the reported interval
+    # (widest of Jacobian, cluster-robust, delete-one-block jackknife, t on blocks - 1)
+    # covers it
+    rng = np.random.default_rng(7)
+    draws, reported, jacobian = 80, 0, 0
+    for _ in range(draws):
+        jac, r, x, blocks, truth = perturbed_blocks(rng)
+        out = blocked_intervals(jac, r, x, ["a", "b"], blocks)
+        assert out.blocks == 12
+        for i, name in enumerate(("a", "b")):
+            lo, hi = out.intervals[name]
+            reported += lo <= truth[i] <= hi
+            lo, hi = out.jacobian[name]
+            jacobian += lo <= truth[i] <= hi
+            # the reported interval is the widest of the three
+            widths = [hi - lo for lo, hi in (out.jacobian[name], out.sandwich[name])]
+            widths.append(out.jackknife[name][1] - out.jackknife[name][0])
+            assert out.intervals[name][1] - out.intervals[name][0] == pytest.approx(max(widths))
+    assert 0.88 <= reported / (2 * draws) <= 1.0
+    assert jacobian / (2 * draws) < 0.8
+
+
+def test_blocked_intervals_jackknife_step_is_the_refit_without_the_block():
+    # for a linear model one Gauss-Newton step from the optimum is the refit without a block:
+    # the jackknife's spread equals the one of refitting G times
+    from scipy.stats import t as student_t
+
+    rng = np.random.default_rng(3)
+    jac, r, x, blocks, _ = perturbed_blocks(rng, n_blocks=6, length=300, spread=0.05)
+    y = jac @ x - r
+    refits = np.array(
+        [np.linalg.lstsq(jac[blocks != g], y[blocks != g], rcond=None)[0] for g in range(6)]
+    )
+    var = 5 / 6 * ((refits - refits.mean(axis=0)) ** 2).sum(axis=0)
+    half = float(student_t.ppf(0.975, 5)) * np.sqrt(var)
+    out = blocked_intervals(jac, r, x, ["a", "b"], blocks)
+    for i, name in enumerate(("a", "b")):
+        assert out.jackknife[name] == pytest.approx((x[i] - half[i], x[i] + half[i]), rel=1e-9)
+
+
+def test_blocked_intervals_with_two_blocks_are_the_jacobian_ones():
+    rng = np.random.default_rng(4)
+    jac, r, x, blocks, _ = perturbed_blocks(rng, n_blocks=2, length=300)
+    out = blocked_intervals(jac, r, x, ["a", "b"], blocks)
+    assert out.sandwich == {} and out.jackknife == {}
+    assert out.intervals == out.jacobian
+    assert set(out.method.values()) == {"jacobian"}
+
+
+def test_effect_nulls_name_real_laws_and_parameters():
+    from fleetbrake.model.effects import EFFECT_ORDER
+
+    laws = {f"{cls.name}[{cls.law}]": cls for cls in EFFECT_ORDER}
+    for label, nulls in EFFECT_NULLS.items():
+        assert label in laws, label
+        assert set(nulls) <= set(laws[label].PARAMETER_RANGES), label
+        for name, null in nulls.items():
+            lo, hi = laws[label].LIMITS.get(name, (None, None))
+            assert (lo is None or lo <= null) and (hi is None or null <= hi), (label, name)
+
+
+def test_distinguishable_from_null_any_of():
+    intervals = {"a": (-0.1, 0.1), "b": (0.2, 0.3)}
+    nulls = {"a": 0.0, "b": 0.0}
+    assert not distinguishable_from_null(intervals, nulls)
+    assert distinguishable_from_null(intervals, nulls, any_of=True)
+    assert not distinguishable_from_null({"a": (-0.1, 0.1)}, {"a": 0.0}, any_of=True)
+
+
 def test_an_undetermined_parameter_has_an_unbounded_interval():
     rng = np.random.default_rng(8)
     r = rng.normal(size=200)
@@ -314,7 +413,7 @@ def report_dict(**changes):
 def test_report_first_line_is_the_verdict():
     found = render_markdown(report_dict()).splitlines()
     assert found[0].startswith("found: convection_speed")
-    assert "| h_speed | 1.2 | 1.1 | 1.3 |" in found
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | - |" in found
     assert any("adequate" in line and "yes" in line for line in found)
     partly = (
         "partly explained: friction_speed explains 76 % of the residual; 1.2 K remains "
@@ -332,3 +431,36 @@ def test_report_first_line_is_the_verdict():
     for key in ("parameter_intervals", "noise_k", "adequate", "unexplained"):
         del old[key]
     assert render_markdown(old).splitlines()[0].startswith("found: convection_speed")
+
+
+def test_report_names_the_law_the_refusals_and_the_figure_judged():
+    flat = {
+        "effect": "convection_speed",
+        "label": "convection_speed[flat_plate]",
+        "parameters": {"convection_speed": {"multiplier": 0.4}},
+        "rmse_fit_k": 0.5,
+        "rmse_holdout_k": 0.6,
+        "score": 12.0,
+        "held_out": {"gain": 0.01},
+        "refused": "held-out RMSE 0.5 -> 0.495 K (+1.0 %, margin 5 %), better on 2 of 5 folds",
+    }
+    report = report_dict(
+        candidates=[*report_dict()["candidates"], flat],
+        outliers={"events": 2},
+        adequacy={
+            "rmse_judged_k": 0.105,
+            "judged_on": "v_predictions less 2 outlier events",
+            "ratio": 1.05,
+            "max_ratio": 1.5,
+        },
+        parameter_intervals={"h_speed": [1.1, 1.3]},
+        interval_methods={"widest": {"h_speed": "jackknife"}},
+    )
+    text = render_markdown(report)
+    first = text.splitlines()[0]
+    # the verdict shows the figure it was judged on beside the report's fit RMSE
+    assert first.startswith("found: convection_speed (fit RMSE 1.31 -> 0.118 K, 0.105 K without 2")
+    assert "| convection_speed[flat_plate] | 12.0 |" in text
+    assert "+1.0 % | held-out RMSE 0.5 -> 0.495 K" in text
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife |" in text
+    assert "ratio 1.05 (adequate at most 1.5)" in text

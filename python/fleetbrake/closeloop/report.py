@@ -80,6 +80,17 @@ def _k(value: Any) -> str:
     return "-" if value is None else f"{float(value):.3g}"
 
 
+def _judged(report: Mapping[str, Any]) -> str:
+    """``, 0.105 K without 2 outlier events`` when the verdict was judged on a fit RMSE other
+    than the one shown (outlier events left out), else nothing."""
+    judged = (report.get("adequacy") or {}).get("rmse_judged_k")
+    after = (report.get("fit") or {}).get("rmse_after_k")
+    count = (report.get("outliers") or {}).get("events") or 0
+    if judged is None or after is None or not count or f"{judged:.3g}" == f"{after:.3g}":
+        return ""
+    return f", {_k(judged)} K without {count} outlier event{'s' if count > 1 else ''}"
+
+
 def verdict(report: Mapping[str, Any]) -> str:
     """The report in one line: ``found: X ...`` (an effect added and the model adequate),
     ``partly explained: X explains 76 % of the residual; 1.2 K remains, correlated with
@@ -106,7 +117,10 @@ def verdict(report: Mapping[str, Any]) -> str:
         held = ""
         if hold.get("rmse_before_k") is not None:
             held = f"; holdout {_k(hold['rmse_before_k'])} -> {_k(hold.get('rmse_after_k'))} K"
-        return f"found: {effect} (fit RMSE {_k(before)} -> {_k(after)} K{noise_part}{held})"
+        return (
+            f"found: {effect} (fit RMSE {_k(before)} -> {_k(after)} K{_judged(report)}"
+            f"{noise_part}{held})"
+        )
     line = (
         "nothing added: no candidate effect explains a significant part of the residual "
         f"(fit RMSE {_k(before)} K{noise_part})"
@@ -148,15 +162,29 @@ def render_markdown(
             f"| sensor noise (K, from the residual) | {_k(report.get('noise_k'))} |",
             f"| adequate | {'-' if adequate is None else ('yes' if adequate else 'no')} |",
         ]
+        judged = report.get("adequacy") or {}
+        if judged.get("judged_on"):
+            lines.append(
+                f"| judged on | fit RMSE {_k(judged.get('rmse_judged_k'))} K "
+                f"({judged['judged_on']}), ratio {_k(judged.get('ratio'))} "
+                f"(adequate at most {_k(judged.get('max_ratio'))}) |"
+            )
         if report.get("unexplained"):
             lines.append(f"| unexplained | {report['unexplained']} |")
         lines.append("")
     intervals = report.get("parameter_intervals") or {}
     if intervals:
         values = report.get("parameters") or {}
-        lines += ["| parameter | value | 95 % low | 95 % high |", "|---|---|---|---|"]
+        widest = (report.get("interval_methods") or {}).get("widest") or {}
+        lines += [
+            "| parameter | value | 95 % low | 95 % high | widest of |",
+            "|---|---|---|---|---|",
+        ]
         for name, (lo, hi) in intervals.items():
-            lines.append(f"| {name} | {_k(values.get(name))} | {_k(lo)} | {_k(hi)} |")
+            lines.append(
+                f"| {name} | {_k(values.get(name))} | {_k(lo)} | {_k(hi)} | "
+                f"{widest.get(name, '-')} |"
+            )
         lines.append("")
     lines += [
         "| events | count | RMSE before (K) | RMSE after (K) |",
@@ -181,12 +209,19 @@ def render_markdown(
             )
     if "exclusion" in report:
         lines += ["", f"Events: {report['exclusion']}."]
-    lines += ["", "## Candidates", "", "| effect | score | RMSE fit (K) | RMSE holdout (K) |"]
-    lines.append("|---|---|---|---|")
+    lines += [
+        "",
+        "## Candidates",
+        "",
+        "| candidate | score | RMSE fit (K) | RMSE holdout (K) | held-out gain | refused |",
+        "|---|---|---|---|---|---|",
+    ]
     for c in report["candidates"]:
+        held = c.get("held_out") or {}
+        gain = f"{100 * held['gain']:+.1f} %" if "gain" in held else "-"
         lines.append(
-            f"| {c['effect']} | {c['score']:.1f} | {cell(c.get('rmse_fit_k'))} | "
-            f"{cell(c.get('rmse_holdout_k'))} |"
+            f"| {c.get('label', c['effect'])} | {c['score']:.1f} | {cell(c.get('rmse_fit_k'))} | "
+            f"{cell(c.get('rmse_holdout_k'))} | {gain} | {c.get('refused') or '-'} |"
         )
     if report.get("selection"):
         lines += ["", report["selection"]]

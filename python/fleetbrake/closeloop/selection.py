@@ -20,6 +20,11 @@ blocks are taken as independent of each other.
   ``s^2 (J^T J)^-1`` inflated by ``n / n_eff``, Student-t intervals on ``n_eff - p`` degrees
   of freedom; :func:`refusal` says why a candidate does not enter (not by the margin on the
   held-out blocks, or a parameter not distinguishable from its null).
+* :func:`blocked_intervals` -- the intervals the close loop reports: the wider of the
+  ``n_eff`` Jacobian interval, a cluster-robust (sandwich) interval with the blocks as
+  clusters and a delete-one-block jackknife (one Gauss-Newton step per block from the
+  optimum with the fit's Jacobian), the last two with Student-t quantiles on ``blocks - 1``
+  degrees of freedom; :data:`EFFECT_NULLS` the values at which each law's part vanishes.
 * :func:`noise_from_residual` -- white sensor noise from the residual's second differences
   within blocks (median absolute deviation).
 * :func:`adequacy` -- the chosen model's residual against the noise: RMSE ratio, whiteness,
@@ -38,15 +43,19 @@ from fleetbrake.errors import FleetbrakeError
 from fleetbrake.model.estimator import noise_from_second_differences
 
 __all__ = [
+    "EFFECT_NULLS",
     "HELD_OUT_MARGIN",
     "MAX_NOISE_RATIO",
     "Adequacy",
+    "BlockedIntervals",
     "Comparison",
     "SelectionError",
     "adequacy",
     "autocorrelation",
     "block_folds",
     "blocked_cv_rmse",
+    "blocked_intervals",
+    "describe_drivers",
     "distinguishable_from_null",
     "effective_sample_size",
     "event_rms",
@@ -407,25 +416,179 @@ def parameter_intervals(
     return out
 
 
+@dataclass(frozen=True)
+class BlockedIntervals:
+    """The intervals of :func:`blocked_intervals` and the three they are the widest of."""
+
+    intervals: dict[str, tuple[float, float]]
+    """Per parameter, the widest of the three (what the report gives)."""
+    jacobian: dict[str, tuple[float, float]]
+    """``s^2 (J^T J)^-1`` inflated by ``n / n_eff`` (:func:`parameter_intervals`)."""
+    sandwich: dict[str, tuple[float, float]]
+    """Cluster-robust covariance, the blocks as clusters (empty with fewer than 3 blocks)."""
+    jackknife: dict[str, tuple[float, float]]
+    """Delete-one-block jackknife (empty with fewer than 3 blocks)."""
+    blocks: int
+    method: dict[str, str]
+    """Per parameter, which of the three gave the reported interval."""
+
+
+def _symmetric(
+    x: np.ndarray, names: Sequence[str], var: np.ndarray, q: float
+) -> dict[str, tuple[float, float]]:
+    out = {}
+    for i, name in enumerate(names):
+        v = float(var[i])
+        half = q * math.sqrt(v) if math.isfinite(v) and v >= 0 else math.inf
+        out[name] = (float(x[i] - half), float(x[i] + half))
+    return out
+
+
+def blocked_intervals(
+    jacobian: np.ndarray,
+    residual: np.ndarray,
+    x: np.ndarray,
+    names: Sequence[str],
+    blocks: np.ndarray,
+    n_eff: float | None = None,
+    level: float = 0.95,
+) -> BlockedIntervals:
+    """Confidence intervals of fitted parameters that see what varies from block to block
+    (issue 13: a reduced model's error against the world, and parameter trade-offs, shift the
+    best parameters from one wagon-day to the next; a residual-based interval misses that).
+
+    From the fit's residual ``r`` and Jacobian ``J`` at its optimum ``x`` (rows in the order
+    of ``blocks``, one id per second), with ``A_g = J_g^T J_g``, ``u_g = J_g^T r_g`` per block
+    g of G, ``A = sum A_g``:
+
+    * **Jacobian**: :func:`parameter_intervals` on ``n_eff`` (computed from the residual when
+      None).
+    * **Sandwich** (cluster-robust): ``A^-1 (sum_g u_g u_g^T) A^-1 G / (G - 1)``, the ``u_g``
+      centred (an optimum cut short by the iteration limit).
+    * **Jackknife** (delete one block): the fit without block g one Gauss-Newton step from
+      ``x``, ``x_g = x - (A - A_g)^-1 (J^T r - u_g)`` (nothing re-simulated), variance
+      ``(G - 1) / G sum (x_g - mean)^2``; a parameter that no other block determines (``A -
+      A_g`` singular) gets an unbounded interval.
+
+    The last two use Student-t quantiles on ``G - 1`` degrees of freedom (the blocks are the
+    independent units); each parameter's reported interval is the widest of the three.
+    Fewer than 3 blocks: the Jacobian interval only."""
+    from scipy.stats import t as student_t
+
+    r, b = _as_arrays(residual, blocks)
+    xs = np.asarray(x, dtype=np.float64).ravel()
+    p = xs.size
+    j = np.asarray(jacobian, dtype=np.float64).reshape(r.size, p)
+    if n_eff is None:
+        n_eff = effective_sample_size(r, b)
+    plain = parameter_intervals(j, r, xs, names, n_eff, level)
+    order, starts, lengths = _block_slices(b)
+    g_count = int(starts.size)
+    sandwich: dict[str, tuple[float, float]] = {}
+    jackknife: dict[str, tuple[float, float]] = {}
+    if g_count >= 3 and p > 0:
+        jo, ro = j[order], r[order]
+        a_g = np.empty((g_count, p, p))
+        u_g = np.empty((g_count, p))
+        for i, (start, length) in enumerate(zip(starts, lengths, strict=True)):
+            jb, rb = jo[start : start + length], ro[start : start + length]
+            a_g[i] = jb.T @ jb
+            u_g[i] = jb.T @ rb
+        a = a_g.sum(axis=0)
+        u = u_g.sum(axis=0)
+        q = float(student_t.ppf(0.5 + level / 2.0, g_count - 1))
+        try:
+            a_inv = np.linalg.inv(a)
+            centred = u_g - u_g.mean(axis=0)
+            meat = centred.T @ centred
+            cov = a_inv @ meat @ a_inv * g_count / (g_count - 1)
+            var_s = np.diag(cov)
+        except np.linalg.LinAlgError:
+            var_s = np.full(p, np.inf)
+        sandwich = _symmetric(xs, names, var_s, q)
+        steps = np.empty((g_count, p))
+        for i in range(g_count):
+            rest = a - a_g[i]
+            if np.linalg.cond(rest) > 1e12:
+                steps[i] = np.inf
+                continue
+            steps[i] = -np.linalg.solve(rest, u - u_g[i])
+        if np.all(np.isfinite(steps)):
+            var_j = (g_count - 1) / g_count * ((steps - steps.mean(axis=0)) ** 2).sum(axis=0)
+        else:
+            var_j = np.full(p, np.inf)
+        jackknife = _symmetric(xs, names, var_j, q)
+    reported: dict[str, tuple[float, float]] = {}
+    method: dict[str, str] = {}
+    for name in names:
+        choices = [("jacobian", plain[name])]
+        if name in sandwich:
+            choices.append(("sandwich", sandwich[name]))
+        if name in jackknife:
+            choices.append(("jackknife", jackknife[name]))
+        label, (lo, hi) = max(choices, key=lambda kv: kv[1][1] - kv[1][0])
+        reported[name] = (lo, hi)
+        method[name] = label
+    return BlockedIntervals(
+        intervals=reported,
+        jacobian=plain,
+        sandwich=sandwich,
+        jackknife=jackknife,
+        blocks=g_count,
+        method=method,
+    )
+
+
+EFFECT_NULLS: dict[str, dict[str, float]] = {
+    "friction_temperature[linear]": {"fade_per_k": 0.0},
+    "heat_partition[effusivity]": {"contact_factor": 1.0},
+    "convection_speed[power]": {"gain": 0.0},
+    "convection_speed[flat_plate]": {"multiplier": 0.0},
+    "holder_conduction[conductance]": {"h_holder_extra_w_m2k": 0.0},
+    "ambient_offset[offset]": {"offset_k": 0.0},
+    "sensor_lag[first_order]": {"tau_s": 0.0},
+    "empirical[linear]": {
+        "flux_gain": 0.0,
+        "flux_speed_gain": 0.0,
+        "h_extra_w_m2k": 0.0,
+        "h_speed_w_m2k": 0.0,
+    },
+}
+"""Per law (``name[law]``), the parameter values at which its part of the model vanishes
+(the declared model again): a fade of 0, the declared contact (factor 1), no added
+convection, conductance or offset, no lag, no correction. A law without an entry (Karwatzki's
+friction, which replaces the registry's mu rather than scaling it; the partition given as
+alpha, whose null is each block's declared alpha) is judged by the held-out blocks alone.
+``empirical`` vanishes only when all four are null: it is distinguishable when any one is
+(``distinguishable_from_null(any_of=True)``)."""
+
+
 def distinguishable_from_null(
     intervals: Mapping[str, tuple[float, float]],
     nulls: Mapping[str, float],
+    *,
+    any_of: bool = False,
 ) -> bool:
     """True when every parameter given a null value (the value at which its part of the effect
     vanishes: a scale of 0, a lag of 0 s, the registry's own partition) has an interval that
-    excludes it. A parameter without an interval is not distinguishable. No nulls: True
-    (nothing to test)."""
+    excludes it (``any_of``: at least one of them, for an effect that vanishes only when all
+    its parameters are null). A parameter without an interval is not distinguishable. No
+    nulls: True (nothing to test)."""
+    if not nulls:
+        return True
+    outside = []
     for name, null in nulls.items():
         lo, hi = intervals.get(name, (-math.inf, math.inf))
-        if not (null < lo or null > hi):
-            return False
-    return True
+        outside.append(null < lo or null > hi)
+    return any(outside) if any_of else all(outside)
 
 
 def refusal(
     comparison: Comparison,
     intervals: Mapping[str, tuple[float, float]],
     nulls: Mapping[str, float],
+    *,
+    any_of: bool = False,
 ) -> str | None:
     """Why a candidate does not enter over a simpler model, or None when it does: it must
     improve the held-out blocks by the margin (:func:`improves_held_out`) and its parameters
@@ -433,7 +596,7 @@ def refusal(
     reasons = []
     if not comparison.improves:
         reasons.append(comparison.describe())
-    if not distinguishable_from_null(intervals, nulls):
+    if not distinguishable_from_null(intervals, nulls, any_of=any_of):
         near = [
             f"{name} = {null:g} within [{intervals[name][0]:.3g}, {intervals[name][1]:.3g}]"
             if name in intervals
@@ -547,6 +710,12 @@ def _correlation(r: np.ndarray, x: np.ndarray) -> float | None:
     if np.std(xa) == 0.0 or np.std(ra) == 0.0:
         return None
     return float(np.corrcoef(xa, ra)[0, 1])
+
+
+def describe_drivers(correlations: Mapping[str, float], top: int = 3) -> str:
+    """``correlated with speed (r = +0.41) and ...``: the ``top`` strongest of the residual's
+    correlations with the drivers (those with |r| >= ``MIN_CORRELATION``)."""
+    return _named_drivers(correlations, top)
 
 
 def _named_drivers(correlations: Mapping[str, float], top: int = 3) -> str:

@@ -95,8 +95,20 @@ def unsure_mask(
         braking = any(series.pressure_bar[k] > config.p_quiet_bar for k in edge)
         if moving or braking:
             spans.append((a, b))
-    # frozen GPS speed over a braking (one value repeated to the last digit: a live GPS
-    # jitters)
+    spans += frozen_speed_brakings(series, config)
+    for a, b in spans:
+        unsure[a : min(b + config.settle_s, n)] = True
+    return unsure
+
+
+def frozen_speed_brakings(
+    series: WagonSeries, config: FlagConfig = DEFAULT_FLAG_CONFIG
+) -> list[tuple[int, int]]:
+    """Row spans ``[first, last + 1)`` of ``series`` where the GPS speed is frozen (one value
+    above ``speed_frozen_min_kmh`` repeated to the last digit for ``speed_frozen_s`` or more: a
+    live GPS jitters) while the brake is applied: the heat input of such a braking is unknown
+    (the flags treat its block as unsure; the close loop leaves its event out)."""
+    spans: list[tuple[int, int]] = []
     speed = series.speed_raw_kmh
     idx = np.flatnonzero(np.isfinite(speed))
     if idx.size > 1:
@@ -109,9 +121,7 @@ def unsure_mask(
                 series.pressure_bar[first : last + 1] > config.p_quiet_bar
             ):
                 spans.append((first, last + 1))
-    for a, b in spans:
-        unsure[a : min(b + config.settle_s, n)] = True
-    return unsure
+    return spans
 
 
 def _segment_sums(values: FloatArray, starts: np.ndarray, counts: np.ndarray) -> FloatArray:
