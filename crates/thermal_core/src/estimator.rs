@@ -8,7 +8,7 @@
 //!
 //! ```text
 //!     ξ' = A ξ + γ P + w        A diagonal (nominal convection) or dense
-//!     P' = φ P + ω              var ω = σ_w² q_unit
+//!     P' = φ P + ω              var ω = σ_w(mode)² q_unit
 //!     (ξ, s) += u ε             var ε = q_gap (an unlogged interval: the block's offset)
 //!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
 //! ```
@@ -16,6 +16,16 @@
 //! with `w` the modal response to the declared inputs of the step (given per step). The
 //! reading is `y = h x + T_ref + v`, `h = c_p` on the modes (or `e_s` with a lag),
 //! `var v = σ_v²`; NaN skips the update.
+//!
+//! The power's noise switches between two modes (`Switching`): a quiet one (`σ_q`, the
+//! declared model nearly right) and a manoeuvre one (`σ_w`, a persistent unknown input).
+//! The mode of step t+1 is decided after the update at t from a windowed test of the
+//! normalised innovations `z = ν/√S`: their exponentially weighted mean
+//! `m_t = (1-β) m_t-1 + β z_t` (β = 1/window) has standard deviation `√(β/(2-β))` while the
+//! model holds; the manoeuvre mode starts where `|m|` exceeds `on` of those and holds while
+//! `|m|` exceeds `off` or the estimated power is more than `hold` standard deviations from
+//! zero. The mode sequence is part of the filter's output: the smoother replays it (the same
+//! Q at every step), and the steady-state key includes it.
 //!
 //! Speed comes from the structure: the transition is applied as "diagonal plus a border"
 //! (O(n²) per covariance step instead of O(n³)); and where the step's key (transition,
@@ -92,8 +102,25 @@ pub struct Problem<'a> {
 pub struct Noise {
     /// σ_v, K.
     pub measurement_k: f64,
-    /// σ_w, W/√s.
+    /// σ_w, W/√s (the manoeuvre mode's when `switching` is given).
     pub power_w_per_sqrt_s: f64,
+    /// The quiet mode and the test that leaves it; None: σ_w at every step.
+    pub switching: Option<Switching>,
+}
+
+/// Two modes of the power's noise and the innovation test between them (module docs).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Switching {
+    /// σ_q, W/√s: the quiet mode's diffusion.
+    pub quiet_w_per_sqrt_s: f64,
+    /// Window of the innovations' exponentially weighted mean, steps (β = 1/window).
+    pub window_steps: f64,
+    /// The manoeuvre mode starts where |m| exceeds this many of its standard deviations.
+    pub on_sigma: f64,
+    /// ... and holds while |m| exceeds this many ...
+    pub off_sigma: f64,
+    /// ... or while |P| exceeds this many of P's filtered standard deviations.
+    pub hold_power_sigma: f64,
 }
 
 /// How to run.
@@ -143,6 +170,10 @@ pub struct Outputs {
     pub innovation_k: Vec<f64>,
     pub innovation_var_k2: Vec<f64>,
     pub predicted_reading_c: Vec<f64>,
+    /// Whether the step into each second used the manoeuvre mode's σ_w (with `switching`;
+    /// without, true everywhere).
+    pub manoeuvre: Vec<bool>,
+    pub manoeuvre_steps: usize,
     pub smoothed: Option<Estimates>,
     pub log_likelihood: f64,
     pub updates: usize,
@@ -647,10 +678,14 @@ impl Transition {
 /// Step `t`'s covariance mode: computed in full, or the steady cache `id`.
 const FULL: u32 = u32::MAX;
 
+/// What the covariance step into a second depends on: the transition, a reading or not, the
+/// power's noise mode.
+type Key = (u32, bool, bool);
+
 /// What stays constant while the filter is steady for one key.
 #[derive(Debug, Clone)]
 struct Steady {
-    key: (u32, bool),
+    key: Key,
     cov: Vec<f64>,
     gain: Vec<f64>,
     s_var: f64,
@@ -703,7 +738,9 @@ struct Kernel<'a> {
     d: Dims,
     m: usize,
     var_v: f64,
-    sw2: f64,
+    /// σ_w² of the quiet and the manoeuvre mode.
+    sw2: [f64; 2],
+    switching: Option<Switching>,
     tol: f64,
     tol_back: f64,
     h: Vec<f64>,
@@ -727,7 +764,14 @@ impl<'a> Kernel<'a> {
             d: Dims { r, n, lag: p.lag },
             m: p.n_nodes(),
             var_v: noise.measurement_k * noise.measurement_k,
-            sw2: noise.power_w_per_sqrt_s * noise.power_w_per_sqrt_s,
+            sw2: [
+                noise
+                    .switching
+                    .map_or(noise.power_w_per_sqrt_s, |s| s.quiet_w_per_sqrt_s)
+                    .powi(2),
+                noise.power_w_per_sqrt_s.powi(2),
+            ],
+            switching: noise.switching,
             tol: settings.steady_tolerance,
             tol_back: settings.smoother_tolerance,
             h,
@@ -737,14 +781,25 @@ impl<'a> Kernel<'a> {
     }
 
     #[inline(always)]
-    fn key(&self, t: usize) -> Option<(u32, bool)> {
-        (t > 0).then(|| (self.p.index[t - 1], self.p.reading_c[t].is_finite()))
+    fn key(&self, t: usize, manoeuvre: bool) -> Option<Key> {
+        (t > 0).then(|| {
+            (
+                self.p.index[t - 1],
+                self.p.reading_c[t].is_finite(),
+                manoeuvre,
+            )
+        })
+    }
+
+    /// The mode at the start: the manoeuvre mode only without switching.
+    fn first_mode(&self) -> bool {
+        self.switching.is_none()
     }
 
     fn prior_cov(&self) -> Vec<f64> {
         let (r, n) = (self.d.r, self.d.n);
         let mut cov = self.p.cov0.clone();
-        cov[r * n + r] += self.sw2 * self.p.p_prior_unit;
+        cov[r * n + r] += self.sw2[usize::from(self.first_mode())] * self.p.p_prior_unit;
         cov
     }
 
@@ -763,12 +818,14 @@ impl<'a> Kernel<'a> {
         }
     }
 
-    /// The predicted covariance into `t` (`pred`; t = 0: the prior), `Σh`
-    /// into `ph`; returns the reading's predicted variance S.
+    /// The predicted covariance into `t` (`pred`; t = 0: the prior) in the power-noise mode
+    /// `manoeuvre`, `Σh` into `ph`; returns the reading's predicted variance S.
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     fn predict_cov<const FMA: bool>(
         &self,
         t: usize,
+        manoeuvre: bool,
         prev: &[f64],
         pred: &mut [f64],
         ph: &mut [f64],
@@ -781,7 +838,8 @@ impl<'a> Kernel<'a> {
             // without a lag, Σh (h on the modes) is summed while the rows are made
             let acc = fused.then(|| (&self.h[..r], &mut *ph));
             tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc);
-            pred[r * n + r] = madd::<FMA>(self.sw2, tr.q_unit, pred[r * n + r]);
+            let sw2 = self.sw2[usize::from(manoeuvre)];
+            pred[r * n + r] = madd::<FMA>(sw2, tr.q_unit, pred[r * n + r]);
             if tr.q_gap > 0.0 {
                 // q_gap u uᵀ (and its share u (u·h) of Σh when that was summed above)
                 let u = &self.p.gap_dir;
@@ -905,7 +963,7 @@ impl<'a> Kernel<'a> {
     #[inline(always)]
     fn make_steady<const FMA: bool>(
         &self,
-        key: (u32, bool),
+        key: Key,
         cov: &[f64],
         gain: &[f64],
         s_var: f64,
@@ -951,6 +1009,13 @@ pub fn run(problem: &Problem<'_>, noise: Noise, settings: &Settings) -> Result<O
     problem.validate()?;
     crate::error::check_positive("measurement noise", noise.measurement_k)?;
     crate::error::check_positive("power noise", noise.power_w_per_sqrt_s)?;
+    if let Some(sw) = noise.switching {
+        crate::error::check_positive("quiet power noise", sw.quiet_w_per_sqrt_s)?;
+        crate::error::check_positive("innovation window", sw.window_steps)?;
+        crate::error::check_non_negative("switch-on threshold", sw.on_sigma)?;
+        crate::error::check_non_negative("switch-off threshold", sw.off_sigma)?;
+        crate::error::check_non_negative("power hold threshold", sw.hold_power_sigma)?;
+    }
     crate::error::check_non_negative("steady tolerance", settings.steady_tolerance)?;
     crate::error::check_non_negative("smoother tolerance", settings.smoother_tolerance)?;
     #[cfg(target_arch = "x86_64")]
@@ -989,7 +1054,14 @@ fn run_generic<const FMA: bool>(
     let fwd = forward::<FMA>(&k, settings);
     let mut out = fwd.outputs;
     if settings.smooth {
-        let (est, frozen) = smooth::<FMA>(&k, &fwd.modes, &fwd.caches, &fwd.checkpoints, settings);
+        let (est, frozen) = smooth::<FMA>(
+            &k,
+            &fwd.modes,
+            &fwd.manoeuvre,
+            &fwd.caches,
+            &fwd.checkpoints,
+            settings,
+        );
         out.smoothed = Some(est);
         out.smoother_frozen_steps = frozen;
     }
@@ -999,6 +1071,8 @@ fn run_generic<const FMA: bool>(
 struct Forward {
     outputs: Outputs,
     modes: Vec<u32>,
+    /// The power-noise mode of the step into each second (the smoother replays it).
+    manoeuvre: Vec<bool>,
     caches: Vec<Steady>,
     checkpoints: Vec<Checkpoint>,
 }
@@ -1033,9 +1107,21 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
     let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
     let mut w = Work::new(n);
     let mut steady: Option<usize> = None;
-    let mut prev_key: Option<(u32, bool)> = None;
+    let mut prev_key: Option<Key> = None;
+    let mut manoeuvre_of = vec![false; n_t];
+    // the innovation test: the normalised innovations' weighted mean, its standard deviation
+    let mut manoeuvre = k.first_mode();
+    let mut m_z = 0.0f64;
+    let (beta, m_sd) = k.switching.map_or((0.0, 1.0), |s| {
+        let b = (1.0 / s.window_steps).min(1.0);
+        (b, (b / (2.0 - b)).sqrt())
+    });
     for t in 0..n_t {
-        let key = k.key(t);
+        let key = k.key(t, manoeuvre);
+        manoeuvre_of[t] = manoeuvre;
+        if manoeuvre {
+            out.manoeuvre_steps += 1;
+        }
         if t > 0 {
             k.predict_mean::<FMA>(t, &x, &mut x_prior);
         } else {
@@ -1053,7 +1139,7 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
             None => {
                 steady = None;
                 std::mem::swap(&mut prev, &mut cov);
-                let s_var = k.predict_cov::<FMA>(t, &prev, &mut cov, &mut gain, &mut w);
+                let s_var = k.predict_cov::<FMA>(t, manoeuvre, &prev, &mut cov, &mut gain, &mut w);
                 // `gain` holds Σh: keep it for the update, then scale it into K
                 w.b.copy_from_slice(&gain);
                 if measured {
@@ -1075,6 +1161,7 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
             out.log_likelihood -=
                 0.5 * ((2.0 * std::f64::consts::PI * s_var).ln() + nu * nu / s_var);
             out.updates += 1;
+            m_z = madd::<FMA>(beta, nu / s_var.sqrt() - m_z, m_z);
         } else {
             x.copy_from_slice(&x_prior);
         }
@@ -1115,6 +1202,15 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
                 )
             }
         };
+        if let Some(sw) = k.switching {
+            // the mode of the next step
+            let z = m_z.abs() / m_sd;
+            manoeuvre = if manoeuvre {
+                z > sw.off_sigma || x[r].abs() > sw.hold_power_sigma * power_var.max(0.0).sqrt()
+            } else {
+                z > sw.on_sigma
+            };
+        }
         if settings.outputs {
             let f = &mut out.filtered;
             f.mean_c[t] = dot::<FMA>(&k.cm, &x[..r]) + p.t_ref_c;
@@ -1144,9 +1240,13 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
     }
     out.final_state = x;
     out.final_cov = cov; // a steady stretch's cache was made from it
+    if settings.outputs {
+        out.manoeuvre.clone_from(&manoeuvre_of);
+    }
     Forward {
         outputs: out,
         modes,
+        manoeuvre: manoeuvre_of,
         caches,
         checkpoints,
     }
@@ -1190,10 +1290,12 @@ impl Replay {
 
     /// Steps `t0 .. t1` as the forward pass computed them (the same operations).
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     fn run<const FMA: bool>(
         &mut self,
         k: &Kernel,
         modes: &[u32],
+        manoeuvre: &[bool],
         caches: &[Steady],
         cp: &Checkpoint,
         t0: usize,
@@ -1226,7 +1328,8 @@ impl Replay {
                     &caches[modes[t - 1] as usize].cov
                 };
                 let cov = &mut after[..nn];
-                let s_var = k.predict_cov::<FMA>(t, prev, cov, &mut self.ph, &mut self.work);
+                let s_var =
+                    k.predict_cov::<FMA>(t, manoeuvre[t], prev, cov, &mut self.ph, &mut self.work);
                 if measured {
                     let inv = 1.0 / s_var;
                     for (g, v) in gain.iter_mut().zip(&self.ph) {
@@ -1263,6 +1366,7 @@ impl Replay {
 fn smooth<const FMA: bool>(
     k: &Kernel,
     modes: &[u32],
+    manoeuvre: &[bool],
     caches: &[Steady],
     checkpoints: &[Checkpoint],
     settings: &Settings,
@@ -1289,7 +1393,7 @@ fn smooth<const FMA: bool>(
     for (b, cp) in checkpoints.iter().enumerate().rev() {
         let t0 = b * block;
         let t1 = (t0 + block).min(n_t);
-        rep.run::<FMA>(k, modes, caches, cp, t0, t1);
+        rep.run::<FMA>(k, modes, manoeuvre, caches, cp, t0, t1);
         for t in (t0..t1).rev() {
             let i = t - t0;
             let mode = modes[t];
@@ -1666,6 +1770,12 @@ mod tests {
     /// The textbook filter and Rauch-Tung-Striebel smoother with dense matrices and an
     /// inverse, no freezing: what the kernel must equal.
     fn naive(p: &Problem<'_>, noise: Noise) -> Naive {
+        naive_modes(p, noise, None)
+    }
+
+    /// The textbook filter and smoother with σ_w² of each step from the given mode sequence
+    /// (true: the manoeuvre mode's); None: σ_w everywhere.
+    fn naive_modes(p: &Problem<'_>, noise: Noise, manoeuvre: Option<&[bool]>) -> Naive {
         let (r, n) = (p.order, p.n_state());
         let n_t = p.reading_c.len();
         let mut h = vec![0.0; n];
@@ -1674,11 +1784,14 @@ mod tests {
         } else {
             h[..r].copy_from_slice(&p.c_probe);
         }
-        let sw2 = noise.power_w_per_sqrt_s.powi(2);
+        let sw2_of = |t: usize| match (manoeuvre, noise.switching) {
+            (Some(m), Some(sw)) if !m[t] => sw.quiet_w_per_sqrt_s.powi(2),
+            _ => noise.power_w_per_sqrt_s.powi(2),
+        };
         let var_v = noise.measurement_k.powi(2);
         let mut x = p.x0.clone();
         let mut cov = p.cov0.clone();
-        cov[r * n + r] += sw2 * p.p_prior_unit;
+        cov[r * n + r] += sw2_of(0) * p.p_prior_unit;
         let (mut xf, mut pf, mut xp, mut pp) = (vec![], vec![], vec![], vec![]);
         let mut innovation = vec![f64::NAN; n_t];
         let mut loglik = 0.0;
@@ -1699,7 +1812,7 @@ mod tests {
                 }
                 x = nx;
                 cov = matmul(&matmul(&f, &cov, n), &transpose(&f, n), n);
-                cov[r * n + r] += sw2 * p.transitions[k].q_unit;
+                cov[r * n + r] += sw2_of(t) * p.transitions[k].q_unit;
                 for i in 0..n {
                     for j in 0..n {
                         cov[i * n + j] += p.transitions[k].q_gap * p.gap_dir[i] * p.gap_dir[j];
@@ -1811,6 +1924,21 @@ mod tests {
     const NOISE: Noise = Noise {
         measurement_k: 0.05,
         power_w_per_sqrt_s: 0.3,
+        switching: None,
+    };
+
+    /// Switching between a quiet σ_q = 0.03 and σ_w = 0.3, on a test that leaves the quiet
+    /// mode now and then on these data.
+    const SWITCHING: Noise = Noise {
+        measurement_k: 0.05,
+        power_w_per_sqrt_s: 0.3,
+        switching: Some(Switching {
+            quiet_w_per_sqrt_s: 0.03,
+            window_steps: 10.0,
+            on_sigma: 2.0,
+            off_sigma: 1.0,
+            hold_power_sigma: 1.0,
+        }),
     };
 
     fn settings(tol: f64, block: usize) -> Settings {
@@ -1839,6 +1967,38 @@ mod tests {
             assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
             assert!((out.log_likelihood - reference.loglik).abs() < 1e-8 * reference.loglik.abs());
             assert!(out.updates > 300);
+        }
+    }
+
+    #[test]
+    fn switching_modes_are_the_textbook_filter_and_smoother_with_that_q_sequence() {
+        for lag in [false, true] {
+            let p = problem(lag, 400, 7);
+            for tol in [0.0, 1e-7] {
+                let out = run(&p, SWITCHING, &settings(tol, 64)).unwrap();
+                let switches = out.manoeuvre.windows(2).filter(|w| w[0] != w[1]).count();
+                assert!(switches >= 2, "the test switched {switches} times");
+                assert!(out.manoeuvre_steps > 0 && out.manoeuvre_steps < 400);
+                let reference = naive_modes(&p, SWITCHING, Some(&out.manoeuvre));
+                let tol_k = if tol == 0.0 { 1e-9 } else { 1e-5 };
+                assert_estimates("filtered", &out.filtered, &reference.filtered, tol_k);
+                assert_estimates(
+                    "smoothed",
+                    out.smoothed.as_ref().unwrap(),
+                    &reference.smoothed,
+                    10.0 * tol_k,
+                );
+                // the modes matter: σ_w everywhere is another filter
+                let plain = naive(&p, SWITCHING);
+                let diff = plain
+                    .filtered
+                    .power_sd_w
+                    .iter()
+                    .zip(&out.filtered.power_sd_w)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(diff > 1e-3, "{diff}");
+            }
         }
     }
 
@@ -1914,6 +2074,7 @@ mod tests {
         let bad = Noise {
             measurement_k: 0.0,
             power_w_per_sqrt_s: 1.0,
+            switching: None,
         };
         assert!(run(&p, bad, &settings(0.0, 8)).is_err());
     }

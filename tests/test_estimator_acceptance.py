@@ -1,0 +1,354 @@
+"""Issue 14's bars for the virtual sensor, shown on fleets written by the FULL finite-element
+model (``fleetbrake.synth`` with ``solver="full"``: another mesh, another integrator than the
+reduced model the pipeline estimates with), with dragging brakes, weak brakes and sensor
+faults, run through ``run_fleet`` (the ``estimate`` stage) and read from
+``v_contact_estimates`` / ``contact_estimates``:
+
+- contact-mean RMSE against the truth over normal operation, filtered and smoothed, at most
+  the open-loop prediction's (the stored timeline);
+- during a dragging brake the peak contact temperature within 10 % of the truth and the
+  estimated drag power within 20 % of the true one;
+- the truth inside the 95 % band for 90-99 % of the seconds;
+- flag precision and recall no worse than the detectors' (1.00 / 1.00 on these fleets);
+- identity: a noise-free fleet that follows the declared model gives the model's prediction
+  within the band, the unexplained power within its bounds of 0.
+
+Run with ``-s`` to see the figures (``docs/estimator.md`` quotes them).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import duckdb
+import numpy as np
+import polars as pl
+import pytest
+
+from acceptance_fleets import flag_score
+from fleetbrake.app.run import run_fleet
+from fleetbrake.engine import InlineEngine
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.estimator import Z95
+from fleetbrake.model.rom import FullModelRunner
+from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.synth.generator import SynthConfig, generate_fleet
+from fleetbrake.synth.truth import FleetTruth
+
+pytestmark = pytest.mark.slow
+
+FE_REFINEMENT = 0.2
+"""The full model's mesh that writes the fleets (409 hex20 nodes, as ``test_closeloop``)."""
+SEEDS = (3, 4)
+"""Two fleets of 4 wagons x 2 days (wagon 1 clean, a dragging brake on 2, a weak brake on 3,
+sensor faults on 2-4; synth's unregistered and badly registered wagons besides)."""
+BEFORE = dt.timedelta(minutes=10)
+AFTER = dt.timedelta(minutes=30)
+"""Normal operation: a wagon's seconds outside its anomalies widened by these (the smoother
+spreads a drag's onset over the minutes before it; a drag's heat takes a while to leave)."""
+
+
+@dataclass
+class Fleet:
+    truth: FleetTruth
+    db: Path
+    rows: pl.DataFrame
+    """Every stored estimate of the declared revision with the open-loop prediction and the
+    truth (``true_mean_c``, ``true_max_c``, ``true_power_w``, ``true_p_bar``)."""
+
+
+def _query(db: Path, text: str, params: dict[str, Any] | None = None) -> pl.DataFrame:
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return con.sql(text, params=params).pl()
+    finally:
+        con.close()
+
+
+@pytest.fixture(scope="module")
+def full_model_for() -> Callable[[WagonConfig], FullModelRunner]:
+    models: dict[tuple[object, ...], FullModelRunner] = {}
+
+    def get(wagon: WagonConfig) -> FullModelRunner:
+        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)
+        if key not in models:
+            models[key] = FullModelRunner.for_wagon(wagon, refinement=FE_REFINEMENT)
+        return models[key]
+
+    return get
+
+
+def _fleet(
+    root: Path, config: SynthConfig, model_for: Callable[..., Any], refinement: float
+) -> Fleet:
+    truth = generate_fleet(root / "fleet", config, rom=model_for)
+    db = root / "fleet.duckdb"
+    run_fleet(
+        root / "fleet",
+        db,
+        simulation=SimulationConfig(refinement=refinement),
+        progress=False,
+        engine=InlineEngine(),
+    )
+    est = _query(
+        db,
+        """
+        SELECT e.*, t.predicted_contact_mean_c
+        FROM contact_estimates AS e
+        JOIN timeline AS t USING (wagon_id, model_revision, time_utc)
+        WHERE e.model_revision = 'declared'
+        ORDER BY e.wagon_id, e.time_utc
+        """,
+    )
+    frames = []
+    for wagon_id in sorted(set(est["wagon_id"].to_list())):
+        area = WagonConfig(wagon_id=wagon_id).geometry.contact_area_m2
+        true = truth.series(wagon_id).select(
+            pl.col("time_utc").cast(pl.Datetime("us")),
+            pl.col("contact_mean_c").alias("true_mean_c"),
+            pl.col("contact_max_c").alias("true_max_c"),
+            (pl.col("heat_flux_w_m2") * area).alias("true_power_w"),
+            pl.col("brake_pressure_bar").alias("true_p_bar"),
+        )
+        frames.append(est.filter(pl.col("wagon_id") == wagon_id).join(true, on="time_utc"))
+    return Fleet(truth, db, pl.concat(frames))
+
+
+@pytest.fixture(scope="module")
+def fleets(
+    tmp_path_factory: pytest.TempPathFactory,
+    full_model_for: Callable[..., Any],
+    rom_refinement: float,
+    rom_cache_dir: Path,
+) -> Iterator[list[Fleet]]:
+    out = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        for seed in SEEDS:
+            config = SynthConfig(
+                wagons=4,
+                days=2,
+                seed=seed,
+                anomalies=True,
+                solver="full",
+                refinement=FE_REFINEMENT,
+            )
+            root = tmp_path_factory.mktemp(f"estimator-acceptance-{seed}")
+            out.append(_fleet(root, config, full_model_for, rom_refinement))
+        yield out
+
+
+def _mask(rows: pl.DataFrame, truth: FleetTruth, kinds: tuple[str, ...]) -> np.ndarray:
+    """The rows inside an anomaly of ``kinds`` on their wagon, widened by BEFORE/AFTER."""
+    hit = pl.lit(False)
+    for a in truth.anomalies:
+        if a.kind in kinds:
+            hit = hit | (
+                (pl.col("wagon_id") == a.wagon_id)
+                & pl.col("time_utc").is_between(a.start_utc - BEFORE, a.end_utc + AFTER)
+            )
+    return rows.select(hit.alias("m"))["m"].to_numpy()
+
+
+def _rmse(x: np.ndarray, y: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((x - y) ** 2)))
+
+
+NOT_MET_RMSE = (
+    "issue 14's first bar is not met on full-FE fleets: over normal operation the filtered "
+    "contact mean is 0.11 K RMSE and the smoothed 0.040 K against the open loop's 0.039 K "
+    "(session 5: 0.24-0.29 K filtered); docs/estimator.md"
+)
+
+
+@pytest.mark.xfail(strict=True, reason=NOT_MET_RMSE)
+@pytest.mark.parametrize("output", ["filtered", "smoothed"])
+def test_the_estimate_beats_the_open_loop_prediction_over_normal_operation(
+    fleets: list[Fleet], output: str
+) -> None:
+    for f in fleets:
+        normal = ~_mask(f.rows, f.truth, ("dragging_brake", "weak_brake", "sensor_fault"))
+        rows = f.rows.filter(pl.Series(normal))
+        assert rows.height > 20_000 and rows["wagon_id"].n_unique() >= 2
+        true = rows["true_mean_c"].to_numpy()
+        figures = {
+            name: _rmse(rows[column].to_numpy(), true)
+            for name, column in (
+                ("open loop", "predicted_contact_mean_c"),
+                ("filtered", "contact_mean_c"),
+                ("smoothed", "smoothed_contact_mean_c"),
+            )
+        }
+        print(f"seed {f.truth.config.seed}: normal operation, {rows.height} s, RMSE K", figures)
+        assert figures["filtered"] < 3 * figures["open loop"]  # the filter is not lost
+        assert figures[output] <= figures["open loop"]
+
+
+def _drag_errors(fleets: list[Fleet]) -> list[tuple[dict[str, float], dict[str, float]]]:
+    """Per logged dragging brake: the power's relative errors (smoothed after its first 5
+    minutes, live over its second half) and the peak's (filtered maximum, filtered and
+    smoothed mean)."""
+    out = []
+    for f in fleets:
+        for a in f.truth.anomalies:
+            if a.kind != "dragging_brake":
+                continue
+            rows = f.rows.filter(
+                (pl.col("wagon_id") == a.wagon_id)
+                & pl.col("time_utc").is_between(a.start_utc, a.end_utc)
+            )
+            released = rows.filter(pl.col("true_p_bar") < 0.01)
+            if released.height < 600:
+                continue  # not logged long enough (the unit slept, a file lost)
+            true_power = float(released["true_power_w"].mean())
+            assert true_power > 50  # the truth has a drag to find
+            late = released.filter(pl.col("time_utc") >= a.start_utc + dt.timedelta(minutes=5))
+            second_half = released.tail(released.height // 2)
+            power = {
+                "smoothed": float(late["smoothed_unexplained_power_w"].mean()) / true_power - 1,
+                "live, 2nd half": float(second_half["unexplained_power_w"].mean()) / true_power - 1,
+            }
+            true_peak = float(rows["true_max_c"].max())
+            true_mean_peak = float(rows["true_mean_c"].max())
+            peak = {
+                "max filtered": float(rows["contact_max_c"].max()) / true_peak - 1,
+                "mean filtered": float(rows["contact_mean_c"].max()) / true_mean_peak - 1,
+                "mean smoothed": float(rows["smoothed_contact_mean_c"].max()) / true_mean_peak - 1,
+            }
+            print(
+                f"seed {f.truth.config.seed} drag {a.wagon_id} {true_power:.0f} W, peak "
+                f"{true_peak:.1f} C: power error",
+                {k: round(v, 3) for k, v in power.items()},
+                "peak error",
+                {k: round(v, 3) for k, v in peak.items()},
+            )
+            out.append((power, peak))
+    return out
+
+
+def test_a_dragging_brakes_peak_and_smoothed_power(fleets: list[Fleet]) -> None:
+    errors = _drag_errors(fleets)
+    assert len(errors) >= 2
+    for power, peak in errors:
+        assert abs(power["smoothed"]) <= 0.2, power
+        assert all(abs(v) <= 0.1 for v in peak.values()), peak
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the live (filtered) drag power over the second half of seed 4's 111 W drag is "
+    "41 % high (seed 3: -2 %); docs/estimator.md",
+)
+def test_a_dragging_brakes_live_power(fleets: list[Fleet]) -> None:
+    for power, _ in _drag_errors(fleets):
+        assert abs(power["live, 2nd half"]) <= 0.2, power
+
+
+def test_the_truth_is_inside_the_95_percent_band(fleets: list[Fleet]) -> None:
+    """90-99 % of the seconds, over every estimated second outside the sensor faults (a
+    faulty reading the stage does not recognise misleads any filter), and over normal
+    operation; filtered and smoothed."""
+    for f in fleets:
+        faults = _mask(f.rows, f.truth, ("sensor_fault",))
+        normal = ~_mask(f.rows, f.truth, ("dragging_brake", "weak_brake", "sensor_fault"))
+        true = f.rows["true_mean_c"].to_numpy()
+        shares = {}
+        for name, lo, hi in (
+            ("filtered", "contact_mean_lo_c", "contact_mean_hi_c"),
+            ("smoothed", "smoothed_contact_mean_lo_c", "smoothed_contact_mean_hi_c"),
+        ):
+            inside = (f.rows[lo].to_numpy() <= true) & (true <= f.rows[hi].to_numpy())
+            shares[name] = float(inside[~faults].mean())
+            shares[name + " normal"] = float(inside[normal].mean())
+        half = (f.rows["contact_mean_hi_c"] - f.rows["contact_mean_lo_c"]).to_numpy() / 2
+        print(
+            f"seed {f.truth.config.seed}: truth inside the 95 % band",
+            {k: round(v, 3) for k, v in shares.items()},
+            f"median half-width {np.median(half):.3f} K",
+        )
+        for name, share in shares.items():
+            assert 0.90 <= share <= 0.99, (name, share)
+        assert float(np.median(half)) < 1.0
+
+
+def test_flags_are_as_good_as_the_detectors(fleets: list[Fleet]) -> None:
+    for f in fleets:
+        score = flag_score(SimpleNamespace(db=f.db, truth=f.truth))  # type: ignore[arg-type]
+        print(
+            f"seed {f.truth.config.seed}: flags precision {score.precision:.2f} recall "
+            f"{score.recall:.2f}",
+            score.by_kind,
+            score.misses,
+        )
+        assert score.precision >= 1.0 and score.recall >= 1.0, score.misses
+
+
+@pytest.fixture(scope="module")
+def declared_fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., object],
+    rom_refinement: float,
+    rom_cache_dir: Path,
+) -> Iterator[Fleet]:
+    """One wagon-day that follows the declared model: written by the reduced model itself,
+    no anomaly, noise-free readings and inputs."""
+    config = SynthConfig(
+        wagons=1,
+        days=1,
+        seed=5,
+        anomalies=False,
+        sensor_noise_k=0.0,
+        pressure_noise_bar=0.0,
+        speed_noise_kmh=0.0,
+        missing_row_fraction=0.0,
+        gap_probability=0.0,
+        duplicate_fraction=0.0,
+        swap_fraction=0.0,
+        empty_cell_fraction=0.0,
+        frozen_speed_probability=0.0,
+        speed_jump_probability=0.0,
+        truncated_files=0,
+        truncated_gzip_files=0,
+        garbage_files=0,
+        unregistered_wagon=False,
+        bad_registry_entry=False,
+        odd_columns=False,
+    )
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        root = tmp_path_factory.mktemp("estimator-declared")
+        yield _fleet(root, config, reduced_model_for, rom_refinement)
+
+
+def test_identity_a_fleet_following_the_declared_model(declared_fleet: Fleet) -> None:
+    rows = declared_fleet.rows
+    assert rows.height > 10_000
+    model = rows["true_mean_c"].to_numpy()
+    assert model.max() - model.min() > 30  # brakings heat the block
+    for prefix in ("", "smoothed_"):
+        mean = rows[f"{prefix}contact_mean_c"].to_numpy()
+        lo, hi = rows[f"{prefix}contact_mean_lo_c"], rows[f"{prefix}contact_mean_hi_c"]
+        half = (hi - lo).to_numpy() / 2
+        # inside the band around the model's prediction (0.02 K: the log's rounding)
+        outside = np.abs(mean - model) > half + 0.02
+        print(
+            f"identity {prefix or 'filtered'}: RMSE {_rmse(mean, model) * 1000:.1f} mK, "
+            f"outside the band {int(outside.sum())} of {mean.size} s, median half-width "
+            f"{np.median(half):.3f} K"
+        )
+        assert np.mean(outside) <= 0.002, prefix
+        assert float(np.median(half)) < Z95 * 0.5
+    for prefix in ("", "smoothed_"):
+        lo = rows[f"{prefix}unexplained_power_lo_w"].to_numpy()
+        hi = rows[f"{prefix}unexplained_power_hi_w"].to_numpy()
+        share = float(np.mean((lo <= 0) & (hi >= 0)))
+        print(f"identity {prefix or 'filtered'}: power band holds 0 for {share:.4f} of the s")
+        # 0.98: in long brakings the log's pressure reads 0.4 % above the truth's (0.819
+        # against 0.8156 bar), a real -8 W against the logged inputs that the quiet band
+        # (±6 W) resolves
+        assert share >= 0.98, prefix
