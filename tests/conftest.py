@@ -57,6 +57,32 @@ def reduced_model_for(rom_cache_dir: Path) -> Iterator[Callable[..., object]]:
     yield get
 
 
+FE_REFINEMENT = 0.2
+"""The full model's mesh of the tests' full-FE fleets (409 hex20 nodes): not the reduced
+model's (``TEST_REFINEMENT``), so that the model that writes a fleet is not the one that reads
+it (the modules that generate such fleets say ``FE_REFINEMENT = 0.2`` too)."""
+
+
+@pytest.fixture(scope="session")
+def full_model_for() -> Callable[..., object]:
+    """``full_model_for(wagon)``: the full finite-element model of the wagon's block at
+    ``FE_REFINEMENT``, assembled once per block for the session."""
+    from fleetbrake.model.rom import FullModelRunner
+
+    models: dict[tuple[object, ...], FullModelRunner] = {}
+
+    def get(wagon: object) -> FullModelRunner:
+        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)  # type: ignore[attr-defined]
+        if key not in models:
+            models[key] = FullModelRunner.for_wagon(
+                wagon,  # type: ignore[arg-type]
+                refinement=FE_REFINEMENT,
+            )
+        return models[key]
+
+    return get
+
+
 @pytest.fixture(scope="session")
 def default_rom(reduced_model_for: Callable[..., object]) -> object:
     """The reduced model of the registry's default wagon (the reference block and seat)."""

@@ -43,21 +43,6 @@ reduced) by about 0.03 K rms, 0.2 K at the peak of a hard braking: model error o
 real fleet has, below the sensor's noise."""
 
 
-@pytest.fixture(scope="session")
-def full_model_for():
-    """``full_model_for(wagon)``: the full model of the wagon's block at ``FE_REFINEMENT``,
-    assembled once per block for the session (every fleet of the session shares it)."""
-    models: dict[tuple[object, ...], FullModelRunner] = {}
-
-    def get(wagon: WagonConfig) -> FullModelRunner:
-        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)
-        if key not in models:
-            models[key] = FullModelRunner.for_wagon(wagon, refinement=FE_REFINEMENT)
-        return models[key]
-
-    return get
-
-
 @pytest.fixture
 def rom_env(monkeypatch: pytest.MonkeyPatch, rom_cache_dir: Path) -> None:
     monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))

@@ -39,7 +39,6 @@ import pytest
 
 from acceptance_fleets import (
     CASES,
-    FE_REFINEMENT,
     NOISE_K,
     Case,
     Outcome,
@@ -67,23 +66,9 @@ def cases(chosen: list[Case]) -> list[Any]:
 
 
 @pytest.fixture(scope="module")
-def full_models() -> Callable[[WagonConfig], FullModelRunner]:
-    """The full model of a wagon's block at ``FE_REFINEMENT``, assembled once per block."""
-    models: dict[tuple[object, ...], FullModelRunner] = {}
-
-    def get(wagon: WagonConfig) -> FullModelRunner:
-        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)
-        if key not in models:
-            models[key] = FullModelRunner.for_wagon(wagon, refinement=FE_REFINEMENT)
-        return models[key]
-
-    return get
-
-
-@pytest.fixture(scope="module")
 def outcome_of(
     tmp_path_factory: pytest.TempPathFactory,
-    full_models: Callable[[WagonConfig], FullModelRunner],
+    full_model_for: Callable[[WagonConfig], FullModelRunner],
     rom_cache_dir: Path,
     rom_refinement: float,
 ) -> Iterator[Callable[[Case], Outcome]]:
@@ -98,7 +83,7 @@ def outcome_of(
             if case.name not in done:
                 try:
                     out = make_outcome(
-                        case, tmp_path_factory.mktemp(case.name), full_models, rom_refinement
+                        case, tmp_path_factory.mktemp(case.name), full_model_for, rom_refinement
                     )
                 except Exception as exc:
                     done[case.name] = exc

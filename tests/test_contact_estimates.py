@@ -107,24 +107,6 @@ another mesh and another integrator than the reduced model the stage estimates w
 
 
 @pytest.fixture(scope="module")
-def full_model_for() -> Callable[..., object]:
-    """``full_model_for(wagon)``: the full FE model of the wagon's block at ``FE_REFINEMENT``,
-    assembled once per block for the module."""
-    from fleetbrake.fleet.registry import WagonConfig
-    from fleetbrake.model.rom import FullModelRunner
-
-    models: dict[tuple[object, ...], FullModelRunner] = {}
-
-    def get(wagon: WagonConfig) -> FullModelRunner:
-        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)
-        if key not in models:
-            models[key] = FullModelRunner.for_wagon(wagon, refinement=FE_REFINEMENT)
-        return models[key]
-
-    return get
-
-
-@pytest.fixture(scope="module")
 def full_fleet(
     tmp_path_factory: pytest.TempPathFactory,
     full_model_for: Callable[..., object],

@@ -35,7 +35,6 @@ from fleetbrake.app.run import run_fleet
 from fleetbrake.engine import InlineEngine
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.estimator import Z95
-from fleetbrake.model.rom import FullModelRunner
 from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.synth.generator import SynthConfig, generate_fleet
 from fleetbrake.synth.truth import FleetTruth
@@ -68,19 +67,6 @@ def _query(db: Path, text: str, params: dict[str, Any] | None = None) -> pl.Data
         return con.sql(text, params=params).pl()
     finally:
         con.close()
-
-
-@pytest.fixture(scope="module")
-def full_model_for() -> Callable[[WagonConfig], FullModelRunner]:
-    models: dict[tuple[object, ...], FullModelRunner] = {}
-
-    def get(wagon: WagonConfig) -> FullModelRunner:
-        key = (wagon.geometry, wagon.block, wagon.sensor_point_m)
-        if key not in models:
-            models[key] = FullModelRunner.for_wagon(wagon, refinement=FE_REFINEMENT)
-        return models[key]
-
-    return get
 
 
 def _fleet(
