@@ -354,6 +354,34 @@ def window(k: int, excess: float, slope: float, speed: float = 80.0) -> Segment:
     )
 
 
+def test_a_drift_after_a_data_gap_is_caught_when_the_reading_leaves_the_model() -> None:
+    """After a data gap in which the wagon may have braked the block is unsure (its windows
+    not ``calm``): hidden heat leaves the reading above the model and converging back to it,
+    which is no drift; a reading that keeps leaving the model is one all the same (an
+    acceptance fleet's 32-minute drift began 2 minutes after such a gap)."""
+    n = 7200
+    predicted = np.full(n, 30.0)
+
+    def unsure(series: WagonSeries) -> list[Segment]:
+        # every window after t = 600 s under the gap's unsure span
+        return [
+            dataclasses.replace(s, calm=False) if s.start >= 600 else s
+            for s in segments_of(series, predicted)
+        ]
+
+    offset = np.clip(np.arange(n) - 1200, 0, None) * 6.0 / 3600.0  # +6 K/h from t = 1200 s
+    drifting = make_series(noisy(predicted + offset))
+    windows = unsure(drifting)
+    assert not any(s.judged for s in windows if s.start >= 600)
+    (f,) = find_drift(drifting, windows)
+    assert f.detail == "drift" and "at +6.0 K/h" in f.evidence
+    # the heat a gap hid: 3 K above the model, falling back to it (at first 7 K/h)
+    hidden = 3.0 * np.exp(-np.clip(np.arange(n) - 600, 0, None) / 1500.0)
+    hidden[:600] = 0.0
+    converging = make_series(noisy(predicted + hidden))
+    assert find_drift(converging, unsure(converging)) == []
+
+
 def test_a_heat_flow_the_model_has_wrong_is_taken_out_before_drifts_are_judged() -> None:
     rng = np.random.default_rng(3)
     excess = rng.uniform(5.0, 80.0, 40)

@@ -16,6 +16,7 @@ from fleetbrake.closeloop.selection import (
     block_folds,
     blocked_cv_rmse,
     blocked_intervals,
+    circular_linear_correlation,
     distinguishable_from_null,
     effective_sample_size,
     held_out_residual,
@@ -25,6 +26,7 @@ from fleetbrake.closeloop.selection import (
     noise_from_residual,
     parameter_intervals,
     refusal,
+    systematic_share,
 )
 
 
@@ -379,6 +381,54 @@ def test_a_smooth_leftover_is_not_adequate_and_names_its_driver():
     assert "hour of day" not in out.unexplained
     nothing = adequacy(r, blocks, noise, {"speed": speed})
     assert nothing.unexplained is not None and nothing.unexplained.startswith("not explained")
+
+
+def test_a_noon_bump_correlates_with_the_hour_of_day_on_its_circle_not_on_a_line():
+    """Sunshine peaking at noon: next to no Pearson correlation with the hour counted from
+    midnight, a strong circular-linear one; the verdict names the hour of day."""
+    rng = np.random.default_rng(12)
+    blocks = np.repeat(np.arange(20), 3000)
+    hour = (
+        np.tile(np.arange(3000.0), 20) * 8.0 / 3600.0 + np.repeat(np.arange(20) * 7.0, 3000)
+    ) % 24
+    sun = np.maximum(np.cos(2 * np.pi * (hour - 12.0) / 24.0), 0.0)
+    r = 0.1 * rng.normal(size=hour.size) + 0.5 * sun
+    assert abs(np.corrcoef(r, hour)[0, 1]) < 0.1
+    circular = circular_linear_correlation(r, hour, 24.0)
+    assert circular is not None and circular > 0.8
+    # the same bump shifted to any hour correlates as strongly; noise alone does not
+    shifted = circular_linear_correlation(r, (hour + 5.0) % 24, 24.0)
+    assert shifted == pytest.approx(circular, abs=1e-9)
+    noise_only = circular_linear_correlation(0.1 * rng.normal(size=hour.size), hour, 24.0)
+    assert noise_only is not None and noise_only < 0.05
+    ambient = 10 + 0.2 * rng.normal(size=hour.size)
+    out = adequacy(
+        r,
+        blocks,
+        0.1,
+        {"ambient": ambient, "hour of day": hour},
+        periods={"hour of day": 24.0},
+    )
+    assert not out.adequate
+    assert out.correlations["hour of day"] == pytest.approx(circular)
+    assert out.unexplained is not None and "correlated with hour of day" in out.unexplained
+    linear = adequacy(r, blocks, 0.1, {"ambient": ambient, "hour of day": hour})
+    assert linear.unexplained is not None and "hour of day" not in linear.unexplained
+
+
+def test_systematic_share_does_not_count_the_noise_as_left():
+    # 2 K of misfit over 0.1 K of noise cut to the noise: all of it explained
+    assert systematic_share(2.0, 0.1, 0.1) == pytest.approx(1.0)
+    assert systematic_share(2.0, 0.09, 0.1) == pytest.approx(1.0)
+    # the hour-of-day fleet's proxy: 0.297 -> 0.239 K over 0.101 K of noise explains 40 %,
+    # less than the plain explained fraction (35 % of the mean square would read the same)
+    share = systematic_share(0.297, 0.239, 0.101)
+    assert share == pytest.approx(1 - (0.239**2 - 0.101**2) / (0.297**2 - 0.101**2))
+    assert 0.35 < share < 0.45
+    # an effect that explains most of a large misfit but leaves 1.2 K: dominant
+    assert systematic_share(7.5, 1.2, 0.1) > 0.9
+    assert systematic_share(0.1, 0.1, 0.1) == 1.0  # nothing systematic before
+    assert systematic_share(0.3, 0.4, 0.1) < 0.0  # made worse
 
 
 # ---------------------------------------------------------------------------- report

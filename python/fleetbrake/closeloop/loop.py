@@ -43,8 +43,11 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    laws' parameters distinguishable from their nulls
    (:data:`~fleetbrake.closeloop.selection.EFFECT_NULLS`) by 95 % intervals; a candidate's
    ``refused`` says which failed. Pairs are tried when the chosen single leaves the fit RMSE
-   above ``pair_above_noise`` (the adequacy bar, 1.5x) times the noise. Nothing entering:
-   nothing is added and the report says so. The chosen model's residual is judged against
+   above ``pair_above_noise`` (the adequacy bar, 1.5x) times the noise. A physical answer
+   that leaves the fit inadequate and explains less than ``min_explained_share`` of the
+   baseline's systematic residual is a proxy for something outside the vocabulary and is
+   refused; then only ``empirical`` may enter. Nothing entering: nothing is added and the
+   report says so. The chosen model's residual is judged against
    the noise (``adequate``, ``unexplained``; at the end again on the report's own fit events
    from ``v_predictions``, less the outliers it names) and its parameters get 95 % intervals,
    the widest of the Jacobian one on n_eff, the cluster-robust one and the delete-one-
@@ -80,6 +83,7 @@ from fleetbrake.closeloop.fitdata import FitData
 from fleetbrake.closeloop.selection import (
     EFFECT_NULLS,
     MAX_NOISE_RATIO,
+    MIN_EXPLAINED_SHARE,
     Adequacy,
     BlockedIntervals,
     Comparison,
@@ -96,6 +100,7 @@ from fleetbrake.closeloop.selection import (
     intervals_for_json,
     noise_from_residual,
     outlier_events,
+    systematic_share,
 )
 from fleetbrake.engine import Engine, InlineEngine, LocalEngine, make_engine
 from fleetbrake.errors import ConfigError, FleetbrakeError
@@ -195,6 +200,12 @@ class CloseLoopConfig:
     interval's half-width (:func:`refit_moved`) keeps the revision as it was simulated,
     estimated and flagged: the new revision is re-simulated only when the refit changes the
     answer beyond the fit's own uncertainty."""
+    min_explained_share: float = MIN_EXPLAINED_SHARE
+    """A physical answer that leaves the fit inadequate is named only when it explains at
+    least this share of the baseline's systematic residual
+    (:func:`~fleetbrake.closeloop.selection.systematic_share`); otherwise it is a proxy for
+    something outside the vocabulary and only the ``empirical`` correction may enter (0: no
+    such rule). An adequate answer is never affected."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
@@ -665,6 +676,7 @@ def _verdict(
         _drivers(data, scored),
         before_rmse_k=current.rmse_fit_k if effect is not None else None,
         effect=effect,
+        periods=DRIVER_PERIODS,
     )
 
 
@@ -766,6 +778,12 @@ def _held_out(
         folds,
         config.held_out_margin,
     )
+
+
+DRIVER_PERIODS: dict[str, float] = {"hour of day": 24.0}
+"""Drivers that are phases (hours on a 24 h clock), correlated with a leftover residual by
+the circular-linear correlation: sunshine peaking at noon has next to no Pearson correlation
+with the hour counted from midnight."""
 
 
 def _drivers(data: FitData, scored: np.ndarray) -> dict[str, np.ndarray]:
@@ -1072,6 +1090,22 @@ def _close_loop(
             c.rmse_holdout_k = _rmse(_finite(r))
     timing["holdout_s"] = time.perf_counter() - t
 
+    # an inadequate physical answer is named only when it is the dominant cause of the misfit:
+    # with the truth outside the vocabulary, an effect correlated with it passes the criterion
+    # and the held-out folds against a baseline that is itself wrong, and its parameter then
+    # describes the missing term, not its own law; such a proxy gives way to the empirical
+    # correction alone (or nothing)
+    if best is not None and config.min_explained_share > 0:
+        verdict = _verdict(best, fit_data, base_kept, noise_k, current)
+        share = systematic_share(current.rmse_fit_k, best.rmse_fit_k, noise_k)
+        if not verdict.adequate and share < config.min_explained_share:
+            best.refused = (
+                f"proxy: leaves the fit inadequate ({verdict.ratio:.2f}x the noise) and "
+                f"explains {100 * max(share, 0.0):.0f} % of the systematic residual (needs "
+                f"{100 * config.min_explained_share:.0f} %): not the cause of the misfit"
+            )
+            logger.info("%s is not named: %s", _law_label(best, present), best.refused)
+            best = None
     significant = best is not None
     # nothing physical adequate: the empirical correction, last (on the chosen physical
     # effect when one entered), entering over what it corrects by the same rule

@@ -46,6 +46,7 @@ __all__ = [
     "EFFECT_NULLS",
     "HELD_OUT_MARGIN",
     "MAX_NOISE_RATIO",
+    "MIN_EXPLAINED_SHARE",
     "Adequacy",
     "BlockedIntervals",
     "Comparison",
@@ -55,6 +56,7 @@ __all__ = [
     "block_folds",
     "blocked_cv_rmse",
     "blocked_intervals",
+    "circular_linear_correlation",
     "describe_drivers",
     "distinguishable_from_null",
     "effective_sample_size",
@@ -68,6 +70,7 @@ __all__ = [
     "outlier_events",
     "parameter_intervals",
     "refusal",
+    "systematic_share",
 ]
 
 HELD_OUT_MARGIN = 0.05
@@ -89,6 +92,11 @@ misfit of the model, not bad data."""
 
 MIN_CORRELATION = 0.1
 """Drivers whose correlation with a leftover residual is weaker than this are not named."""
+
+MIN_EXPLAINED_SHARE = 0.5
+"""A physical addition that leaves the fit inadequate is named only when it explains at least
+this share of the baseline's systematic residual (:func:`systematic_share`): the dominant
+cause of the misfit, not a proxy absorbing part of something outside the vocabulary."""
 
 
 class SelectionError(FleetbrakeError, ValueError):
@@ -694,7 +702,8 @@ class Adequacy:
     explained_fraction: float | None
     """``1 - rmse_after^2 / rmse_before^2`` when the RMSE before is given."""
     correlations: dict[str, float]
-    """Pearson correlation of the residual with each driver."""
+    """Pearson correlation of the residual with each driver (a phase, such as the hour of
+    day: the circular-linear one, 0..1)."""
     unexplained: str | None
     """When not adequate: what was explained and what the rest correlates with."""
 
@@ -710,6 +719,35 @@ def _correlation(r: np.ndarray, x: np.ndarray) -> float | None:
     if np.std(xa) == 0.0 or np.std(ra) == 0.0:
         return None
     return float(np.corrcoef(xa, ra)[0, 1])
+
+
+def circular_linear_correlation(r: np.ndarray, x: np.ndarray, period: float) -> float | None:
+    """Mardia's circular-linear correlation (0..1) of ``r`` with the phase of ``x`` on
+    ``period`` (hour of day on 24 h): the multiple correlation of ``r`` on ``cos`` and ``sin``
+    of the phase, so a bump at any time of day counts, not only a trend from midnight to
+    midnight (Mardia & Jupp, *Directional Statistics*, 2000, sec. 11.2)."""
+    x = np.asarray(x, dtype=np.float64).ravel()
+    r = np.asarray(r, dtype=np.float64).ravel()
+    phase = 2.0 * np.pi * x / period
+    rc = _correlation(r, np.cos(phase))
+    rs = _correlation(r, np.sin(phase))
+    cs = _correlation(np.cos(phase), np.sin(phase))
+    if rc is None or rs is None or cs is None or abs(cs) >= 1.0:
+        return None
+    squared = (rc * rc + rs * rs - 2.0 * rc * rs * cs) / (1.0 - cs * cs)
+    return float(math.sqrt(min(max(squared, 0.0), 1.0)))
+
+
+def systematic_share(before_rmse_k: float, after_rmse_k: float, noise_k: float) -> float:
+    """The share of the systematic residual (its mean square above the sensor noise's)
+    that an addition explains: ``1 - (after^2 - noise^2) / (before^2 - noise^2)``, each
+    floored at 0; 1.0 when nothing systematic was left before. Unlike the plain explained
+    fraction it does not count the noise, which no model explains, in what is left."""
+    before = max(before_rmse_k**2 - noise_k**2, 0.0)
+    after = max(after_rmse_k**2 - noise_k**2, 0.0)
+    if before == 0.0:
+        return 1.0
+    return float(1.0 - after / before)
 
 
 def describe_drivers(correlations: Mapping[str, float], top: int = 3) -> str:
@@ -739,13 +777,15 @@ def adequacy(
     before_rmse_k: float | None = None,
     effect: str | None = None,
     max_ratio: float = MAX_NOISE_RATIO,
+    periods: Mapping[str, float] | None = None,
 ) -> Adequacy:
     """Judge a fit residual (the chosen model's, on the fit events) against the sensor noise
     ``noise_k`` (from :func:`noise_from_residual`): adequate when its RMSE is at most
     ``max_ratio`` times the noise. ``drivers``: what the model is driven by, one value per
     second (speed, pressure, ambient, hour of day...), to name what a leftover correlates
     with. ``before_rmse_k``: the RMSE before anything was added, for the explained share;
-    ``effect``: what was added (None: nothing)."""
+    ``effect``: what was added (None: nothing). ``periods``: drivers that are phases (hour of
+    day: 24.0), correlated by :func:`circular_linear_correlation` (0..1)."""
     r, b = _as_arrays(residual, blocks)
     finite = np.isfinite(r)
     if finite.sum() == 0:
@@ -758,7 +798,11 @@ def adequacy(
         explained = 1.0 - (rmse / before_rmse_k) ** 2
     correlations = {}
     for name, values in drivers.items():
-        c = _correlation(r, values)
+        period = (periods or {}).get(name)
+        if period is None:
+            c = _correlation(r, values)
+        else:
+            c = circular_linear_correlation(r, values, period)
         if c is not None:
             correlations[name] = c
     ok = bool(ratio <= max_ratio)

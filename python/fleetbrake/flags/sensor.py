@@ -298,11 +298,32 @@ def _departure(
     return before.start + (int(above[-1]) + 1 if above.size else 0)
 
 
+def _diverges_while_unsure(s: Segment) -> bool:
+    """A quiet window with enough readings, not judged only because the simulated block is
+    unsure (after a data gap in which the wagon may have braked: :func:`~fleetbrake.flags.stats.unsure_mask`),
+    whose measured - predicted moves *away* from the model: the heat a gap may have hidden
+    leaves the reading above the model and falling back to it (the excess converges), so a
+    reading that keeps leaving the model at one sign in a quiet window is not that heat."""
+    if s.kind != "quiet" or not s.enough or s.calm:
+        return False
+    start, end = s.m_start - s.p_start, s.m_end - s.p_end
+    if not (math.isfinite(start) and math.isfinite(end) and math.isfinite(s.slope_k_per_h)):
+        return False
+    return bool(np.sign(s.slope_k_per_h) == np.sign(end) != 0 and abs(end) > abs(start))
+
+
+def _counts_for_drift(s: Segment) -> bool:
+    """Whether a segment counts in a drift's run: judged, or a quiet window after a data gap
+    that leaves the model (:func:`_diverges_while_unsure`)."""
+    return s.judged or _diverges_while_unsure(s)
+
+
 def _is_drifting(s: Segment, config: FlagConfig) -> bool:
-    """A judged segment whose measured - predicted changes steadily at a drift's rate."""
+    """A counted segment (:func:`_counts_for_drift`) whose measured - predicted changes
+    steadily at a drift's rate."""
     rate = abs(s.slope_k_per_h)
     return (
-        s.judged
+        _counts_for_drift(s)
         and config.drift_min_rate_k_per_h <= rate <= config.drift_max_rate_k_per_h
         and s.line_rms_k <= config.drift_max_rms_k
         and s.excess_k < config.drag_min_excess_k
@@ -461,7 +482,9 @@ def find_drift(
 
     A run collects the drifting segments of one sign; brakings, segments not judged and
     windows right after a braking (``settle_after_braking_s``) that do not drift are passed
-    over; any other quiet window that does not drift ends it. A run of at least
+    over; any other quiet window that does not drift ends it. A quiet window after a data gap
+    (the block unsure) counts when the reading leaves the model in it
+    (:func:`_diverges_while_unsure`), else it is passed over too. A run of at least
     ``drift_min_windows`` segments, one of them a quiet window, is a drift when no braking's
     aftermath explains it (one of its windows starts long after a braking, or every braking in
     it drifts along: a weak brake's do not, they fall far behind the model) and no heat flow
@@ -514,7 +537,7 @@ def find_drift(
         )
 
     for s in segments:
-        if not s.judged:
+        if not _counts_for_drift(s):
             continue  # neither counts nor ends a run
         if _is_drifting(s, config) and (
             not run or np.sign(s.slope_k_per_h) == np.sign(run[-1].slope_k_per_h)
