@@ -394,7 +394,7 @@ def _parse_cells(body: bytes, names: list[str]) -> tuple[pl.DataFrame, pl.DataFr
 def _line_numbers(frame: pl.DataFrame, mask: pl.Series) -> list[int]:
     """File line numbers of the rows where ``mask`` holds (header = line 1)."""
     if "_line" in frame.columns:
-        return frame.filter(mask)["_line"].to_list()
+        return frame["_line"].filter(mask).to_list()  # one column, not the whole frame
     return (mask.arg_true() + 2).to_list()
 
 
@@ -513,10 +513,14 @@ def _times(
     if _in_order(frame["time_utc"], start_utc, latest_utc):
         return frame
     frame = frame.with_columns(pl.int_range(2, frame.height + 2, dtype=pl.Int64).alias("_line"))
-    no_time = frame["time_utc"].is_null()
+    # The repairs are judged in numpy on the times alone (each polars call on a column costs
+    # about as much as the judgement); the whole frame is gathered once at the end.
+    time_utc = frame["time_utc"]
+    no_time = time_utc.is_null().to_numpy()
+    rows = np.arange(frame.height)
     if no_time.any():
-        lines = _line_numbers(frame, no_time)
-        raw = text_time.filter(no_time)
+        lines = (rows[no_time] + 2).tolist()
+        raw = text_time.filter(pl.Series(no_time))
         empty = int((raw.is_null() | (raw.str.strip_chars() == "")).sum())
         repairs.rows_no_time = len(lines)
         examples = [repr(v) for v in raw.drop_nulls().to_list() if v.strip()][:2]
@@ -529,29 +533,36 @@ def _times(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} without a time dropped "
             f"({detail}): {_lines(lines, len(lines))}"
         )
-        frame = frame.filter(~no_time)
-    outside = (frame["time_utc"] < start_utc) | (frame["time_utc"] > latest_utc)
+        rows = rows[~no_time]
+    us = time_utc.to_physical().fill_null(0).to_numpy()[rows]
+    start_us = int((start_utc - _EPOCH) / dt.timedelta(microseconds=1))
+    latest_us = int((latest_utc - _EPOCH) / dt.timedelta(microseconds=1))
+    outside = (us < start_us) | (us > latest_us)
     if outside.any():
-        lines = _line_numbers(frame, outside)
+        lines = (rows[outside] + 2).tolist()
         repairs.rows_outside_session = len(lines)
         repairs.notes.append(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} timed before the file name's "
             f"time {start_utc:%Y-%m-%dT%H:%M:%SZ} or more than {config.max_session_s} s after "
             f"it dropped: {_lines(lines, len(lines))}"
         )
-        frame = frame.filter(~outside)
-    repeated = ~frame["time_utc"].is_first_distinct()
+        rows, us = rows[~outside], us[~outside]
+    repeated = np.ones(us.size, dtype=bool)
+    repeated[np.unique(us, return_index=True)[1]] = False  # the first of each time is kept
     if repeated.any():
-        lines = _line_numbers(frame, repeated)
+        lines = (rows[repeated] + 2).tolist()
         repairs.rows_duplicate = len(lines)
         repairs.notes.append(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} repeating an earlier row's time "
             f"dropped (the first kept): {_lines(lines, len(lines))}"
         )
-        frame = frame.filter(~repeated)
-    late = frame["time_utc"] < frame["time_utc"].cum_max().shift(1)
+        rows, us = rows[~repeated], us[~repeated]
+    if rows.size < frame.height:
+        frame = frame.gather(rows)  # the kept rows, in file order
+    late = np.zeros(us.size, dtype=bool)
+    late[1:] = us[1:] < np.maximum.accumulate(us)[:-1]
     if late.any():
-        lines = _line_numbers(frame, late)
+        lines = (rows[late] + 2).tolist()
         repairs.rows_out_of_order = len(lines)
         repairs.notes.append(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} out of time order, sorted: "
