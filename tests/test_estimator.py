@@ -13,6 +13,7 @@ fractions beside them.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -448,6 +449,54 @@ def test_rust_is_numpy_with_switching_convection_and_a_lag(
     fast = estimate([problem], engine="rust")[0]
     slow = estimate([problem], engine="numpy")[0]
     _assert_same(fast, slow)
+
+
+OPTIONS = EstimatorConfig(standstill_speed_kmh=0.5, seat_error_sd_k=0.05)
+"""The two options off by default (``docs/estimator.md``: what they gain, what they cost)."""
+
+
+def test_rust_is_numpy_with_the_seat_error_and_the_power_held_at_standstill(
+    rom: ReducedModel, noisy: WagonSeries, fitted: EstimatorNoise
+) -> None:
+    """The seat's model error as a coordinate of its own (its noise ``q_modes``) and the
+    unexplained power held at standstill: the kernels still agree, modes and all."""
+    config = dataclasses.replace(OPTIONS, noise=fitted)
+    problem = prepare(rom, WAGON, noisy, config=config)
+    assert problem.order == rom.order + 1 and problem.q_modes is not None
+    assert problem.held is not None and 0 < problem.held.mean() < 0.5
+    fast = estimate([problem], config=config, engine="rust")[0]
+    slow = estimate([problem], config=config, engine="numpy")[0]
+    _assert_same(fast, slow)
+
+
+def test_the_unexplained_power_is_friction_held_while_the_wheel_stands(
+    rom: ReducedModel, noisy: WagonSeries
+) -> None:
+    """``standstill_speed_kmh``: over a step at standstill and over an unlogged standstill
+    the power neither heats the block nor diffuses (``γ = 0``, ``φ = 1``, no noise) and is
+    reported as 0 W; the seat's error coordinate is seen by the reading only."""
+    problem = prepare(rom, WAGON, noisy, config=OPTIONS)
+    assert problem.held is not None and problem.q_modes is not None
+    held = problem.index[problem.held]
+    moving = problem.index[~problem.held]
+    assert set(held.tolist()).isdisjoint(moving.tolist())
+    assert np.all(problem.gamma[held] == 0.0) and np.all(problem.phi[held] == 1.0)
+    assert np.all(problem.q_unit[held] == 0.0) and np.all(problem.q_unit[moving] > 0.0)
+    gaps = np.diff(problem.time_s) > 1
+    assert gaps.any() and problem.held[gaps].all()
+    r = problem.order - 1  # the seat error's coordinate
+    assert problem.c_probe[r] == 1.0 and problem.c_mean[r] == 0.0
+    assert np.all(problem.c_nodes[:, r] == 0.0) and np.all(problem.q_modes[:, r] > 0.0)
+    assert np.all(problem.q_modes[:, :r] == 0.0)
+    est = estimate([problem], config=OPTIONS)[0]
+    still = np.zeros(problem.n_samples, dtype=bool)
+    still[1:] = problem.held
+    standing = still[problem.logged]
+    assert standing.sum() > 100  # the day has logged stops
+    assert np.all(est.unexplained_power_w[standing] == 0.0)
+    assert est.smoothed_unexplained_power_w is not None
+    assert np.all(est.smoothed_unexplained_power_w[standing] == 0.0)
+    assert np.any(est.unexplained_power_w[~standing] != 0.0)
 
 
 # ------------------------------------------------------------------------------------------

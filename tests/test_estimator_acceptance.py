@@ -146,9 +146,13 @@ def _rmse(x: np.ndarray, y: np.ndarray) -> float:
 
 
 NOT_MET_RMSE = (
-    "issue 14's first bar is not met on full-FE fleets: over normal operation the filtered "
-    "contact mean is 0.11 K RMSE and the smoothed 0.040 K against the open loop's 0.039 K "
-    "(session 5: 0.24-0.29 K filtered); docs/estimator.md"
+    "issue 14's first bar is not met on full-FE fleets: over normal operation (seed 3) the "
+    "filtered contact mean is 0.108 K RMSE and the smoothed 0.0397 K against the open loop's "
+    "0.0389 K; two thirds of the filtered error is in brakings and the 10 minutes after a "
+    "switch to the manoeuvre mode (the reduced model's error at the seat moves the face), not "
+    "at session starts; with the seat-error "
+    "coordinate and the power held at standstill (options, 45 % slower) 0.084 / 0.036 K; "
+    "docs/estimator.md"
 )
 
 
@@ -178,7 +182,10 @@ def test_the_estimate_beats_the_open_loop_prediction_over_normal_operation(
 def _drag_errors(fleets: list[Fleet]) -> list[tuple[dict[str, float], dict[str, float]]]:
     """Per logged dragging brake: the power's relative errors (smoothed after its first 5
     minutes, live over its second half) and the peak's (filtered maximum, filtered and
-    smoothed mean)."""
+    smoothed mean). A drag's heat is friction, ``μ F v``: it follows the speed and is 0 while
+    the wagon stands (seed 4's drag: 172 W at 92 km/h, 0 over a 5-minute stop, 111 W on
+    average over its released seconds), so each estimate is held to the true power over the
+    same seconds."""
     out = []
     for f in fleets:
         for a in f.truth.anomalies:
@@ -195,9 +202,13 @@ def _drag_errors(fleets: list[Fleet]) -> list[tuple[dict[str, float], dict[str, 
             assert true_power > 50  # the truth has a drag to find
             late = released.filter(pl.col("time_utc") >= a.start_utc + dt.timedelta(minutes=5))
             second_half = released.tail(released.height // 2)
+
+            def error(part: pl.DataFrame, column: str) -> float:
+                return float(part[column].mean()) / float(part["true_power_w"].mean()) - 1
+
             power = {
-                "smoothed": float(late["smoothed_unexplained_power_w"].mean()) / true_power - 1,
-                "live, 2nd half": float(second_half["unexplained_power_w"].mean()) / true_power - 1,
+                "smoothed": error(late, "smoothed_unexplained_power_w"),
+                "live, 2nd half": error(second_half, "unexplained_power_w"),
             }
             true_peak = float(rows["true_max_c"].max())
             true_mean_peak = float(rows["true_mean_c"].max())
@@ -225,11 +236,6 @@ def test_a_dragging_brakes_peak_and_smoothed_power(fleets: list[Fleet]) -> None:
         assert all(abs(v) <= 0.1 for v in peak.values()), peak
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the live (filtered) drag power over the second half of seed 4's 111 W drag is "
-    "41 % high (seed 3: -2 %); docs/estimator.md",
-)
 def test_a_dragging_brakes_live_power(fleets: list[Fleet]) -> None:
     for power, _ in _drag_errors(fleets):
         assert abs(power["live, 2nd half"]) <= 0.2, power

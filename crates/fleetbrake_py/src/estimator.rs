@@ -54,7 +54,18 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
     );
     let r = order;
     let k = diagonal.len();
+    // per transition, r variances of the modal coordinates (absent or empty: none)
+    let q_modes = match d.get_item("q_modes")? {
+        Some(v) if !v.is_none() => v
+            .extract::<PyReadonlyArray1<'_, f64>>()?
+            .as_array()
+            .iter()
+            .copied()
+            .collect(),
+        _ => Vec::new(),
+    };
     let sizes = [
+        q_modes.is_empty() || q_modes.len() == k * r,
         a.len() == k * r * r,
         gamma.len() == k * r,
         lag_row.len() == k * r,
@@ -81,6 +92,11 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
                 phi: phi[t],
                 q_unit: q_unit[t],
                 q_gap: q_gap[t],
+                q_modes: if q_modes.is_empty() {
+                    Vec::new()
+                } else {
+                    q_modes[t * r..(t + 1) * r].to_vec()
+                },
                 lag_a: lag_a[t],
                 lag_b1: lag_b1[t],
                 lag_row: lag_row[t * r..(t + 1) * r].to_vec(),

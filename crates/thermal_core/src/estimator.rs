@@ -10,6 +10,7 @@
 //!     ξ' = A ξ + γ P + w        A diagonal (nominal convection) or dense
 //!     P' = φ P + ω              var ω = σ_w(mode)² q_unit
 //!     (ξ, s) += u ε             var ε = q_gap (an unlogged interval: the block's offset)
+//!     ξ_i += η_i                var η_i = q_modes_i (the seat's model error, a coordinate)
 //!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
 //! ```
 //!
@@ -60,6 +61,9 @@ pub struct Transition {
     /// Variance (K²) added over the step to the block's uniform offset (`Problem::gap_dir`):
     /// what an unlogged interval may have done to the block that the model does not know.
     pub q_gap: f64,
+    /// Variance added over the step to each modal coordinate (r; empty: none): the reduced
+    /// model's error at the sensor seat, carried as a coordinate of its own.
+    pub q_modes: Vec<f64>,
     /// Decay of the lagged reading.
     pub lag_a: f64,
     /// Weight of the seat temperature at the step's end in the lagged reading.
@@ -236,6 +240,20 @@ impl Problem<'_> {
                 if len != expected {
                     return mismatch(&format!("{name} of transition {k}"), expected, len);
                 }
+            }
+            if !(t.q_modes.is_empty() || t.q_modes.len() == r) {
+                return mismatch(
+                    &format!("transition q_modes of transition {k}"),
+                    r,
+                    t.q_modes.len(),
+                );
+            }
+            if let Some(&bad) = t.q_modes.iter().find(|q| !(q.is_finite() && **q >= 0.0)) {
+                return Err(ThermalError::InvalidParameter {
+                    name: format!("estimator q_modes of transition {k}"),
+                    value: bad,
+                    reason: "must be variances (finite, >= 0)".to_string(),
+                });
             }
             if !(t.q_gap.is_finite() && t.q_gap >= 0.0) {
                 return Err(ThermalError::InvalidParameter {
@@ -840,6 +858,15 @@ impl<'a> Kernel<'a> {
             tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc);
             let sw2 = self.sw2[usize::from(manoeuvre)];
             pred[r * n + r] = madd::<FMA>(sw2, tr.q_unit, pred[r * n + r]);
+            for (i, &q) in tr.q_modes.iter().enumerate() {
+                if q != 0.0 {
+                    // q e_i e_iᵀ (and its share e_i q h_i of Σh when that was summed above)
+                    pred[i * n + i] += q;
+                    if fused {
+                        ph[i] = madd::<FMA>(q, self.h[i], ph[i]);
+                    }
+                }
+            }
             if tr.q_gap > 0.0 {
                 // q_gap u uᵀ (and its share u (u·h) of Σh when that was summed above)
                 let u = &self.p.gap_dir;
@@ -1653,6 +1680,7 @@ mod tests {
                 phi,
                 q_unit: 0.5 * 600.0 * (1.0 - phi * phi),
                 q_gap: 0.0,
+                q_modes: Vec::new(),
                 lag_a: if lag { lag_a } else { 0.0 },
                 lag_b1: if lag { lag_b1 } else { 0.0 },
                 lag_row,
@@ -1686,6 +1714,9 @@ mod tests {
             ),
         ];
         transitions[2].q_gap = 0.4; // the "gap" transition: the block's offset uncertain
+        for t in &mut transitions[..2] {
+            t.q_modes = vec![0.0, 3e-4, 0.0]; // a coordinate with noise of its own
+        }
         let steps = n_t - 1;
         let index: Vec<u32> = (0..steps)
             .map(|s| match s % 1500 {
@@ -1816,6 +1847,9 @@ mod tests {
                 for i in 0..n {
                     for j in 0..n {
                         cov[i * n + j] += p.transitions[k].q_gap * p.gap_dir[i] * p.gap_dir[j];
+                        if i == j && i < r && !p.transitions[k].q_modes.is_empty() {
+                            cov[i * n + j] += p.transitions[k].q_modes[i];
+                        }
                     }
                 }
             }

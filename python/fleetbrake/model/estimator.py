@@ -24,7 +24,8 @@ The outputs are the columns of ``v_contact_estimates`` (``shared/spec/interface.
 mean and bounds, ``unexplained_power_w`` and bounds, ``innovation_k``.
 
 **State.** ``x = (ξ, P[, s])``: the reduced model's modal state ``ξ`` (``θ = T - T_ref`` in
-modal coordinates, r values, ``T_ref`` the first valid reading), the unexplained heat power
+modal coordinates, r values, ``T_ref`` the first valid reading; with ``seat_error_sd_k``
+the seat's model error ``b`` as one coordinate more), the unexplained heat power
 ``P`` (W) entering the block through its friction face, and, when the revision has a
 ``sensor_lag``, the thermistor's lagged reading ``s``.
 
@@ -48,9 +49,15 @@ modal coordinates, r values, ``T_ref`` the first valid reading), the unexplained
   declared or not: one exact step of the whole length, ``γ = 0``, ``P`` decaying by ``φ``
   (its variance growing towards the stationary ``σ_w² τ/2``). Shorter gaps are filled by
   linear interpolation of the inputs, second by second, with no reading.
+* Options (off by default: they cost speed, ``docs/estimator.md``): ``P`` held at
+  standstill, friction heating only while the wheel turns (``standstill_speed_kmh``: over
+  such a step and over an unlogged standstill ``γ = 0``, ``φ = 1``, no noise, and 0 W
+  reported); ``b' = φ_b b + η``, the reduced model's own error at the sensor seat
+  (``seat_error_sd_k``, a Gauss-Markov process, a coordinate appended to ``ξ`` that the
+  face does not see).
 
-**Measurement.** ``y = T_seat + v`` (or ``s + v`` with a lag), ``var v = σ_v²``; a missing or
-faulty reading (NaN) skips the update.
+**Measurement.** ``y = T_seat (+ b) + v`` (or ``s + v`` with a lag, ``s`` lagging
+``T_seat (+ b)``), ``var v = σ_v²``; a missing or faulty reading (NaN) skips the update.
 
 **Noise.** ``σ_v`` and ``σ_w`` are estimated together by maximum likelihood on the
 innovations (:func:`fit_noise`): ``log L = -1/2 Σ (log 2π S_n + ν_n²/S_n)`` over the readings
@@ -258,6 +265,29 @@ class EstimatorConfig:
     """Rust kernel: seconds between the filter's checkpoints, which the smoother replays."""
     manoeuvre: ManoeuvreTest = field(default_factory=ManoeuvreTest)
     """The test between the power noise's quiet and manoeuvre modes."""
+    standstill_speed_kmh: float | None = None
+    """The unexplained power is friction the declared inputs do not explain (a dragging
+    brake, a weak one), and friction heats only while the wheel turns (``μ F v``): over a
+    step whose bounding samples both read at most this speed (0.5 km/h: the running median
+    of a standing wagon's GPS speed reads 0.0-0.3 km/h on the synthetic fleets), and over
+    every unlogged standstill, ``P`` neither heats the block nor diffuses (``γ = 0``,
+    ``φ = 1``, no noise; the readings there may still revise it through its correlation
+    with the block's state), and the power reported for such a second is 0 (no friction
+    heat). None (the default): ``P`` heats and diffuses at every step. An option, not the
+    default, because it costs speed (stops break the steady state); ``docs/estimator.md``
+    has the figures, and why the cylinder's pressure does not count as turning."""
+    seat_error_sd_k: float = 0.0
+    """The reduced model's error at the sensor seat as a coordinate of its own (``b``, a
+    Gauss-Markov process of this stationary standard deviation, K, read as
+    ``y = T_seat + b + v``): the reduced model is not the block, and where the two differ at
+    the seat (0.1-0.2 K in a hard braking on the full-FE fleets) they need not differ on the
+    face; without ``b`` such a mismatch moved the face's estimate (through ``P`` and the
+    offset) where the open-loop prediction was right. 0 (the default): no such coordinate.
+    0.05 K with ``seat_error_time_constant_s`` 600 s met the issue's smoothed-RMSE bar on the
+    full-FE acceptance fleets, but the covariance then settles about half as often (the
+    kernel 45 % slower per CPU-second); ``docs/estimator.md`` has the figures."""
+    seat_error_time_constant_s: float = 600.0
+    """τ_b of ``seat_error_sd_k``: how long the seat's model error persists."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -265,6 +295,7 @@ class EstimatorConfig:
             "initial_temperature_sd_k",
             "dt_s",
             "gap_offset_time_constant_s",
+            "seat_error_time_constant_s",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
@@ -278,12 +309,18 @@ class EstimatorConfig:
             "smoother_tolerance",
             "gap_offset_sd_k",
             "model_offset_sd_k_per_sqrt_s",
+            "seat_error_sd_k",
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"EstimatorConfig.{name} must be >= 0 and finite")
         if self.checkpoint_steps < 1:
             raise ValueError("EstimatorConfig.checkpoint_steps must be >= 1")
+        speed = self.standstill_speed_kmh
+        if speed is not None and not (math.isfinite(speed) and speed >= 0):
+            raise ValueError(
+                f"EstimatorConfig.standstill_speed_kmh must be >= 0 and finite, got {speed!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -376,6 +413,18 @@ class EstimatorProblem:
     non-zero only over unlogged intervals). None: zeros."""
     gap_dir: FloatArray | None = None
     """(n): the state of a uniform 1 K offset of the block (and of the lagged reading)."""
+    held: NDArray[np.bool_] | None = None
+    """(N-1): the steps over which the wheel stands, the unexplained power held (it neither
+    heats nor diffuses; :attr:`EstimatorConfig.standstill_speed_kmh`). None: none."""
+    q_modes: FloatArray | None = None
+    """(K, r): variance added by transition k to each modal coordinate (K²): the seat
+    error's coordinate (the last, when the problem has one). None: zeros."""
+
+    def mode_noise(self) -> FloatArray:
+        """``q_modes``, zeros where not given."""
+        if self.q_modes is None:
+            return np.zeros((self.phi.size, self.order))
+        return self.q_modes
 
     def gap_noise(self) -> tuple[FloatArray, FloatArray]:
         """``q_gap`` and ``gap_dir``, zeros where not given."""
@@ -529,7 +578,9 @@ class _Transitions:
     gap_sd_k: float = 0.0
     gap_tau_s: float = 1800.0
     offset_var_per_s: float = 0.0
-    keys: dict[tuple[bytes, int, bool], int] = field(default_factory=dict)
+    seat_sd_k: float = 0.0
+    seat_tau_s: float = 600.0
+    keys: dict[tuple[bytes, int, bool, bool], int] = field(default_factory=dict)
     a: list[FloatArray] = field(default_factory=list)
     gmat: list[FloatArray | None] = field(default_factory=list)
     g: list[FloatArray] = field(default_factory=list)
@@ -539,9 +590,18 @@ class _Transitions:
     q_unit: list[float] = field(default_factory=list)
     lag: list[tuple[float, float, FloatArray, float]] = field(default_factory=list)
     q_gap: list[float] = field(default_factory=list)
+    q_modes: list[FloatArray] = field(default_factory=list)
 
-    def get(self, dh: FloatArray, steps: int, dt_s: float, gap: bool) -> int:
-        key = (np.ascontiguousarray(dh).tobytes(), steps, gap)
+    @property
+    def seat_error(self) -> bool:
+        """Whether the modal state carries the seat's model error as its last coordinate."""
+        return self.seat_sd_k > 0
+
+    def get(self, dh: FloatArray, steps: int, dt_s: float, gap: bool, held: bool) -> int:
+        """The transition of a step of ``steps`` samples at convection ``h_nominal + dh``;
+        ``gap``: an unlogged standstill; ``held``: the unexplained power neither heats nor
+        diffuses over the step (the wheel stands)."""
+        key = (np.ascontiguousarray(dh).tobytes(), steps, gap, held)
         found = self.keys.get(key)
         if found is not None:
             return found
@@ -560,13 +620,24 @@ class _Transitions:
             a = np.diag(e)
             gmat = None
             diagonal = True
-        if gap:
+        q_modes = np.zeros(r + int(self.seat_error))
+        if self.seat_error:  # the seat error's coordinate: decays, no input, its own noise
+            e_b = math.exp(-length_s / self.seat_tau_s)
+            a = _pad(a, e_b)
+            gmat = None if gmat is None else _pad(gmat, 0.0)
+            g = np.append(g, 0.0)
+            q_modes[r] = self.seat_sd_k**2 * -math.expm1(-2.0 * length_s / self.seat_tau_s)
+            r += 1
+        if gap or held:
             gamma = np.zeros(r)
         else:
-            unit = rom.b_flux / self.area_m2  # 1 W over the friction face, in modal load
+            unit = _modal(rom.b_flux / self.area_m2, r)  # 1 W over the face, modal load
             gamma = unit * g if gmat is None else gmat @ unit
-        phi = math.exp(-length_s / self.tau_p_s)
-        q_unit = 0.5 * self.tau_p_s * (1.0 - phi * phi)
+        if held:
+            phi, q_unit = 1.0, 0.0
+        else:
+            phi = math.exp(-length_s / self.tau_p_s)
+            q_unit = 0.5 * self.tau_p_s * (1.0 - phi * phi)
         if self.lag_tau_s > 0:
             la = math.exp(-length_s / self.lag_tau_s)
             c = self.lag_tau_s / length_s * (1.0 - la) - la
@@ -588,7 +659,35 @@ class _Transitions:
             + self.offset_var_per_s * length_s
         )
         self.lag.append(lag)
+        self.q_modes.append(q_modes)
         return self.keys[key]
+
+
+def _pad(a: FloatArray, corner: float) -> FloatArray:
+    """``a`` (r, r) with a row and a column more, ``corner`` where they meet."""
+    r = a.shape[0]
+    out = np.zeros((r + 1, r + 1))
+    out[:r, :r] = a
+    out[r, r] = corner
+    return out
+
+
+def _modal(v: FloatArray, r: int) -> FloatArray:
+    """A vector over the reduced model's modes as one over ``r`` coordinates (zeros for the
+    seat error's)."""
+    return v if v.size == r else np.concatenate([v, np.zeros(r - v.size)])
+
+
+def _held_steps(
+    speed_kmh: FloatArray, gap: NDArray[np.bool_], config: EstimatorConfig
+) -> NDArray[np.bool_]:
+    """Per step (N-1): whether the wheel stands over it, so that the unexplained power
+    (friction) is held (:attr:`EstimatorConfig.standstill_speed_kmh`): both bounding samples
+    at most that speed, or an unlogged standstill."""
+    if config.standstill_speed_kmh is None:
+        return np.zeros(gap.size, dtype=bool)
+    still = speed_kmh <= config.standstill_speed_kmh
+    return gap | (still[:-1] & still[1:])
 
 
 def prepare(
@@ -684,7 +783,10 @@ def prepare(
     steps_of = np.rint(np.diff(grid_t) / dt).astype(np.int64)
     lag_effect = effects.get("sensor_lag")
     lag_tau = lag_effect.tau_s if isinstance(lag_effect, SensorLag) else 0.0
-    c_probe = rom.c_out[0]  # the sensor seat: the first probe (output rows: probes, mean, nodes)
+    seat_error = config.seat_error_sd_k > 0
+    r = rom.order + int(seat_error)  # the modal coordinates: the modes, the seat's error
+    # the sensor seat: the first probe (output rows: probes, mean, nodes), plus its error
+    c_probe = np.append(rom.c_out[0], 1.0) if seat_error else rom.c_out[0]
     table = _Transitions(
         rom=rom,
         c_probe=c_probe,
@@ -694,16 +796,20 @@ def prepare(
         gap_sd_k=config.gap_offset_sd_k,
         gap_tau_s=config.gap_offset_time_constant_s,
         offset_var_per_s=config.model_offset_sd_k_per_sqrt_s**2,
+        seat_sd_k=config.seat_error_sd_k,
+        seat_tau_s=config.seat_error_time_constant_s,
     )
-    # one transition per distinct (convection, length, standstill): integer codes per column,
-    # then one key per step (sorting floats row by row is slow)
+    held = _held_steps(values["speed_kmh"], gap, config)
+    # one transition per distinct (convection, length, standstill gap, power held): integer
+    # codes per column, then one key per step (sorting floats row by row is slow)
     codes = [np.unique(column, return_inverse=True) for column in dh.T]
-    key = np.rint(steps_of).astype(np.int64) * 2 + gap
+    key = (np.rint(steps_of).astype(np.int64) * 2 + gap) * 2 + held
     for distinct, inverse_f in codes:
         key = key * max(distinct.size, 1) + inverse_f.reshape(-1)
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     ids = np.array(
-        [table.get(dh[i], int(steps_of[i]), dt, bool(gap[i])) for i in first], dtype=np.int64
+        [table.get(dh[i], int(steps_of[i]), dt, bool(gap[i]), bool(held[i])) for i in first],
+        dtype=np.int64,
     )
     index = ids[inverse.reshape(-1)] if n > 1 else np.zeros(0, dtype=np.int64)
     # the modal response to the declared inputs of each step
@@ -711,24 +817,28 @@ def prepare(
         step_flux[:, None] * rom.b_flux[None, :]
         + (step_h * (step_amb - t_ref)[:, None]) @ rom.b_faces
     )
-    g_all = np.stack(table.g) if table.g else np.zeros((0, rom.order))
+    if seat_error:
+        u = np.concatenate([u, np.zeros((u.shape[0], 1))], axis=1)
+    g_all = np.stack(table.g) if table.g else np.zeros((0, r))
     w = u * g_all[index] if n > 1 else u
     for k in np.flatnonzero(~np.array(table.diagonal, dtype=bool)):
         gmat = table.gmat[k]
         rows = index == k
         assert gmat is not None
         w[rows] = u[rows] @ gmat.T
-    r = rom.order
     lag = lag_tau > 0
     n_state = r + 1 + int(lag)
-    # prior: a uniform offset of the whole block (and of the lagged reading)
+    # prior: a uniform offset of the whole block (and of the lagged reading); the seat's
+    # error at its stationary distribution
     b_air = h_nom @ rom.b_faces
     uniform = np.zeros(n_state)
-    uniform[:r] = np.divide(b_air, rom.lam, out=np.zeros(r), where=rom.lam > 0)
+    uniform[: rom.order] = np.divide(b_air, rom.lam, out=np.zeros(rom.order), where=rom.lam > 0)
     if lag:
         uniform[r + 1] = 1.0
     sd0 = config.initial_temperature_sd_k
     cov0 = sd0 * sd0 * np.outer(uniform, uniform)
+    if seat_error:
+        cov0[r - 1, r - 1] = config.seat_error_sd_k**2
     lag_rows = table.lag
     return EstimatorProblem(
         wagon_id=series.wagon_id,
@@ -750,13 +860,17 @@ def prepare(
         lag_row=np.stack([v[2] for v in lag_rows]) if lag_rows else np.zeros((0, r)),
         lag_power=np.array([v[3] for v in lag_rows]),
         c_probe=np.ascontiguousarray(c_probe),
-        c_mean=np.ascontiguousarray(rom.c_out[rom.n_probes]),
-        c_nodes=np.ascontiguousarray(rom.c_out[rom.n_probes + 1 :]),
+        c_mean=np.ascontiguousarray(_modal(rom.c_out[rom.n_probes], r)),
+        c_nodes=np.ascontiguousarray(
+            np.pad(rom.c_out[rom.n_probes + 1 :], ((0, 0), (0, r - rom.order)))
+        ),
         x0=np.zeros(n_state),
         cov0=cov0,
         p_prior_unit=0.5 * config.power_time_constant_s,
         q_gap=np.array(table.q_gap, dtype=np.float64),
         gap_dir=uniform,
+        held=held,
+        q_modes=np.stack(table.q_modes) if table.q_modes else np.zeros((0, r)),
     )
 
 
@@ -849,6 +963,8 @@ def run_numpy(
     mats = [p.transition_matrix(k) for k in range(p.phi.size)]
     q_gap, gap_dir = p.gap_noise()
     gap_cov = np.outer(gap_dir, gap_dir)
+    q_modes = p.mode_noise()
+    modal = np.arange(r)
     cm = np.zeros(n)
     cm[:r] = p.c_mean
     cn = np.zeros((p.c_nodes.shape[0], n))
@@ -910,6 +1026,7 @@ def run_numpy(
                 cov_pred = f @ cov @ f.T
                 cov_pred = 0.5 * (cov_pred + cov_pred.T)
                 cov_pred[ip, ip] += p.q_unit[k] * sw2_of[int(mode)]
+                cov_pred[modal, modal] += q_modes[k]
                 if q_gap[k] > 0:
                     cov_pred += q_gap[k] * gap_cov
             else:
@@ -1137,6 +1254,7 @@ def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
         "p_prior_unit": float(p.p_prior_unit),
         "q_gap": c(p.gap_noise()[0], dtype=np.float64),
         "gap_dir": c(p.gap_noise()[1], dtype=np.float64),
+        "q_modes": c(p.mode_noise().reshape(-1), dtype=np.float64),
     }
 
 
@@ -1271,6 +1389,14 @@ def _estimate_of(
         return None if values is None else np.ascontiguousarray(values[rows])
 
     steps = max(problem.n_samples, 1)
+    # no friction heat where the wheel stood over the step into the second: P is held there
+    still = np.zeros(problem.n_samples, dtype=bool)
+    if problem.held is not None:
+        still[1:] = problem.held
+
+    def heat(values: FloatArray | None) -> FloatArray | None:
+        return None if values is None else np.where(still, 0.0, values)
+
     return ContactEstimate(
         wagon_id=problem.wagon_id,
         time_s=problem.time_s[rows],
@@ -1278,8 +1404,8 @@ def _estimate_of(
         contact_mean_sd_k=raw.mean_sd_k[rows],
         contact_max_c=raw.max_c[rows],
         contact_max_sd_k=raw.max_sd_k[rows],
-        unexplained_power_w=raw.power_w[rows],
-        unexplained_power_sd_w=raw.power_sd_w[rows],
+        unexplained_power_w=np.where(still, 0.0, raw.power_w)[rows],
+        unexplained_power_sd_w=np.where(still, 0.0, raw.power_sd_w)[rows],
         innovation_k=raw.innovation_k[rows],
         innovation_var_k2=raw.innovation_var_k2[rows],
         predicted_reading_c=raw.predicted_reading_c[rows],
@@ -1292,8 +1418,8 @@ def _estimate_of(
         smoothed_contact_mean_sd_k=pick(raw.smoothed_mean_sd_k),
         smoothed_contact_max_c=pick(raw.smoothed_max_c),
         smoothed_contact_max_sd_k=pick(raw.smoothed_max_sd_k),
-        smoothed_unexplained_power_w=pick(raw.smoothed_power_w),
-        smoothed_unexplained_power_sd_w=pick(raw.smoothed_power_sd_w),
+        smoothed_unexplained_power_w=pick(heat(raw.smoothed_power_w)),
+        smoothed_unexplained_power_sd_w=pick(heat(raw.smoothed_power_sd_w)),
         manoeuvre=None if raw.manoeuvre is None or raw.manoeuvre.size == 0 else raw.manoeuvre[rows],
     )
 
