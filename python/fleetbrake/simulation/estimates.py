@@ -37,10 +37,16 @@ absolute deviation of their second differences); σ_w is the **revision's**: fit
 close loop makes it, else the documented default ``EstimationConfig.power_noise_w_per_sqrt_s``.
 ``EstimationConfig.noise`` gives both instead (method ``given``).
 
-The wagon is the unit of work: the parent reads its samples as Arrow (:func:`estimate_task`),
-:func:`estimate_wagon` (pure, picklable, no database) estimates it and returns the rows as
-Arrow, the parent writes them (the single writer). ``engine``: the builtin ``map`` by default,
-an engine's workers otherwise; the rows are the same either way.
+The wagon is the unit of work: the parent reads a chunk of whole wagons' samples as Arrow
+with one query (:func:`estimation_chunk`, about ``EstimationConfig.chunk_rows`` samples;
+:func:`estimate_task` reads one wagon's, the same table), :func:`estimate_chunk` cuts it into
+the wagons' tasks and :func:`estimate_wagon` (pure, picklable, no database) estimates each
+and returns its rows as Arrow; the parent, the single writer, commits them in bulk, several
+whole wagons per transaction (``EstimationConfig.batch_rows``), on a writer thread while it
+reads and hands out the next chunks (:class:`~fleetbrake.simulation.store.WriteBehind`).
+``engine``: the builtin ``map`` by default, an engine's workers otherwise; the rows are the
+same either way. :func:`fit_revision_noise` fits its wagons on the engine the same way
+(:func:`fit_wagon_noise`, one partition a wagon).
 """
 
 from __future__ import annotations
@@ -74,25 +80,41 @@ from fleetbrake.model.rom import ReducedModel
 from fleetbrake.simulation.chains import ChainParams, constant_runs
 from fleetbrake.simulation.predictions import Mapper, Revision
 from fleetbrake.simulation.series import WagonSeries, running_median
-from fleetbrake.simulation.store import utc_now
+from fleetbrake.simulation.store import (
+    WriteBehind,
+    chunk_table,
+    reader,
+    sample_rows,
+    utc_now,
+    wagon_chunks,
+    wagon_parts,
+)
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
     "DEFAULT_POWER_NOISE_W_PER_SQRT_S",
     "ESTIMATE_SCHEMA",
+    "EstimateChunk",
     "EstimateResult",
     "EstimateTask",
     "EstimatedWagon",
     "EstimationConfig",
     "EstimationReport",
+    "NoiseFitTask",
     "StoredNoise",
+    "WagonNoiseFit",
+    "chunk_tasks",
+    "estimate_chunk",
     "estimate_task",
     "estimate_wagon",
     "estimate_wagons",
+    "estimated_wagon_ids",
     "estimated_wagons",
+    "estimation_chunk",
     "estimation_data_keys",
     "estimator_series",
     "fit_revision_noise",
+    "fit_wagon_noise",
     "frozen_readings",
     "reading_noise_k",
     "replace_estimates",
@@ -142,8 +164,14 @@ class EstimationConfig:
     """:func:`fit_revision_noise`: the first this many seconds of each fit wagon's fit days."""
     min_power_noise_w_per_sqrt_s: float = 3.0
     """σ_w's floor in the fit (``docs/estimator.md``: why)."""
-    batch_rows: int = 500_000
-    """Several wagons per transaction, up to about this many rows (a wagon never split)."""
+    batch_rows: int = 1_000_000
+    """Several wagons per transaction, up to about this many rows (a wagon never split; the
+    simulation's transactions: DuckDB's insert costs about half the processor time per row
+    at 1 M rows that it does at 0.2 M, ``docs/benchmarks.md``). Changes no row."""
+    chunk_rows: int = 200_000
+    """The parent reads the wagons' samples a chunk of whole wagons at a time, about this
+    many samples (one query, :func:`estimation_chunk`), and a worker estimates the chunk's
+    wagons one by one (the simulation's ``chunk_rows``). Changes no row."""
     kernel: str | None = None
     """The estimator's kernel: None (Rust when built), ``rust`` or ``numpy``."""
 
@@ -160,8 +188,8 @@ class EstimationConfig:
             raise ValueError(
                 "EstimationConfig.frozen_min_s must be >= 2 and frozen_resolution_k > 0"
             )
-        if self.batch_rows < 1:
-            raise ValueError("EstimationConfig.batch_rows must be >= 1")
+        if self.batch_rows < 1 or self.chunk_rows < 1:
+            raise ValueError("EstimationConfig.batch_rows and chunk_rows must be >= 1")
         if self.kernel not in (None, "rust", "numpy"):
             raise ValueError(f"EstimationConfig.kernel: unknown {self.kernel!r}")
 
@@ -511,6 +539,65 @@ def estimate_wagon(task: EstimateTask) -> EstimateResult:
     )
 
 
+@dataclass(frozen=True)
+class EstimateChunk:
+    """Several wagons' partitions of the estimation stage read together: the chunk's samples
+    as one Arrow table with ``wagon_id`` and ``file_id`` (``q_simulation_chunk_samples.sql``,
+    in stored order), and each wagon's entry and keys. :func:`chunk_tasks` cuts it into the
+    wagons' :class:`EstimateTask` (the tables :func:`estimate_task` reads: a test compares
+    them), which :func:`estimate_chunk` estimates one by one. Picklable."""
+
+    wagons: tuple[tuple[WagonConfig, str, str], ...]
+    """(entry, data key, model key) of each wagon, in order."""
+    samples: pa.Table
+    rev: Revision
+    config: EstimationConfig
+    power_noise_w_per_sqrt_s: float
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        ids = [w.wagon_id for w, _, _ in self.wagons]
+        return f"wagon {ids[0]}" if len(ids) == 1 else "wagons " + ", ".join(ids)
+
+
+def estimation_chunk(
+    wh: Warehouse,
+    wagons: Iterable[tuple[WagonConfig, str, str]],
+    rev: Revision,
+    config: EstimationConfig,
+    power_noise_w_per_sqrt_s: float,
+) -> EstimateChunk:
+    """The chunk's partitions, read from the warehouse with one query (by the parent: the
+    workers never open it)."""
+    todo = tuple(wagons)
+    samples = chunk_table(wh, "q_simulation_chunk_samples", [w.wagon_id for w, _, _ in todo])
+    return EstimateChunk(todo, samples, rev, config, power_noise_w_per_sqrt_s)
+
+
+def chunk_tasks(chunk: EstimateChunk) -> list[EstimateTask]:
+    """The chunk cut into its wagons' tasks, each wagon's samples sorted as the per-wagon
+    query sorts them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
+    ids = [wagon.wagon_id for wagon, _, _ in chunk.wagons]
+    samples = wagon_parts(chunk.samples, ids, ["time_utc", "file_id"], ["file_id"])
+    return [
+        EstimateTask(
+            wagon,
+            samples[wagon.wagon_id],
+            chunk.rev,
+            chunk.config,
+            chunk.power_noise_w_per_sqrt_s,
+            data_key,
+            model_key,
+        )
+        for wagon, data_key, model_key in chunk.wagons
+    ]
+
+
+def estimate_chunk(chunk: EstimateChunk) -> list[EstimateResult]:
+    """Each wagon of the chunk estimated (:func:`estimate_wagon`), in order: a pure function
+    of the chunk, so an engine can run it in a worker process."""
+    return [estimate_wagon(task) for task in chunk_tasks(chunk)]
+
+
 # --------------------------------------------------------------------------------------------
 # The noise: σ_v the wagon's, σ_w the revision's
 
@@ -576,12 +663,85 @@ def _fit_wagon_ids(ids: Sequence[str], count: int) -> list[str]:
     return [ordered[i] for i in sorted(picks)]
 
 
+@dataclass(frozen=True)
+class NoiseFitTask:
+    """One wagon's part of :func:`fit_revision_noise`: everything :func:`fit_wagon_noise`
+    reads (picklable: an engine ships it to a worker)."""
+
+    wagon: WagonConfig
+    samples: pa.Table
+    """The wagon's samples (``q_simulation_wagon_samples.sql``; those of its fit days are
+    used)."""
+    days: tuple[dt.date, ...]
+    """Its fit days (UTC), sorted."""
+    rev: Revision
+    config: EstimationConfig
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        return f"wagon {self.wagon.wagon_id}"
+
+
+@dataclass(frozen=True)
+class WagonNoiseFit:
+    """What :func:`fit_wagon_noise` hands back: the wagon's maximum-likelihood fit and what
+    it was fitted on (the JSON of ``estimator_noise.fit_wagons``)."""
+
+    wagon_id: str
+    fit: NoiseFit
+    used: dict[str, float | list[str]]
+
+
+def fit_wagon_noise(task: NoiseFitTask) -> WagonNoiseFit | None:
+    """One wagon's σ_w by maximum likelihood on the first ``noise_fit_s`` seconds of its fit
+    days, its own σ_v (:func:`wagon_noise`) held; None when those hold fewer than 100 valid
+    readings. No database: a pure function of the task (the reduced model made, or read
+    from its cache, once per process)."""
+    config, wagon, rev = task.config, task.wagon, task.rev
+    samples = _frame(task.samples).filter(pl.col("time_utc").dt.date().is_in(list(task.days)))
+    series, _ = estimator_series(
+        wagon, samples, config.chain, max_s=config.noise_fit_s, config=config
+    )
+    if int(np.isfinite(series.reading_c).sum()) < _MIN_FIT_READINGS:
+        return None
+    sigma_v = wagon_noise(series, dataclasses.replace(config, noise=None), 1.0).measurement_k
+    contact = None
+    if rev.effects.state_dependent:  # the fade evaluated on a first estimate's contact
+        start = EstimatorNoise(sigma_v, config.power_noise_w_per_sqrt_s)
+        first = _estimate(wagon, series, rev, config, start)
+        contact = None if first is None else first.contact_mean_c
+    problem = prepare(
+        _rom(wagon, rev.refinement),
+        wagon,
+        series,
+        effects=rev.effects,
+        config=config.estimator,
+        contact_c=contact,
+    )
+    fit = fit_noise(
+        [problem],
+        config=config.estimator,
+        min_power_noise_w_per_sqrt_s=config.min_power_noise_w_per_sqrt_s,
+        engine=config.kernel,  # type: ignore[arg-type]  # checked in EstimationConfig
+        measurement_k=sigma_v,
+    )
+    used: dict[str, float | list[str]] = {
+        "days": [d.isoformat() for d in task.days],
+        "seconds": float(series.time_s[-1] - series.time_s[0] + 1),
+        "readings": fit.readings,
+        "sigma_v_k": sigma_v,
+        "sigma_w_w_per_sqrt_s": fit.noise.power_w_per_sqrt_s,
+    }
+    return WagonNoiseFit(wagon.wagon_id, fit, used)
+
+
 def fit_revision_noise(
     wh: Warehouse,
     registry: Registry | Mapping[str, WagonConfig],
     rev: Revision,
     fit_events: pl.DataFrame,
     config: EstimationConfig | None = None,
+    *,
+    engine: Mapper | None = None,
 ) -> StoredNoise | None:
     """Fit the revision's σ_w by maximum likelihood on the innovations of its fit days, and
     store it (replacing any stored for the revision): what the close loop calls when it makes
@@ -590,7 +750,11 @@ def fit_revision_noise(
     spread over their sorted ids, the first ``config.noise_fit_s`` seconds of each one's fit
     days, each fitted on its own with its own σ_v (:func:`wagon_noise`) held; the revision's
     σ_w is the median (a wagon whose fit days hold a failing sensor does not set it). None,
-    and nothing stored, when no wagon has 100 valid readings there."""
+    and nothing stored, when no wagon has 100 valid readings there.
+
+    Each wagon's fit is a partition (:func:`fit_wagon_noise`): the parent reads the fit
+    wagons' samples with one query, ``engine.map`` fits them (default: the builtin ``map``,
+    in this process; an engine's workers otherwise), the result is the same either way."""
     config = config or EstimationConfig()
     wagons = registry.wagons if isinstance(registry, Registry) else registry
     days: dict[str, set[dt.date]] = {}
@@ -598,46 +762,20 @@ def fit_revision_noise(
         for wagon_id, start in fit_events.select("wagon_id", "start_utc").iter_rows():
             if wagon_id in wagons and start is not None:
                 days.setdefault(str(wagon_id), set()).add(start.date())
-    estimator = config.estimator
+    ids = _fit_wagon_ids(list(days), config.noise_fit_wagons)
+    tasks = []
+    if ids:
+        samples = chunk_table(wh, "q_simulation_chunk_samples", ids)
+        parts = wagon_parts(samples, ids, ["time_utc", "file_id"], ["file_id"])
+        tasks = [
+            NoiseFitTask(wagons[w], parts[w], tuple(sorted(days[w])), rev, config) for w in ids
+        ]
+    done = map(fit_wagon_noise, tasks) if engine is None else engine.map(fit_wagon_noise, tasks)
     fits: dict[str, NoiseFit] = {}
     used: dict[str, dict[str, float | list[str]]] = {}
-    for wagon_id in _fit_wagon_ids(list(days), config.noise_fit_wagons):
-        wagon = wagons[wagon_id]
-        samples = wh.con.sql(sql("q_simulation_wagon_samples"), params={"wagon_id": wagon_id}).pl()
-        samples = samples.filter(pl.col("time_utc").dt.date().is_in(sorted(days[wagon_id])))
-        series, _ = estimator_series(
-            wagon, samples, config.chain, max_s=config.noise_fit_s, config=config
-        )
-        if int(np.isfinite(series.reading_c).sum()) < _MIN_FIT_READINGS:
-            continue
-        sigma_v = wagon_noise(series, dataclasses.replace(config, noise=None), 1.0).measurement_k
-        contact = None
-        if rev.effects.state_dependent:  # the fade evaluated on a first estimate's contact
-            start = EstimatorNoise(sigma_v, config.power_noise_w_per_sqrt_s)
-            first = _estimate(wagon, series, rev, config, start)
-            contact = None if first is None else first.contact_mean_c
-        problem = prepare(
-            _rom(wagon, rev.refinement),
-            wagon,
-            series,
-            effects=rev.effects,
-            config=estimator,
-            contact_c=contact,
-        )
-        fit = fits[wagon_id] = fit_noise(
-            [problem],
-            config=estimator,
-            min_power_noise_w_per_sqrt_s=config.min_power_noise_w_per_sqrt_s,
-            engine=config.kernel,  # type: ignore[arg-type]  # checked in EstimationConfig
-            measurement_k=sigma_v,
-        )
-        used[wagon_id] = {
-            "days": [d.isoformat() for d in sorted(days[wagon_id])],
-            "seconds": float(series.time_s[-1] - series.time_s[0] + 1),
-            "readings": fit.readings,
-            "sigma_v_k": sigma_v,
-            "sigma_w_w_per_sqrt_s": fit.noise.power_w_per_sqrt_s,
-        }
+    for found in done:
+        if found is not None:
+            fits[found.wagon_id], used[found.wagon_id] = found.fit, found.used
     if not fits:
         logger.warning(
             "revision %s: no fit day with %d valid readings to fit sigma_w on; the default "
@@ -700,40 +838,61 @@ def estimated_wagons(wh: Warehouse, revision: str) -> dict[str, EstimatedWagon]:
     }
 
 
-def replace_estimates(wh: Warehouse, revision: str, results: Sequence[EstimateResult]) -> None:
+def estimated_wagon_ids(wh: Warehouse, revision: str) -> set[str]:
+    """The wagons holding rows of ``revision`` in ``contact_estimates`` or
+    ``estimated_wagons``: the ones :func:`replace_estimates` must delete before it inserts."""
+    rows = wh.con.execute(sql("q_estimates_stored_wagon_ids"), {"revision": revision}).fetchall()
+    return {str(r[0]) for r in rows}
+
+
+def replace_estimates(
+    wh: Warehouse, revision: str, results: Sequence[EstimateResult], *, delete: bool = True
+) -> None:
     """Replace the rows of ``revision`` of every wagon of ``results``, all in one transaction
-    (each wagon whole-old or whole-new whatever happens), recording the keys of each."""
+    (each wagon whole-old or whole-new whatever happens), one bulk insert per table (Arrow
+    in), recording the keys of each.
+
+    ``delete=False``: none of the wagons holds rows of ``revision``
+    (:func:`estimated_wagon_ids`), so the deletes, each a scan of its whole table (which grows
+    with the fleet), are skipped."""
     if not results:
         return
     if len({r.wagon_id for r in results}) != len(results):
         raise ValueError("replace_estimates: a wagon given twice")
     key = {"wagon_ids": [r.wagon_id for r in results], "revision": revision}
-    now = utc_now()
     tables = [r.rows for r in results if r.rows.num_rows]
+    stamps = pa.table(
+        {
+            "wagon_id": pa.array([r.wagon_id for r in results], pa.string()),
+            "model_revision": pa.array([revision] * len(results), pa.string()),
+            "data_key": pa.array([r.data_key for r in results], pa.string()),
+            "model_key": pa.array([r.model_key for r in results], pa.string()),
+            "seconds": pa.array([r.seconds for r in results], pa.int64()),
+            "measurement_k": pa.array(
+                [None if r.noise is None else r.noise.measurement_k for r in results],
+                pa.float64(),
+            ),
+            "power_w_per_sqrt_s": pa.array(
+                [None if r.noise is None else r.noise.power_w_per_sqrt_s for r in results],
+                pa.float64(),
+            ),
+            "created_utc": pa.array([utc_now()] * len(results), pa.timestamp("us")),
+        }
+    )
     with wh.transaction() as con:
-        con.execute(sql("q_estimates_delete_wagons"), key)
-        con.execute(sql("q_estimates_delete_estimated_wagons"), key)
+        if delete:
+            con.execute(sql("q_estimates_delete_wagons"), key)
+            con.execute(sql("q_estimates_delete_estimated_wagons"), key)
+        batches = [("estimated_batch", stamps, "q_estimates_insert_estimated_wagons")]
         if tables:
-            batch = tables[0] if len(tables) == 1 else pa.concat_tables(tables)
-            con.register("estimate_batch", batch)
+            rows = tables[0] if len(tables) == 1 else pa.concat_tables(tables)
+            batches.insert(0, ("estimate_batch", rows, "q_estimates_insert"))
+        for name, table, statement in batches:
+            con.register(name, table)
             try:
-                con.execute(sql("q_estimates_insert"))
+                con.execute(sql(statement))
             finally:
-                con.unregister("estimate_batch")
-        for r in results:
-            con.execute(
-                sql("q_estimates_insert_estimated_wagon"),
-                {
-                    "wagon_id": r.wagon_id,
-                    "revision": revision,
-                    "data_key": r.data_key,
-                    "model_key": r.model_key,
-                    "seconds": r.seconds,
-                    "measurement_k": None if r.noise is None else r.noise.measurement_k,
-                    "power_w_per_sqrt_s": None if r.noise is None else r.noise.power_w_per_sqrt_s,
-                    "created_utc": now,
-                },
-            )
+                con.unregister(name)
 
 
 def _forget(wh: Warehouse, wagon_id: str) -> None:
@@ -786,21 +945,35 @@ def estimate_wagons(
             todo.append((wagons_by_id[wagon_id], keys[wagon_id], model_key))
     if not todo:
         return report
-    tasks = (
-        estimate_task(wh, wagon, rev, config, power, data_key=data_key, model_key=model_key)
-        for wagon, data_key, model_key in todo
-    )
-    results = map(estimate_wagon, tasks) if engine is None else engine.map(estimate_wagon, tasks)
+    counts = sample_rows(wh)
+    holding = estimated_wagon_ids(wh, rev.name)  # the others' rows are only inserted
+
+    def write(batch: list[EstimateResult]) -> None:
+        replace_estimates(wh, rev.name, batch, delete=any(r.wagon_id in holding for r in batch))
+
     show = progress if progress is not None else os.isatty(1)
     from rich.progress import Progress
 
+    by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
     pending: list[EstimateResult] = []
     pending_rows = 0
-    with Progress(disable=not show, transient=True) as bar:
+    with (
+        reader(wh) as source,
+        WriteBehind(write) as writer,
+        Progress(disable=not show, transient=True) as bar,
+    ):
+        chunks = (
+            estimation_chunk(source, [by_id[w] for w in ids], rev, config, power)
+            for ids in wagon_chunks(list(by_id), counts, config.chunk_rows)
+        )
+        done_chunks = (
+            map(estimate_chunk, chunks) if engine is None else engine.map(estimate_chunk, chunks)
+        )
+        results = (result for chunk in done_chunks for result in chunk)
         task = bar.add_task("estimating wagons", total=len(todo))
         for result in results:
             if pending and pending_rows + result.seconds > config.batch_rows:
-                replace_estimates(wh, rev.name, pending)
+                writer.submit(pending)  # committed on the writer's thread as the work goes on
                 bar.advance(task, len(pending))
                 pending, pending_rows = [], 0
             pending.append(result)
@@ -814,7 +987,8 @@ def estimate_wagons(
             )
             report.wagons_estimated.append(result.wagon_id)
             report.rows += result.seconds
-        replace_estimates(wh, rev.name, pending)
+        writer.submit(pending)
+        writer.wait()
         bar.advance(task, len(pending))
     return report
 

@@ -32,7 +32,8 @@ Arrow, one query per table (:func:`wagon_chunk`; :func:`wagon_task` reads one wa
 same tables), :func:`simulate_chunk` cuts it into the wagons' tasks and
 :func:`simulate_wagon` (pure, picklable, no database) turns each into the rows' columns,
 each span in one call of the reduced model's chain kernel, and the parent writes them in
-bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``);
+bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``), on a writer
+thread while it reads the next chunks (:class:`~fleetbrake.simulation.store.WriteBehind`);
 ``simulate_events(engine=...)`` runs the partitions on
 an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
 """
@@ -70,9 +71,11 @@ from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 from fleetbrake.simulation.store import (
     WagonRows,
     WagonWrite,
+    WriteBehind,
     chunk_table,
     data_keys,
     forget_wagon,
+    reader,
     replace_wagons,
     sample_rows,
     simulated_wagons,
@@ -747,10 +750,12 @@ def simulate_events(
     changed since it was last simulated with it (or, forced, the wagons of ``event_ids`` and
     ``wagons``), storing its event windows and timeline; each wagon whole in one transaction.
 
-    Each wagon is a partition: the parent reads it (:func:`wagon_task`), ``engine.map`` runs
-    :func:`simulate_wagon` on it (default: the builtin ``map``, in this process; an engine's
-    workers otherwise), and the parent writes the results in bulk as they come back, several
-    whole wagons per transaction (up to ``config.batch_rows`` rows). ``reference``: the
+    Each wagon is a partition: the parent reads a chunk of wagons with one query per table
+    (:func:`wagon_chunk`), ``engine.map`` runs :func:`simulate_chunk` on it (default: the
+    builtin ``map``, in this process; an engine's workers otherwise), and the parent writes the
+    results in bulk as they come back, several whole wagons per transaction (up to
+    ``config.batch_rows`` rows), committed on a writer thread while it reads and hands out the
+    next chunks (:class:`~fleetbrake.simulation.store.WriteBehind`). ``reference``: the
     segment-by-segment simulation instead of one kernel call per span (the same rows, to
     rounding)."""
     config = config or SimulationConfig()
@@ -797,14 +802,6 @@ def simulate_events(
 
     counts = sample_rows(wh)
     by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
-    chunks = (
-        wagon_chunk(wh, [by_id[w] for w in ids], rev, config, reference=reference)
-        for ids in wagon_chunks(list(by_id), counts, config.chunk_rows)
-    )
-    done_chunks = (
-        map(simulate_chunk, chunks) if engine is None else engine.map(simulate_chunk, chunks)
-    )
-    results = (result for chunk in done_chunks for result in chunk)
     holding = stored_wagon_ids(wh, rev.name)  # the others' rows are only inserted
 
     def write(batch: list[WagonWrite]) -> None:
@@ -812,13 +809,25 @@ def simulate_events(
 
     pending: list[WagonWrite] = []
     pending_rows = 0
-    with Progress(disable=not show, transient=True) as bar:
+    with (
+        reader(wh) as source,
+        WriteBehind(write) as writer,
+        Progress(disable=not show, transient=True) as bar,
+    ):
+        chunks = (
+            wagon_chunk(source, [by_id[w] for w in ids], rev, config, reference=reference)
+            for ids in wagon_chunks(list(by_id), counts, config.chunk_rows)
+        )
+        done_chunks = (
+            map(simulate_chunk, chunks) if engine is None else engine.map(simulate_chunk, chunks)
+        )
+        results = (result for chunk in done_chunks for result in chunk)
         task = bar.add_task("simulating wagons", total=len(todo))
         for result in results:
             written = result.rows()
             wagon_write = WagonWrite(result.wagon_id, written, result.data_key, result.model_key)
             if pending and pending_rows + wagon_write.row_count > config.batch_rows:
-                write(pending)  # whole wagons per transaction
+                writer.submit(pending)  # whole wagons per transaction, on the writer's thread
                 bar.advance(task, len(pending))
                 pending, pending_rows = [], 0
             pending.append(wagon_write)
@@ -835,6 +844,7 @@ def simulate_events(
             report.prediction_rows += table_rows(written.predictions)
             report.timeline_rows += table_rows(written.timeline)
             report.skipped += result.skipped
-        write(pending)
+        writer.submit(pending)
+        writer.wait()
         bar.advance(task, len(pending))
     return report

@@ -17,8 +17,11 @@ from). A wagon's rows of one revision are replaced together, in one transaction.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
@@ -32,10 +35,12 @@ __all__ = [
     "TimelineSpan",
     "WagonRows",
     "WagonWrite",
+    "WriteBehind",
     "chunk_table",
     "data_keys",
     "forget_wagon",
     "load_timeline",
+    "reader",
     "replace_wagon",
     "replace_wagons",
     "sample_rows",
@@ -54,6 +59,57 @@ __all__ = [
 
 def utc_now() -> dt.datetime:
     return dt.datetime.now(dt.UTC).replace(tzinfo=None)
+
+
+B = TypeVar("B")
+
+
+class WriteBehind(Generic[B]):
+    """The single writer's commits on a thread of their own, one batch at a time and in
+    order, while the caller reads the next partitions (through :func:`reader`) and keeps the
+    engine's workers fed: DuckDB releases the GIL while it inserts, so a stage's wall clock is
+    its reads, its workers and its inserts overlapped rather than added (``docs/
+    benchmarks.md``). :meth:`submit` waits for the batch before (raising its error) and starts
+    this one; leaving the ``with`` block waits for the last. At most two batches are held:
+    the one being written and the one being gathered."""
+
+    def __init__(self, write: Callable[[B], None]) -> None:
+        self._write = write
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warehouse-writer")
+        self._running: Future[None] | None = None
+
+    def submit(self, batch: B) -> None:
+        self.wait()
+        self._running = self._pool.submit(self._write, batch)
+
+    def wait(self) -> None:
+        """Wait for the batch being written (raising its error)."""
+        running, self._running = self._running, None
+        if running is not None:
+            running.result()
+
+    def __enter__(self) -> WriteBehind[B]:
+        return self
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        try:
+            if exc_type is None:
+                self.wait()
+        finally:
+            self._pool.shutdown(wait=True)  # an error: the batch being written ends first
+
+
+@contextmanager
+def reader(wh: Warehouse) -> Iterator[Warehouse]:
+    """A second connection to ``wh``'s database (a DuckDB cursor: the same database and
+    settings) for the reads of a stage whose writes run on :class:`WriteBehind`'s thread on
+    ``wh``'s own connection (one connection is not to be used by two threads at once). It
+    sees what was committed. Closed at the end of the block."""
+    cursor = wh.con.cursor()
+    try:
+        yield Warehouse(wh.path, cursor, None)
+    finally:
+        cursor.close()
 
 
 @dataclass(frozen=True)
@@ -184,9 +240,17 @@ def wagon_parts(
     for wagon_id, pieces in runs.items():
         part = pa.concat_tables(pieces) if pieces else table.slice(0, 0)
         if part.num_rows > 1:
-            part = part.take(pc.sort_indices(part, sort_keys=keys))
+            order = pc.sort_indices(part.select(list(order_by)), sort_keys=keys)
+            if not _in_order(order):  # most wagons' rows are stored in order: no copy
+                part = part.take(order)
         parts[wagon_id] = part.drop_columns(["wagon_id", *drop])
     return parts
+
+
+def _in_order(indices: pa.Array) -> bool:
+    """True when ``indices`` (a permutation) is 0, 1, 2, ...: taking them changes nothing."""
+    values = indices.to_numpy()
+    return bool(values[0] == 0 and (values[1:] - values[:-1] == 1).all())
 
 
 def wagon_samples(wh: Warehouse, wagon_id: str) -> pl.DataFrame:

@@ -1,0 +1,268 @@
+"""The estimation stage's reads, writes and engine (issue 12): the wagons' samples read a chunk
+of whole wagons per query and cut as the per-wagon query reads them, the rows committed in
+bulk on a writer thread while the work goes on, the revision's sigma_w fitted wagon by wagon
+on the engine; the rows the same as the per-wagon path's, bit for bit."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import duckdb
+import polars as pl
+import pytest
+
+from fleetbrake.engine import LocalEngine
+from fleetbrake.simulation import estimates as e
+from fleetbrake.simulation.store import WriteBehind, reader
+from fleetbrake.warehouse.connection import open_warehouse
+
+
+@dataclass(frozen=True)
+class Fleet:
+    path: Path
+    db: Path
+    """Ingested, events detected and simulated; not estimated."""
+    registry: Any
+    config: e.EstimationConfig
+
+
+@pytest.fixture(scope="module")
+def fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., Any],
+    rom_cache_dir: Path,
+    rom_refinement: float,
+) -> Iterator[Fleet]:
+    """3 wagons (and the generator's unregistered one) x 1 day with the anomalies, through
+    the simulation stage."""
+    from fleetbrake.ingest.events import update_events
+    from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.predictions import (
+        SimulationConfig,
+        current_revision,
+        simulate_events,
+        store_registry,
+    )
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        out = tmp_path_factory.mktemp("estimate-io")
+        generate_fleet(out / "fleet", SynthConfig(wagons=3, days=1, seed=1), rom=reduced_model_for)
+        run_ingest(out / "fleet", out / "fleet.duckdb", progress=False)
+        registry = load_fleet_registry(out / "fleet")
+        sim = SimulationConfig(refinement=rom_refinement)
+        with open_warehouse(out / "fleet.duckdb") as wh:
+            update_events(wh)
+            store_registry(wh, registry)
+            rev = current_revision(wh, sim.solver, sim.refinement)
+            simulate_events(wh, registry, rev, sim, progress=False)
+        yield Fleet(
+            out / "fleet", out / "fleet.duckdb", registry, e.EstimationConfig(chain=sim.chain)
+        )
+
+
+def _copy(fleet: Fleet, tmp_path: Path, name: str) -> Path:
+    db = tmp_path / f"{name}.duckdb"
+    shutil.copy(fleet.db, db)
+    return db
+
+
+def _rows(db: Path) -> dict[str, pl.DataFrame]:
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return {
+            "contact_estimates": con.sql(
+                "SELECT * FROM contact_estimates ORDER BY wagon_id, time_utc"
+            ).pl(),
+            "estimated_wagons": con.sql(
+                "SELECT * EXCLUDE (created_utc) FROM estimated_wagons ORDER BY wagon_id"
+            ).pl(),
+        }
+    finally:
+        con.close()
+
+
+def test_the_chunk_holds_the_partitions_the_per_wagon_query_reads(fleet: Fleet) -> None:
+    """One query for several wagons' samples, cut per wagon (``chunk_tasks``), gives each
+    wagon the very table ``estimate_task`` reads with a query of its own."""
+    with open_warehouse(fleet.db, read_only=True) as wh:
+        from fleetbrake.simulation.predictions import revision
+
+        rev = revision(wh, "declared")
+        keys = e.estimation_data_keys(wh)
+        wagons = [fleet.registry.wagons[w] for w in sorted(keys) if w in fleet.registry.wagons]
+        assert len(wagons) == 3
+        todo = [(w, keys[w.wagon_id], "model") for w in wagons]
+        chunk = e.estimation_chunk(wh, todo, rev, fleet.config, 3.0)
+        assert str(chunk).startswith("wagons ")
+        tasks = e.chunk_tasks(chunk)
+        for task, (wagon, key, model) in zip(tasks, todo, strict=True):
+            alone = e.estimate_task(
+                wh, wagon, rev, fleet.config, 3.0, data_key=key, model_key=model
+            )
+            assert task.samples.num_rows > 10_000
+            assert task.samples.equals(alone.samples), wagon.wagon_id
+            assert dataclasses.replace(task, samples=alone.samples) == alone
+
+
+def test_the_stage_stores_what_the_per_wagon_path_computes_whatever_the_chunks(
+    fleet: Fleet, tmp_path: Path, rom_cache_dir: Path
+) -> None:
+    """The stage's rows, read by chunks and committed in bulk, are bit for bit those of each
+    wagon's own task estimated alone (the path before chunks), and the same whether the
+    chunks and transactions hold one wagon or all."""
+    from fleetbrake.simulation.predictions import revision
+
+    stored = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        for name, config in (
+            ("default", fleet.config),
+            ("by_one", dataclasses.replace(fleet.config, chunk_rows=1, batch_rows=1)),
+        ):
+            db = _copy(fleet, tmp_path, name)
+            with open_warehouse(db) as wh:
+                rev = revision(wh, "declared")
+                report = e.estimate_wagons(wh, fleet.registry, rev, config, progress=False)
+                assert len(report.wagons_estimated) == 3 and report.rows > 30_000
+            stored[name] = _rows(db)
+        with open_warehouse(fleet.db, read_only=True) as wh:
+            rev = revision(wh, "declared")
+            keys = e.estimation_data_keys(wh)
+            alone = [
+                e.estimate_wagon(
+                    e.estimate_task(
+                        wh,
+                        fleet.registry.wagons[w],
+                        rev,
+                        fleet.config,
+                        fleet.config.power_noise_w_per_sqrt_s,
+                        data_key=keys[w],
+                        model_key="-",
+                    )
+                )
+                for w in sorted(keys)
+                if w in fleet.registry.wagons
+            ]
+    frames = [pl.DataFrame(pl.from_arrow(r.rows)) for r in alone]
+    expected = pl.concat(frames).sort("wagon_id", "time_utc")
+    got = stored["default"]["contact_estimates"]
+    assert got.height == expected.height
+    assert got.equals(expected.select(got.columns))  # every value, nulls and all
+    for table in ("contact_estimates", "estimated_wagons"):
+        assert stored["by_one"][table].equals(stored["default"][table]), table
+    seconds = stored["default"]["estimated_wagons"].select("wagon_id", "seconds").rows()
+    assert seconds == sorted((r.wagon_id, r.seconds) for r in alone)
+
+
+def test_a_wagon_with_stray_rows_is_replaced_and_the_others_only_inserted(
+    fleet: Fleet, tmp_path: Path, rom_cache_dir: Path
+) -> None:
+    """``replace_estimates`` skips its deletes for a batch of wagons holding no rows of the
+    revision (``estimated_wagon_ids``); a wagon with rows left over (no record of them in
+    ``estimated_wagons``) still has them replaced."""
+    from fleetbrake.simulation.predictions import revision
+
+    reference = _copy(fleet, tmp_path, "reference")
+    db = _copy(fleet, tmp_path, "stray")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        with open_warehouse(reference) as wh:
+            e.estimate_wagons(wh, fleet.registry, revision(wh, "declared"), fleet.config)
+        with open_warehouse(db) as wh:
+            rev = revision(wh, "declared")
+            assert e.estimated_wagon_ids(wh, rev.name) == set()
+            wh.con.execute(f"ATTACH '{reference}' AS ref (READ_ONLY)")
+            wh.con.execute(  # a wagon's first hour, as a crashed older writer left it
+                "INSERT INTO contact_estimates SELECT * FROM ref.contact_estimates "
+                "WHERE wagon_id = 'SGG-0002' ORDER BY time_utc LIMIT 3600"
+            )
+            wh.con.execute("DETACH ref")
+            assert e.estimated_wagon_ids(wh, rev.name) == {"SGG-0002"}
+            e.estimate_wagons(
+                wh, fleet.registry, rev, dataclasses.replace(fleet.config, batch_rows=1)
+            )
+    assert _rows(db)["contact_estimates"].equals(_rows(reference)["contact_estimates"])
+
+
+def test_the_revisions_sigma_w_is_fitted_on_the_engine_as_in_the_parent(
+    fleet: Fleet, tmp_path: Path, rom_cache_dir: Path
+) -> None:
+    """``fit_revision_noise(engine=...)``: each wagon's likelihood fit runs as a partition
+    on the workers; what is stored is what the fits in this process give."""
+    from fleetbrake.simulation.predictions import revision
+
+    config = dataclasses.replace(fleet.config, noise_fit_s=3_600.0)
+    found = {}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        with LocalEngine(2) as engine:
+            for name, on in (("inline", None), ("local", engine)):
+                db = _copy(fleet, tmp_path, name)
+                with open_warehouse(db) as wh:
+                    rev = revision(wh, "declared")
+                    events = wh.con.sql("SELECT wagon_id, start_utc FROM events").pl()
+                    found[name] = e.fit_revision_noise(
+                        wh, fleet.registry, rev, events, config, engine=on
+                    )
+                    assert e.stored_noise(wh, rev.name) == found[name]
+    assert found["inline"] is not None and found["inline"].method == "ml"
+    assert found["local"] == found["inline"]
+    assert found["inline"].fit_wagons is not None
+    assert len(json.loads(found["inline"].fit_wagons)) >= 2  # wagons fitted apart
+
+
+def test_write_behind_commits_in_order_on_its_thread_and_raises_a_writes_error() -> None:
+    """``WriteBehind``: batches written one at a time, in order, off the caller's thread;
+    the caller goes on while one is written; a failed write raises at the next submit or at
+    the end of the block."""
+    written: list[int] = []
+    threads: set[str] = set()
+    started = threading.Event()
+
+    def write(batch: int) -> None:
+        threads.add(threading.current_thread().name)
+        started.set()
+        time.sleep(0.05)
+        written.append(batch)
+
+    with WriteBehind(write) as writer:
+        writer.submit(1)
+        assert started.wait(5)
+        assert written == []  # the caller is not held while batch 1 is written
+        for batch in (2, 3, 4):
+            writer.submit(batch)
+    assert written == [1, 2, 3, 4]
+    assert threads and threading.current_thread().name not in threads
+
+    def fail(batch: int) -> None:
+        raise ValueError(f"batch {batch}")
+
+    with pytest.raises(ValueError, match="batch 1"), WriteBehind(fail) as failing:
+        failing.submit(1)
+        failing.submit(2)
+    with pytest.raises(ValueError, match="batch 7"), WriteBehind(fail) as failing:
+        failing.submit(7)
+
+
+def test_a_reader_sees_what_was_committed_while_the_writer_holds_a_transaction(
+    tmp_path: Path,
+) -> None:
+    """``reader``: a second connection to the same database, usable while the writer's
+    connection is inside a transaction on another thread."""
+    with open_warehouse(tmp_path / "w.duckdb") as wh:
+        wh.con.execute("CREATE TABLE t AS SELECT range AS k FROM range(10)")
+        with reader(wh) as source, wh.transaction() as con:
+            con.execute("INSERT INTO t SELECT range FROM range(10, 20)")
+            assert source.con.execute("SELECT count(*) FROM t").fetchall() == [(10,)]
+        with reader(wh) as source:
+            assert source.con.execute("SELECT count(*) FROM t").fetchall() == [(20,)]
