@@ -183,8 +183,8 @@ fn outputs<'py>(py: Python<'py>, out: Outputs, n: usize) -> PyResult<Bound<'py, 
 
 /// Filter (and smooth) every problem (dictionaries of flat arrays) with the same noise and
 /// settings; wagons in parallel, the GIL released. Returns one dictionary per problem.
-/// `switching`: (σ_q, window in steps, on, off, hold) of the power noise's two modes, or
-/// None for σ_w at every step.
+/// `switching`: (σ_q, window in steps, on, off, hold, the smoother's lead in steps) of the
+/// power noise's two modes, or None for σ_w at every step.
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
 #[pyo3(signature = (problems, measurement_k, power_w_per_sqrt_s, smooth, steady_tolerance, smoother_tolerance, checkpoint_steps, outputs_wanted, switching=None))]
@@ -198,7 +198,7 @@ fn estimator_run<'py>(
     smoother_tolerance: f64,
     checkpoint_steps: usize,
     outputs_wanted: bool,
-    switching: Option<(f64, f64, f64, f64, f64)>,
+    switching: Option<(f64, f64, f64, f64, f64, usize)>,
 ) -> PyResult<Vec<Bound<'py, PyDict>>> {
     let dicts: Vec<Bound<'py, PyDict>> = problems
         .iter()
@@ -214,12 +214,13 @@ fn estimator_run<'py>(
     let noise = Noise {
         measurement_k,
         power_w_per_sqrt_s,
-        switching: switching.map(|(q, window, on, off, hold)| Switching {
+        switching: switching.map(|(q, window, on, off, hold, lead)| Switching {
             quiet_w_per_sqrt_s: q,
             window_steps: window,
             on_sigma: on,
             off_sigma: off,
             hold_power_sigma: hold,
+            smoother_lead_steps: lead,
         }),
     };
     let settings = Settings {

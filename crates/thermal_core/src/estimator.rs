@@ -125,6 +125,31 @@ pub struct Switching {
     pub off_sigma: f64,
     /// ... or while |P| exceeds this many of P's filtered standard deviations.
     pub hold_power_sigma: f64,
+    /// The smoother's mode sequence: the filter's, with the manoeuvre mode begun this many
+    /// steps before each switch-on (the test switches a window after a step of the power;
+    /// the smoother, which sees the whole series, lets the power step where it did). Where
+    /// that changes the sequence, the smoother runs on a second forward pass with it. 0: the
+    /// filter's sequence.
+    pub smoother_lead_steps: usize,
+}
+
+/// The filter's mode sequence with the manoeuvre mode begun `lead` steps before each
+/// switch-on (never at the prior, index 0); None when that changes nothing.
+pub fn led_modes(manoeuvre: &[bool], lead: usize) -> Option<Vec<bool>> {
+    if lead == 0 {
+        return None;
+    }
+    let mut led = manoeuvre.to_vec();
+    let mut changed = false;
+    for t in 1..manoeuvre.len() {
+        if manoeuvre[t] && !manoeuvre[t - 1] {
+            for v in &mut led[t.saturating_sub(lead).max(1)..t] {
+                changed |= !*v;
+                *v = true;
+            }
+        }
+    }
+    changed.then_some(led)
 }
 
 /// How to run.
@@ -1078,15 +1103,25 @@ fn run_generic<const FMA: bool>(
     settings: &Settings,
 ) -> Outputs {
     let k = Kernel::new(problem, noise, settings);
-    let fwd = forward::<FMA>(&k, settings);
-    let mut out = fwd.outputs;
+    let mut fwd = forward::<FMA>(&k, settings, None);
+    let mut out = std::mem::take(&mut fwd.outputs);
     if settings.smooth {
+        let lead = k.switching.map_or(0, |s| s.smoother_lead_steps);
+        // the smoother's pass: the filter's, or a second one on the led mode sequence
+        let led = led_modes(&fwd.manoeuvre, lead).map(|modes| {
+            let quiet = Settings {
+                outputs: false,
+                ..*settings
+            };
+            forward::<FMA>(&k, &quiet, Some(&modes))
+        });
+        let pass = led.as_ref().map_or(&fwd, |f| f);
         let (est, frozen) = smooth::<FMA>(
             &k,
-            &fwd.modes,
-            &fwd.manoeuvre,
-            &fwd.caches,
-            &fwd.checkpoints,
+            &pass.modes,
+            &pass.manoeuvre,
+            &pass.caches,
+            &pass.checkpoints,
             settings,
         );
         out.smoothed = Some(est);
@@ -1107,7 +1142,7 @@ struct Forward {
 // `t` indexes the readings, the modes, the outputs and the steps alike
 #[allow(clippy::needless_range_loop)]
 #[inline(always)]
-fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
+fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bool]>) -> Forward {
     let p = k.p;
     let (r, n) = (k.d.r, k.d.n);
     let n_t = p.reading_c.len();
@@ -1144,6 +1179,9 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings) -> Forward {
         (b, (b / (2.0 - b)).sqrt())
     });
     for t in 0..n_t {
+        if let Some(f) = forced {
+            manoeuvre = f[t];
+        }
         let key = k.key(t, manoeuvre);
         manoeuvre_of[t] = manoeuvre;
         if manoeuvre {
@@ -1972,6 +2010,7 @@ mod tests {
             on_sigma: 2.0,
             off_sigma: 1.0,
             hold_power_sigma: 1.0,
+            smoother_lead_steps: 0,
         }),
     };
 
@@ -2034,6 +2073,55 @@ mod tests {
                 assert!(diff > 1e-3, "{diff}");
             }
         }
+    }
+
+    #[test]
+    fn the_led_smoother_is_the_textbook_smoother_on_the_led_sequence() {
+        let lead = 15;
+        let mut noise = SWITCHING;
+        if let Some(sw) = noise.switching.as_mut() {
+            sw.smoother_lead_steps = lead;
+        }
+        for lag in [false, true] {
+            let p = problem(lag, 400, 7);
+            for tol in [0.0, 1e-7] {
+                let plain = run(&p, SWITCHING, &settings(tol, 64)).unwrap();
+                let out = run(&p, noise, &settings(tol, 64)).unwrap();
+                // the filter and its reported modes are the filter's own
+                assert_eq!(out.manoeuvre, plain.manoeuvre);
+                assert_estimates("filtered", &out.filtered, &plain.filtered, 0.0);
+                let led = led_modes(&out.manoeuvre, lead).expect("the lead changes the modes");
+                let ons: Vec<usize> = (1..400)
+                    .filter(|&t| out.manoeuvre[t] && !out.manoeuvre[t - 1])
+                    .collect();
+                for &t in &ons {
+                    assert!(led[t.saturating_sub(lead).max(1)..t].iter().all(|&v| v));
+                }
+                assert_eq!(led[0], out.manoeuvre[0]);
+                let reference = naive_modes(&p, noise, Some(&led));
+                let tol_k = if tol == 0.0 { 1e-8 } else { 1e-4 };
+                assert_estimates(
+                    "smoothed",
+                    out.smoothed.as_ref().unwrap(),
+                    &reference.smoothed,
+                    tol_k,
+                );
+                let before = plain.smoothed.as_ref().unwrap();
+                let diff = before
+                    .power_w
+                    .iter()
+                    .zip(&out.smoothed.as_ref().unwrap().power_w)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(diff > 1e-6, "the led smoother changed nothing: {diff}");
+            }
+        }
+        assert_eq!(led_modes(&[false, false, true, true], 0), None);
+        assert_eq!(led_modes(&[false, false, false], 5), None);
+        assert_eq!(
+            led_modes(&[false, false, false, true, false, true], 2),
+            Some(vec![false, true, true, true, true, true])
+        );
     }
 
     #[test]

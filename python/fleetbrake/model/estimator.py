@@ -198,10 +198,21 @@ class ManoeuvreTest:
     on_sigma: float = 5.0
     off_sigma: float = 2.0
     hold_power_sigma: float = 2.0
+    smoother_lead_s: float = 0.0
+    """The smoother's mode sequence: the filter's, with the manoeuvre mode begun this long
+    before each switch-on (the test switches a window or so after a step of the power; the
+    smoother, which sees the whole series, lets the power step where it did). Where that
+    changes the sequence, the smoother runs on a second forward pass with it; the filter and
+    its reported modes are unchanged. Counted in steps (``smoother_lead_s / dt_s``), as the
+    window is. 0: the filter's sequence."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.window_s) and self.window_s > 0):
             raise ValueError(f"ManoeuvreTest.window_s must be positive, got {self.window_s!r}")
+        if not (math.isfinite(self.smoother_lead_s) and self.smoother_lead_s >= 0):
+            raise ValueError(
+                f"ManoeuvreTest.smoother_lead_s must be >= 0 and finite, got {self.smoother_lead_s!r}"
+            )
         for name in ("on_sigma", "off_sigma", "hold_power_sigma"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -209,8 +220,9 @@ class ManoeuvreTest:
 
     def kernel_args(
         self, noise: EstimatorNoise, dt_s: float
-    ) -> tuple[float, float, float, float, float] | None:
-        """(σ_q, window in steps, on, off, hold) for the kernels; None with one mode."""
+    ) -> tuple[float, float, float, float, float, int] | None:
+        """(σ_q, window in steps, on, off, hold, the smoother's lead in steps) for the
+        kernels; None with one mode."""
         if noise.quiet_power_w_per_sqrt_s is None:
             return None
         return (
@@ -219,7 +231,21 @@ class ManoeuvreTest:
             float(self.on_sigma),
             float(self.off_sigma),
             float(self.hold_power_sigma),
+            round(self.smoother_lead_s / dt_s),
         )
+
+
+def led_modes(manoeuvre: NDArray[np.bool_], lead_steps: int) -> NDArray[np.bool_] | None:
+    """The filter's mode sequence with the manoeuvre mode begun ``lead_steps`` before each
+    switch-on (never at the prior, index 0); None when that changes nothing (the Rust
+    kernel's ``led_modes``)."""
+    if lead_steps <= 0:
+        return None
+    led = manoeuvre.copy()
+    ons = np.flatnonzero(manoeuvre[1:] & ~manoeuvre[:-1]) + 1
+    for t in ons:
+        led[max(int(t) - lead_steps, 1) : t] = True
+    return None if np.array_equal(led, manoeuvre) else led
 
 
 @dataclass(frozen=True)
@@ -940,10 +966,12 @@ def run_numpy(
     outputs: bool = True,
     manoeuvre: ManoeuvreTest = ManoeuvreTest(),
     dt_s: float = 1.0,
+    forced_modes: NDArray[np.bool_] | None = None,
 ) -> KernelOutputs:
     """The filter (and smoother) in plain numpy: dense matrices, one step at a time, the
     same algorithm as the Rust kernel (the same steady-state freezing, the same test between
-    the power noise's modes), its reference."""
+    the power noise's modes, the same second pass for the smoother on the led modes), its
+    reference. ``forced_modes``: the power noise's mode of each step, instead of the test's."""
     p = problem
     r, n = p.order, p.n_state
     ip = r
@@ -1003,6 +1031,8 @@ def run_numpy(
     updates = 0
     frozen_steps = 0
     for t in range(n_t):
+        if forced_modes is not None:
+            mode = bool(forced_modes[t])
         measured = bool(np.isfinite(y[t]))
         k = int(p.index[t - 1]) if t > 0 else -1  # the transition into t
         key = (k, measured, mode) if t > 0 else None
@@ -1087,7 +1117,38 @@ def run_numpy(
             nus[t] = nu
             cov_of.append(cov_f)
     result: dict[str, object] = dict(out)
-    if keep:
+    led = (
+        led_modes(mode_of, switching[5])
+        if keep and switching is not None and forced_modes is None
+        else None
+    )
+    if led is not None:
+        second = run_numpy(
+            p,
+            noise,
+            smooth=True,
+            steady_tolerance=steady_tolerance,
+            smoother_tolerance=smoother_tolerance,
+            outputs=False,
+            manoeuvre=manoeuvre,
+            dt_s=dt_s,
+            forced_modes=led,
+        )
+        result.update(
+            {
+                name: getattr(second, name)
+                for name in (
+                    "smoothed_mean_c",
+                    "smoothed_mean_sd_k",
+                    "smoothed_max_c",
+                    "smoothed_max_sd_k",
+                    "smoothed_power_w",
+                    "smoothed_power_sd_w",
+                    "smoother_frozen_steps",
+                )
+            }
+        )
+    elif keep:
         result.update(
             _smooth_numpy(
                 p, mats, h, cm, cn, xs, gains, s_vars, nus, cov_of, cache_of, smoother_tolerance
