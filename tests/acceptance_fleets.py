@@ -18,6 +18,7 @@ measures are plain functions of the database and the generator's truth:
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import json
 import time
@@ -169,6 +170,48 @@ def outcome_in(case: Case, out_dir: Path, rom_refinement: float) -> Outcome:
     holdout = truth.config.start + dt.timedelta(days=truth.config.days - 1)
     loop = CloseLoopConfig(holdout, simulation=SimulationConfig(refinement=rom_refinement))
     return Outcome(case, truth, out_dir / "fleet.duckdb", report, holdout, loop)
+
+
+def refit_through_meshes(
+    outcome: Outcome, meshes: Sequence[str], max_nfev: int = 7
+) -> dict[str, dict[str, float]]:
+    """The report's added effects refitted, from its parameters, on the fit events as the
+    kept database now has them (outliers the report names left out) through other meshes:
+    each of ``meshes`` a reduced model's refinement (``"0.4"``) or ``"full<refinement>"``
+    (the full FE model, slow): mesh -> ``effect.parameter`` -> value. A diagnostic of the
+    numerical term (docs/closeloop.md), on a kept fleet (:func:`outcome_in`)."""
+    from fleetbrake.closeloop import loop
+    from fleetbrake.closeloop.fitdata import FitData
+    from fleetbrake.simulation.predictions import revision, stored_wagons
+    from fleetbrake.warehouse.connection import open_warehouse, sql
+
+    report = outcome.report
+    added = [effect_from_dict(d) for d in report["effects"]]
+    excluded = frozenset(report.get("outliers", {}).get("event_ids", []))
+    unknown = frozenset(report.get("unknown_heat", {}).get("event_ids", []))
+    out: dict[str, dict[str, float]] = {}
+    with open_warehouse(outcome.db) as wh:
+        wagons = stored_wagons(wh)
+        base = revision(wh, report["baseline_revision"])
+        sim = outcome.loop.simulation
+        events = wh.con.sql(sql("q_closeloop_events")).pl()
+        loaded = loop._load_wagons(wh, wagons, events, sim)
+        fit, _, _ = loop._event_sets(wh, base.name, outcome.loop, unknown)
+        for mesh in meshes:
+            solver, refinement = ("full", mesh[4:]) if mesh.startswith("full") else ("rom", mesh)
+            other = dataclasses.replace(base, solver=solver, refinement=float(refinement))
+            task = loop.FitTask(
+                FitData.build(loaded, fit, sim, other),
+                base.effects,
+                tuple(type(e) for e in added),
+                tuple(added),
+                max_nfev,
+                outcome.loop.diff_step,
+                excluded,
+            )
+            fitted = loop.fit_task(task)
+            out[mesh] = dict(zip(fitted.names, map(float, fitted.x), strict=True))
+    return out
 
 
 # ------------------------------------------------------------------------------ measures

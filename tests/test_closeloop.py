@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 from pathlib import Path
 
 import duckdb
@@ -171,6 +172,26 @@ def report_agrees_with_v_predictions(db: Path, report: dict, holdout: dt.date) -
         con.close()
 
 
+def check_numerical_term(report: dict) -> None:
+    """The reported intervals are the statistical ones widened by the numerical term: the
+    chosen effects refitted through each coarser mesh of the configuration, the largest GCI
+    per parameter added in quadrature about the fitted value (docs/closeloop.md)."""
+    methods = report["interval_methods"]
+    numerical = methods["numerical"]
+    config = CloseLoopConfig(dt.date(2024, 1, 1))
+    assert [g["ratio"] for g in numerical["grids"]] == list(config.numerical_grid_ratios)
+    for name, value in report["parameters"].items():
+        gcis = [g["gci"][name] for g in numerical["grids"]]
+        shifts = [g["shift"][name] for g in numerical["grids"]]
+        assert all(math.isfinite(s) for s in shifts), numerical
+        assert numerical["half_width"][name] == pytest.approx(max(gcis), rel=1e-5)
+        lo_s, hi_s = methods["statistical"][name]
+        lo, hi = report["parameter_intervals"][name]
+        half = math.hypot(max(value - lo_s, hi_s - value), max(gcis))
+        assert (lo, hi) == pytest.approx((value - half, value + half), rel=1e-5), name
+        assert lo <= lo_s and hi_s <= hi, name
+
+
 def check(
     tmp_path: Path,
     effect_name: str | None,
@@ -190,6 +211,7 @@ def check(
         assert "nothing was added" in report["evidence"]
         return report
     assert report["effect"] == effect_name, (report["effect"], str(effects), report["candidates"])
+    check_numerical_term(report)
     declared = holdout_rmse_against_truth(truth, db, report["baseline_revision"], holdout_ids)
     new = holdout_rmse_against_truth(truth, db, report["new_revision"], holdout_ids)
     assert new <= 0.4 * declared, (new, declared)

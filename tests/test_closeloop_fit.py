@@ -263,6 +263,11 @@ def test_a_refit_move_of_an_undetermined_parameter_or_a_new_one():
     ]
     with pytest.raises(CloseLoopConfigError, match="refit_tolerance must be >= 0"):
         CloseLoopConfig(dt.date(2024, 3, 6), refit_tolerance=-0.1)
+    with pytest.raises(CloseLoopConfigError, match="numerical_grid_ratios must each be > 1"):
+        CloseLoopConfig(dt.date(2024, 3, 6), numerical_grid_ratios=(1.5, 0.5))
+    assert (
+        CloseLoopConfig(dt.date(2024, 3, 6), numerical_grid_ratios=()).numerical_grid_ratios == ()
+    )
 
 
 def test_brakings_over_a_frozen_gps_speed_are_left_out_of_the_fit() -> None:

@@ -19,6 +19,7 @@ from fleetbrake.closeloop.selection import (
     circular_linear_correlation,
     distinguishable_from_null,
     effective_sample_size,
+    grid_convergence_index,
     held_out_residual,
     improves_held_out,
     information_criterion,
@@ -27,6 +28,7 @@ from fleetbrake.closeloop.selection import (
     parameter_intervals,
     refusal,
     systematic_share,
+    with_numerical_term,
 )
 
 
@@ -274,6 +276,55 @@ def test_blocked_intervals_with_two_blocks_are_the_jacobian_ones():
     assert set(out.method.values()) == {"jacobian"}
 
 
+def fitted_time_constant(step_s: float, data_t: np.ndarray, data_y: np.ndarray) -> float:
+    """tau fitted to a decay through the trapezoidal (Crank-Nicolson) rule with time step
+    ``step_s`` (a second-order scheme; the data's times are on its grid)."""
+    from scipy.optimize import least_squares
+
+    steps = np.rint(data_t / step_s)
+
+    def model(tau: float) -> np.ndarray:
+        growth = (1.0 - step_s / (2.0 * tau)) / (1.0 + step_s / (2.0 * tau))
+        return np.asarray(growth**steps)
+
+    fit = least_squares(lambda x: model(float(x[0])) - data_y, [50.0], xtol=1e-14, ftol=1e-14)
+    return float(fit.x[0])
+
+
+def test_grid_convergence_index_bounds_a_discretisation_bias_and_is_not_useless():
+    # a decay written exactly (the world), its time constant fitted through a second-order
+    # scheme: biased by the scheme. The GCI of the fits with steps h and 2h (order 2, safety
+    # factor 3) covers the bias at h, and is not more than a few times it
+    for tau, fine_step in ((40.0, 8.0), (90.0, 12.0), (25.0, 5.0)):
+        t = np.arange(0.0, 6.0 * tau, 2.0 * fine_step)
+        y = np.exp(-t / tau)
+        fine = fitted_time_constant(fine_step, t, y)
+        coarse = fitted_time_constant(2.0 * fine_step, t, y)
+        (gci,) = grid_convergence_index(np.array([fine]), np.array([coarse]), 2.0)
+        error = abs(fine - tau)
+        assert error > 1e-3 * tau, (tau, fine)  # a real bias to bound
+        assert error <= gci <= 5.0 * error, (tau, fine, coarse, gci)
+
+
+def test_grid_convergence_index_is_roaches_formula():
+    got = grid_convergence_index(np.array([1.0, 2.0]), np.array([1.1, 1.5]), 1.5, 2.0, 3.0)
+    assert got == pytest.approx([3.0 * 0.1 / 1.25, 3.0 * 0.5 / 1.25])
+    with pytest.raises(SelectionError, match="ratio"):
+        grid_convergence_index(np.array([1.0]), np.array([1.1]), 1.0)
+    with pytest.raises(SelectionError, match="coarse"):
+        grid_convergence_index(np.array([1.0]), np.array([1.1, 1.2]), 2.0)
+
+
+def test_numerical_term_is_added_in_quadrature_about_the_estimate():
+    intervals = {"a": (0.7, 1.3), "b": (1.0, 3.0), "c": (-np.inf, np.inf), "d": (4.0, 6.0)}
+    x = {"a": 1.0, "b": 2.0, "c": 0.0, "d": 5.0}
+    out = with_numerical_term(intervals, x, {"a": 0.4, "b": 0.0, "c": 1.0})
+    assert out["a"] == pytest.approx((0.5, 1.5))  # hypot(0.3, 0.4) = 0.5
+    assert out["b"] == (1.0, 3.0)  # no term: unchanged
+    assert out["c"] == (-np.inf, np.inf)  # unbounded stays so
+    assert out["d"] == (4.0, 6.0)  # not given: unchanged
+
+
 def test_effect_nulls_name_real_laws_and_parameters():
     from fleetbrake.model.effects import EFFECT_ORDER
 
@@ -463,7 +514,11 @@ def report_dict(**changes):
 def test_report_first_line_is_the_verdict():
     found = render_markdown(report_dict()).splitlines()
     assert found[0].startswith("found: convection_speed")
-    assert "| h_speed | 1.2 | 1.1 | 1.3 | - |" in found
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | - | - |" in found
+    # the statistical method and the numerical term beside the reported interval
+    methods = {"widest": {"h_speed": "jackknife"}, "numerical": {"half_width": {"h_speed": 0.05}}}
+    with_term = render_markdown(report_dict(interval_methods=methods)).splitlines()
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife | 0.05 |" in with_term
     assert any("adequate" in line and "yes" in line for line in found)
     partly = (
         "partly explained: friction_speed explains 76 % of the residual; 1.2 K remains "

@@ -51,7 +51,10 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    the noise (``adequate``, ``unexplained``; at the end again on the report's own fit events
    from ``v_predictions``, less the outliers it names) and its parameters get 95 % intervals,
    the widest of the Jacobian one on n_eff, the cluster-robust one and the delete-one-
-   wagon-day jackknife (``parameter_intervals``, ``interval_methods``).
+   wagon-day jackknife (``parameter_intervals``, ``interval_methods``; these alone decide
+   entry), widened for the report by a numerical term: the chosen effects refitted through
+   coarser meshes, Roache's grid convergence index of the shift added in quadrature
+   (``interval_methods.numerical``).
 5. **Revision.** The chosen effects become a new model revision (the current one, predicting
    with its parent's solver: before and after compare one model form), every
    event is re-simulated with it, the flags are judged again with it (the baseline's flags
@@ -82,6 +85,8 @@ from fleetbrake.closeloop import fitdata
 from fleetbrake.closeloop.fitdata import FitData
 from fleetbrake.closeloop.selection import (
     EFFECT_NULLS,
+    GCI_ORDER,
+    GCI_SAFETY_FACTOR,
     MAX_NOISE_RATIO,
     MIN_EXPLAINED_SHARE,
     Adequacy,
@@ -95,12 +100,14 @@ from fleetbrake.closeloop.selection import (
     distinguishable_from_null,
     effective_sample_size,
     event_rms,
+    grid_convergence_index,
     improves_held_out,
     information_criterion,
     intervals_for_json,
     noise_from_residual,
     outlier_events,
     systematic_share,
+    with_numerical_term,
 )
 from fleetbrake.engine import Engine, InlineEngine, LocalEngine, make_engine
 from fleetbrake.errors import ConfigError, FleetbrakeError
@@ -206,6 +213,17 @@ class CloseLoopConfig:
     (:func:`~fleetbrake.closeloop.selection.systematic_share`); otherwise it is a proxy for
     something outside the vocabulary and only the ``empirical`` correction may enter (0: no
     such rule). An adequate answer is never affected."""
+    numerical_grid_ratios: tuple[float, ...] = (1.5, 2.0)
+    """The reported intervals' numerical (model-form) term: the chosen effects refitted once
+    per ratio, on the same fit events from the chosen parameters, through the reduced model on
+    a coarser mesh (the revision's refinement divided by the ratio, cells per direction); the
+    parameters' shift between each coarse mesh and the revision's as Roache's grid
+    convergence index (two grids: ``gci_safety_factor`` 3, the formal order ``gci_order``),
+    the largest over the coarse meshes added in quadrature to the statistical half-width
+    (:func:`~fleetbrake.closeloop.selection.with_numerical_term`). Empty: no such term. Entry
+    (distinguishable from the nulls) is judged on the statistical intervals alone."""
+    gci_safety_factor: float = GCI_SAFETY_FACTOR
+    gci_order: float = GCI_ORDER
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
@@ -217,6 +235,11 @@ class CloseLoopConfig:
             raise CloseLoopConfigError(
                 f"candidates: unknown effect(s) {', '.join(unknown)}; the vocabulary is "
                 f"{', '.join(EFFECTS)}"
+            )
+        if not all(r > 1.0 for r in self.numerical_grid_ratios):
+            raise CloseLoopConfigError(
+                f"numerical_grid_ratios must each be > 1 (fine over coarse cells per "
+                f"direction), got {self.numerical_grid_ratios}"
             )
         if not self.refit_tolerance >= 0.0:
             raise CloseLoopConfigError(f"refit_tolerance must be >= 0, got {self.refit_tolerance}")
@@ -1197,7 +1220,7 @@ def _close_loop(
         return report
 
     added = [e for e in best.effects if type(e) not in present]
-    best_data = fit_data
+    best_data, best_events = fit_data, fit
     name = _new_revision_name(wh, best.label)
     _record_revision(wh, name, base, best)
     new_rev = Revision(name, best.effects, base.solver, base.refinement)
@@ -1217,7 +1240,8 @@ def _close_loop(
         if fit.height and len(changed) >= config.refit_changed_fraction * max(1, len(fit_ids)):
             t = time.perf_counter()
             loaded.update(_load_wagons(wh, wagons, fit, sim, have=loaded))
-            refit_data = FitData.build(loaded, fit, sim, base)
+            refit_events = fit
+            refit_data = FitData.build(loaded, refit_events, sim, base)
             (res,) = workers.fit(
                 [task(refit_data, [type(e) for e in added], added, max(1, config.max_nfev // 2))]
             )
@@ -1234,7 +1258,7 @@ def _close_loop(
             if moved:
                 # the answer changed: the revision made again with the refitted parameters
                 t = time.perf_counter()
-                best_data = refit_data
+                best_data, best_events = refit_data, refit_events
                 best = candidate(res, best.n_parameters, "fit")
                 added = [e for e in best.effects if type(e) not in present]
                 _set_revision_effects(wh, name, best.effects)
@@ -1269,10 +1293,34 @@ def _close_loop(
             "effects": [e.to_dict() for e in added],
         }
     )
+    numerical = None
+    if config.numerical_grid_ratios and best.fitted is not None and best.fitted.x.size:
+        # the chosen effects through coarser meshes, on the same fit events, from the chosen
+        # parameters: the numerical term of the reported intervals
+        t = time.perf_counter()
+        added_now = [e for e in best.effects if type(e) not in present]
+        coarse_bases = [
+            dataclasses.replace(base, refinement=base.refinement / ratio)
+            for ratio in config.numerical_grid_ratios
+        ]
+        coarse_fits = workers.fit(
+            [
+                task(
+                    FitData.build(loaded, best_events, sim, coarse_base),
+                    [type(e) for e in added_now],
+                    added_now,
+                    max(4, config.max_nfev // 2),
+                )
+                for coarse_base in coarse_bases
+            ]
+        )
+        numerical = _numerical_term(best.fitted, coarse_fits, base, config)
+        timing["numerical_s"] = time.perf_counter() - t
     _add_verdict(
         report,
         _verdict(best, best_data, base_kept, noise_k, current),
         _intervals(best, best_data),
+        numerical,
     )
     for key in ("fit", "holdout"):
         report[key].update(
@@ -1310,14 +1358,88 @@ def _outliers(
     }
 
 
+@dataclass(frozen=True)
+class Numerical:
+    """The reported intervals' numerical term: the chosen parameters fitted through the
+    revision's mesh and through coarser ones, and Roache's grid convergence index of each
+    shift; ``half_width`` the largest per parameter (keyed as the report's ``parameters``)."""
+
+    refinement: float
+    grids: list[dict[str, Any]]
+    """Per coarse mesh: ``ratio``, ``refinement``, the refitted parameters (``coarse``), their
+    ``shift`` from the revision's and its ``gci``."""
+    order: float
+    safety_factor: float
+    half_width: dict[str, float]
+
+    def to_json(self) -> dict[str, Any]:
+        def g(value: Any) -> Any:
+            if isinstance(value, dict):
+                return {k: g(v) for k, v in value.items()}
+            return float(f"{value:.6g}") if isinstance(value, float) else value
+
+        return {
+            "method": (
+                "grid convergence index (Roache; ASME V&V 20's u_num): the chosen effects "
+                "refitted on the same fit events through the reduced model on coarser meshes; "
+                "per mesh gci = safety_factor |coarse - fine| / (ratio^order - 1), the largest "
+                "added in quadrature to the statistical half-width"
+            ),
+            "refinement": self.refinement,
+            "order": self.order,
+            "safety_factor": self.safety_factor,
+            "grids": [g(grid) for grid in self.grids],
+            "half_width": g(self.half_width),
+        }
+
+
+def _numerical_term(
+    fine: FitResult, coarse: Sequence[FitResult], base: Revision, config: CloseLoopConfig
+) -> Numerical:
+    """The numerical term of the chosen parameters (``fine``, fitted through ``base``'s mesh)
+    from their refits through the coarser meshes of ``config.numerical_grid_ratios``
+    (:func:`~fleetbrake.closeloop.selection.grid_convergence_index`, the largest per
+    parameter), keyed as the report's ``parameters``."""
+    qualified = len({name.split(".", 1)[0] for name in fine.names}) > 1
+    keys = [_report_key(name, qualified) for name in fine.names]
+    grids: list[dict[str, Any]] = []
+    half = np.zeros(fine.x.size)
+    for ratio, fit in zip(config.numerical_grid_ratios, coarse, strict=True):
+        by_name = dict(zip(fit.names, fit.x, strict=True))
+        x_coarse = np.array([by_name[name] for name in fine.names])
+        gci = grid_convergence_index(
+            fine.x, x_coarse, ratio, config.gci_order, config.gci_safety_factor
+        )
+        half = np.maximum(half, gci)
+        grids.append(
+            {
+                "ratio": float(ratio),
+                "refinement": base.refinement / ratio,
+                "coarse": dict(zip(keys, map(float, x_coarse), strict=True)),
+                "shift": dict(zip(keys, map(float, x_coarse - fine.x), strict=True)),
+                "gci": dict(zip(keys, map(float, gci), strict=True)),
+                "evaluations": fit.evaluations,
+            }
+        )
+    return Numerical(
+        refinement=base.refinement,
+        grids=grids,
+        order=config.gci_order,
+        safety_factor=config.gci_safety_factor,
+        half_width=dict(zip(keys, map(float, half), strict=True)),
+    )
+
+
 def _add_verdict(
     report: dict[str, Any],
     verdict: Adequacy,
     intervals: BlockedIntervals | Mapping[str, tuple[float, float]] | None,
+    numerical: Numerical | None = None,
 ) -> None:
     """The report's ``parameter_intervals``, ``adequate`` and ``unexplained`` (interface.md
-    v2), the figures behind the verdict (``adequacy``) and the three intervals the reported
-    ones are the widest of (``interval_methods``)."""
+    v2), the figures behind the verdict (``adequacy``) and the three statistical intervals
+    the reported ones are the widest of (``interval_methods``), and the numerical term added
+    to them in quadrature (``interval_methods.numerical``, when computed)."""
     if isinstance(intervals, BlockedIntervals):
         report["interval_methods"] = {
             "blocks": intervals.blocks,
@@ -1325,8 +1447,14 @@ def _add_verdict(
             "jacobian": intervals_for_json(intervals.jacobian),
             "sandwich": intervals_for_json(intervals.sandwich),
             "jackknife": intervals_for_json(intervals.jackknife),
+            "statistical": intervals_for_json(intervals.intervals),
         }
         intervals = intervals.intervals
+        if numerical is not None:
+            report["interval_methods"]["numerical"] = numerical.to_json()
+            intervals = with_numerical_term(
+                intervals, report.get("parameters") or {}, numerical.half_width
+            )
     report.update(
         {
             "parameter_intervals": intervals_for_json(intervals or {}),
@@ -1448,7 +1576,7 @@ def _make_revision(
     with it (every wagon), its sigma_w fitted first on the days of the ``fit`` events (a
     property of the revision: docs/estimator.md)."""
     simulate_events(wh, wagons, revision, sim, event_ids=list(event_ids), engine=engine)
-    fit_revision_noise(wh, wagons, revision, fit, EstimationConfig(chain=sim.chain))
+    fit_revision_noise(wh, wagons, revision, fit, EstimationConfig(chain=sim.chain), engine=engine)
     estimate_wagons(wh, wagons, revision, EstimationConfig(chain=sim.chain), engine=engine)
 
 

@@ -175,15 +175,18 @@ def render_markdown(
     intervals = report.get("parameter_intervals") or {}
     if intervals:
         values = report.get("parameters") or {}
-        widest = (report.get("interval_methods") or {}).get("widest") or {}
+        methods = report.get("interval_methods") or {}
+        widest = methods.get("widest") or {}
+        numerical = (methods.get("numerical") or {}).get("half_width") or {}
         lines += [
-            "| parameter | value | 95 % low | 95 % high | widest of |",
-            "|---|---|---|---|---|",
+            "| parameter | value | 95 % low | 95 % high | statistical: widest of | "
+            "numerical (GCI) +- |",
+            "|---|---|---|---|---|---|",
         ]
         for name, (lo, hi) in intervals.items():
             lines.append(
                 f"| {name} | {_k(values.get(name))} | {_k(lo)} | {_k(hi)} | "
-                f"{widest.get(name, '-')} |"
+                f"{widest.get(name, '-')} | {_k(numerical.get(name))} |"
             )
         lines.append("")
     lines += [
