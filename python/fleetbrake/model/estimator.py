@@ -235,6 +235,17 @@ class ManoeuvreTest:
         )
 
 
+SMOOTHED_OUTPUTS = (
+    "smoothed_mean_c",
+    "smoothed_mean_sd_k",
+    "smoothed_max_c",
+    "smoothed_max_sd_k",
+    "smoothed_power_w",
+    "smoothed_power_sd_w",
+)
+"""The smoother's outputs, per second (the numpy reference's names, as the kernel's)."""
+
+
 def led_modes(manoeuvre: NDArray[np.bool_], lead_steps: int) -> NDArray[np.bool_] | None:
     """The filter's mode sequence with the manoeuvre mode begun ``lead_steps`` before each
     switch-on (never at the prior, index 0); None when that changes nothing (the Rust
@@ -1135,18 +1146,7 @@ def run_numpy(
             forced_modes=led,
         )
         result.update(
-            {
-                name: getattr(second, name)
-                for name in (
-                    "smoothed_mean_c",
-                    "smoothed_mean_sd_k",
-                    "smoothed_max_c",
-                    "smoothed_max_sd_k",
-                    "smoothed_power_w",
-                    "smoothed_power_sd_w",
-                    "smoother_frozen_steps",
-                )
-            }
+            {name: getattr(second, name) for name in (*SMOOTHED_OUTPUTS, "smoother_frozen_steps")}
         )
     elif keep:
         result.update(
@@ -1191,17 +1191,7 @@ def _smooth_numpy(
     big = np.zeros((n, n))
     frozen: tuple[int, FloatArray, float, FloatArray, float] | None = None
     frozen_steps = 0
-    out: dict[str, FloatArray] = {
-        name: np.empty(n_t)
-        for name in (
-            "smoothed_mean_c",
-            "smoothed_mean_sd_k",
-            "smoothed_max_c",
-            "smoothed_max_sd_k",
-            "smoothed_power_w",
-            "smoothed_power_sd_w",
-        )
-    }
+    out: dict[str, FloatArray] = {name: np.empty(n_t) for name in SMOOTHED_OUTPUTS}
     for t in range(n_t - 1, -1, -1):
         cov = cov_of[t]
         cache = int(cache_of[t])

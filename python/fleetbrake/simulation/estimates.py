@@ -82,6 +82,7 @@ from fleetbrake.simulation.predictions import Mapper, Revision
 from fleetbrake.simulation.series import WagonSeries, running_median
 from fleetbrake.simulation.store import (
     WriteBehind,
+    chunk_name,
     chunk_table,
     reader,
     sample_rows,
@@ -555,8 +556,7 @@ class EstimateChunk:
     power_noise_w_per_sqrt_s: float
 
     def __str__(self) -> str:  # how an engine names the partition in an error
-        ids = [w.wagon_id for w, _, _ in self.wagons]
-        return f"wagon {ids[0]}" if len(ids) == 1 else "wagons " + ", ".join(ids)
+        return chunk_name([w.wagon_id for w, _, _ in self.wagons])
 
 
 def estimation_chunk(

@@ -72,6 +72,7 @@ from fleetbrake.simulation.store import (
     WagonRows,
     WagonWrite,
     WriteBehind,
+    chunk_name,
     chunk_table,
     data_keys,
     forget_wagon,
@@ -674,8 +675,7 @@ class WagonChunk:
     reference: bool = False
 
     def __str__(self) -> str:  # how an engine names the partition in an error
-        ids = [w.wagon_id for w, _, _ in self.wagons]
-        return f"wagon {ids[0]}" if len(ids) == 1 else "wagons " + ", ".join(ids)
+        return chunk_name([w.wagon_id for w, _, _ in self.wagons])
 
 
 def wagon_chunk(

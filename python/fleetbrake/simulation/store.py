@@ -201,6 +201,11 @@ def wagon_chunks(
         yield chunk
 
 
+def chunk_name(wagon_ids: Sequence[str]) -> str:
+    """How an engine names a chunk of whole wagons in an error: ``wagon W`` or ``wagons W, V``."""
+    return f"wagon {wagon_ids[0]}" if len(wagon_ids) == 1 else "wagons " + ", ".join(wagon_ids)
+
+
 def chunk_table(wh: Warehouse, name: str, wagon_ids: Sequence[str], **params: str) -> pa.Table:
     """The rows of ``wagon_ids`` that the chunk query ``name`` (``q_*_chunk_*.sql``, with a
     ``wagon_id`` column) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
