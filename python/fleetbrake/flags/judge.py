@@ -92,6 +92,7 @@ from fleetbrake.simulation.store import (
     StoredTimeline,
     chunk_table,
     data_keys,
+    sample_parts,
     sample_rows,
     simulated_wagons,
     stored_timeline,
@@ -541,7 +542,7 @@ def chunk_tasks(chunk: FlagChunk) -> list[FlagTask]:
     queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`), so each task is the
     one :func:`flag_task` reads (a test compares them)."""
     ids = [h.wagon_id for h in chunk.heads]
-    samples = wagon_parts(chunk.samples, ids, ["time_utc", "file_id"], ["file_id"])
+    samples = sample_parts(chunk.samples, ids)
     events = wagon_parts(chunk.events, ids, ["start_utc"])
     segments = wagon_parts(chunk.segments, ids, ["start_utc"])
     timeline = wagon_parts(chunk.timeline, ids, ["time_utc"])

@@ -85,10 +85,10 @@ from fleetbrake.simulation.store import (
     chunk_name,
     chunk_table,
     reader,
+    sample_parts,
     sample_rows,
     utc_now,
     wagon_chunks,
-    wagon_parts,
 )
 from fleetbrake.warehouse.connection import Warehouse, sql
 
@@ -577,7 +577,7 @@ def chunk_tasks(chunk: EstimateChunk) -> list[EstimateTask]:
     """The chunk cut into its wagons' tasks, each wagon's samples sorted as the per-wagon
     query sorts them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
     ids = [wagon.wagon_id for wagon, _, _ in chunk.wagons]
-    samples = wagon_parts(chunk.samples, ids, ["time_utc", "file_id"], ["file_id"])
+    samples = sample_parts(chunk.samples, ids)
     return [
         EstimateTask(
             wagon,
@@ -766,7 +766,7 @@ def fit_revision_noise(
     tasks = []
     if ids:
         samples = chunk_table(wh, "q_simulation_chunk_samples", ids)
-        parts = wagon_parts(samples, ids, ["time_utc", "file_id"], ["file_id"])
+        parts = sample_parts(samples, ids)
         tasks = [
             NoiseFitTask(wagons[w], parts[w], tuple(sorted(days[w])), rev, config) for w in ids
         ]

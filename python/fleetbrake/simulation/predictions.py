@@ -78,6 +78,7 @@ from fleetbrake.simulation.store import (
     forget_wagon,
     reader,
     replace_wagons,
+    sample_parts,
     sample_rows,
     simulated_wagons,
     stored_wagon_ids,
@@ -704,7 +705,7 @@ def chunk_tasks(chunk: WagonChunk) -> list[WagonTask]:
     """The chunk cut into its wagons' tasks, each wagon's rows sorted as the per-wagon
     queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
     ids = [wagon.wagon_id for wagon, _, _ in chunk.wagons]
-    samples = wagon_parts(chunk.samples, ids, ["time_utc", "file_id"], ["file_id"])
+    samples = sample_parts(chunk.samples, ids)
     events = wagon_parts(chunk.events, ids, ["start_utc"])
     return [
         WagonTask(

@@ -43,6 +43,7 @@ __all__ = [
     "reader",
     "replace_wagon",
     "replace_wagons",
+    "sample_parts",
     "sample_rows",
     "simulated_wagons",
     "stored_timeline",
@@ -250,6 +251,13 @@ def wagon_parts(
                 part = part.take(order)
         parts[wagon_id] = part.drop_columns(["wagon_id", *drop])
     return parts
+
+
+def sample_parts(table: pa.Table, wagon_ids: Sequence[str]) -> dict[str, pa.Table]:
+    """Each wagon's samples of a chunk read by ``q_simulation_chunk_samples.sql``, in the order
+    of the per-wagon query (time, then file) and without ``file_id``: :func:`wagon_parts` as
+    every stage that reads samples by chunks cuts them."""
+    return wagon_parts(table, wagon_ids, ["time_utc", "file_id"], ["file_id"])
 
 
 def _in_order(indices: pa.Array) -> bool:
