@@ -814,3 +814,79 @@ def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
         by_all = judge.raise_flags(wh, fleet.registry, rev.name)
     assert by_one.flags == by_all.flags and by_one.notes == by_all.notes
     assert by_all.flags
+
+
+def test_the_chunk_pipeline_yields_in_order_and_writes_whole_wagons_in_row_batches(
+    fleet: Fleet,
+) -> None:
+    """``store.chunk_pipeline`` (the simulation's and the estimate's one pipeline): chunks
+    of about ``chunk_rows`` samples read on a second connection, results yielded in the
+    wagons' order, written in batches of whole wagons of at most ``batch_rows`` rows (one
+    batch per call, the last committed before the generator ends); a failing partition is
+    raised, and the batch still being gathered is not written."""
+    from fleetbrake.simulation.store import chunk_pipeline, sample_rows
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        counts = sample_rows(wh)
+        ids = sorted(counts)
+        assert len(ids) == 2
+        read: list[list[str]] = []
+        written: list[list[tuple[str, int]]] = []
+
+        def reading(source: Any, chunk: list[str]) -> list[str]:
+            assert source.con is not wh.con  # the reader's own connection
+            read.append(chunk)
+            return chunk
+
+        def run(chunk_rows: int, batch_rows: int, fail: str = "") -> list[str]:
+            read.clear()
+            written.clear()
+
+            def compute(chunk: list[str]) -> list[tuple[str, int]]:
+                if fail in chunk:
+                    raise RuntimeError(f"wagon {fail}")
+                return [(w, 10) for w in chunk]
+
+            results = chunk_pipeline(
+                wh,
+                ids,
+                read=reading,
+                compute=compute,
+                write=written.append,
+                result_rows=lambda result: result[1],
+                chunk_rows=chunk_rows,
+                batch_rows=batch_rows,
+            )
+            return [w for w, _ in results]
+
+        assert run(sum(counts.values()), 20) == ids
+        assert (read, written) == ([ids], [[(w, 10) for w in ids]])  # one chunk, one batch
+        assert run(1, 15) == ids
+        assert read == [[w] for w in ids]  # a wagon's samples exceed a chunk: alone
+        assert written == [[(w, 10)] for w in ids]  # 20 rows > 15: a batch each
+        with pytest.raises(RuntimeError, match=ids[1]):
+            run(1, 20, fail=ids[1])
+        assert written == []  # the first wagon's batch was still being gathered
+
+
+def test_a_wagons_samples_are_totally_ordered_by_time_then_file(fleet: Fleet) -> None:
+    """``store.sample_parts`` sorts a wagon's samples by (time_utc, file_id), a stable sort of
+    rows read in no fixed order: that is deterministic only because ingest keeps one row per
+    time in a file (the first of repeated times, ``files.rows_duplicate``) and a file holds one
+    wagon, so no two stored samples of a wagon tie on both. The generated fleet's files do
+    repeat times."""
+    from fleetbrake.warehouse.connection import open_warehouse
+
+    with open_warehouse(fleet.db) as wh:
+        repeated = wh.con.execute("SELECT sum(rows_duplicate) FROM files").fetchone()
+        ties = wh.con.execute(
+            "SELECT count(*) FROM (SELECT wagon_id, time_utc, file_id FROM samples "
+            "GROUP BY ALL HAVING count(*) > 1)"
+        ).fetchone()
+        wagons_per_file = wh.con.execute(
+            "SELECT max(n) FROM (SELECT count(DISTINCT wagon_id) AS n FROM samples "
+            "GROUP BY file_id)"
+        ).fetchone()
+    assert repeated is not None and repeated[0] > 0
+    assert ties == (0,) and wagons_per_file == (1,)

@@ -100,9 +100,11 @@ def estimate_on_grid(
     if frame.height:
         k = (frame["time_utc"] - series.t0).dt.total_seconds().to_numpy().astype(np.int64)
         inside = (k >= 0) & (k < n)
+        columns = frame.select(  # one polars query for every column
+            pl.col(name).cast(pl.Float64).fill_null(np.nan) for name in ESTIMATE_COLUMNS
+        )
         for name in ESTIMATE_COLUMNS:
-            values = frame[name].cast(pl.Float64).fill_null(np.nan).to_numpy()
-            out[name][k[inside]] = values[inside]
+            out[name][k[inside]] = columns[name].to_numpy()[inside]
         has[k[inside]] = True
     settled = has.copy()
     first = np.flatnonzero(has)

@@ -66,6 +66,7 @@ from typing import Any, Protocol
 import numpy as np
 import polars as pl
 
+from fleetbrake.engine.writer import WriteBehind
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
@@ -219,16 +220,38 @@ class _Series:
 
     @classmethod
     def of(cls, samples: pl.DataFrame, config: EventConfig) -> _Series:
-        frame = samples.with_columns(pl.col("time_utc").cast(pl.Datetime("us")))
-        time_us = frame["time_utc"].to_physical().to_numpy()
+        # two polars queries per chain (the columns, the smoothed speed), the rest in numpy:
+        # each polars call costs about 0.3 ms, and a wagon-day has a few chains
+        columns = [
+            pl.col("time_utc").cast(pl.Datetime("us")),
+            pl.col("speed_kmh"),
+            pl.col("distance_m").cast(pl.Float64),
+            pl.col("brake_pressure_bar").cast(pl.Float64),
+            pl.col("block_temp_c").cast(pl.Float64),
+        ]
+        if "file_id" in samples.columns:
+            columns.append(pl.col("file_id"))
+        if "block_temp_fault" in samples.columns:
+            columns.append(pl.col("block_temp_fault").fill_null(False))
+        frame = samples.select(columns)
+        time_us = _physical_us(frame["time_utc"])
         if not np.all(np.diff(time_us) > 0):  # not sorted, or a time repeated
             frame = frame.sort("time_utc", maintain_order=True).unique(
                 subset="time_utc", keep="first", maintain_order=True
             )
-            time_us = frame["time_utc"].to_physical().to_numpy()
-        speed = frame.select("time_utc", "speed_kmh").drop_nulls().drop_nans()
-        smooth = speed["speed_kmh"].rolling_median(
-            window_size=config.speed_median_samples, center=True, min_samples=1
+            time_us = _physical_us(frame["time_utc"])
+        speed = (
+            frame.lazy()
+            .select("time_utc", "speed_kmh")
+            .drop_nulls()
+            .drop_nans()
+            .select(
+                "time_utc",
+                pl.col("speed_kmh").rolling_median(
+                    window_size=config.speed_median_samples, center=True, min_samples=1
+                ),
+            )
+            .collect()
         )
         time_s = time_us / _US_PER_S
         file_id = (
@@ -236,7 +259,7 @@ class _Series:
             if "file_id" in frame.columns
             else np.zeros(frame.height, dtype=np.int64)
         )
-        distance_m = frame["distance_m"].cast(pl.Float64).to_numpy()
+        distance_m = frame["distance_m"].to_numpy()
         has_distance = ~np.isnan(distance_m)
         distance_by_file = {
             int(f): (
@@ -249,18 +272,17 @@ class _Series:
             time_s=time_s,
             time_us=time_us,
             file_id=file_id,
-            pressure_bar=frame["brake_pressure_bar"].cast(pl.Float64).to_numpy(),
+            pressure_bar=frame["brake_pressure_bar"].to_numpy(),
             distance_m=distance_m,
             distance_by_file=distance_by_file,
-            block_temp_c=frame["block_temp_c"].cast(pl.Float64).to_numpy(),
+            block_temp_c=frame["block_temp_c"].to_numpy(),
             block_temp_fault=(
-                frame["block_temp_fault"].fill_null(False).to_numpy()
+                frame["block_temp_fault"].to_numpy()
                 if "block_temp_fault" in frame.columns
                 else np.zeros(frame.height, dtype=bool)
             ),
-            speed_time_s=speed["time_utc"].cast(pl.Datetime("us")).cast(pl.Int64).to_numpy()
-            / _US_PER_S,
-            speed_kmh=smooth.to_numpy(),
+            speed_time_s=_physical_us(speed["time_utc"]) / _US_PER_S,
+            speed_kmh=speed["speed_kmh"].to_numpy(),
         )
 
     def speed_at(self, time_s: float, near_s: float) -> float:
@@ -395,6 +417,11 @@ def _kind(
     return "slowdown"
 
 
+def _physical_us(times: pl.Series) -> np.ndarray:
+    """Microseconds since the epoch of a ``Datetime("us")`` column without nulls."""
+    return times.to_numpy().view(np.int64)
+
+
 def _utc(time_us: int) -> dt.datetime:
     return dt.datetime(1970, 1, 1) + dt.timedelta(microseconds=time_us)
 
@@ -481,7 +508,10 @@ def update_events(
     This process reads each wagon's touched chains (a few at a time, at most about
     ``_LOAD_ROWS`` samples: a partition), ``engine.map`` runs the detection on them (default:
     the builtin ``map``, here; an engine's workers otherwise), and this process brings each
-    wagon's events in line in one transaction as its partitions come back."""
+    wagon's events in line in one transaction as its partitions come back. The transactions
+    run on a writer thread (:class:`~fleetbrake.engine.writer.WriteBehind`), one wagon at a
+    time and in order, while the next wagons' samples are read on a second connection: the
+    reads and the commits, each a few milliseconds a wagon, overlap instead of adding up."""
     config = config or EventConfig()
     con = wh.con
     update = EventUpdate()
@@ -490,18 +520,30 @@ def update_events(
     for wagon_id, from_utc, to_utc in dirty:
         by_wagon.setdefault(wagon_id, []).append((from_utc, to_utc))
     affected_by_wagon: dict[str, list[_Chain]] = {}
-    tasks = _detect_tasks(wh, by_wagon, config, affected_by_wagon)
-    results = map(_detect_task, tasks) if engine is None else engine.map(_detect_task, tasks)
-    found: list[pl.DataFrame] = []
-    for task_wagon, events, last in results:
-        found.append(events)
-        if last:
-            new = pl.concat(found)
-            found = []
-            _update_wagon(
-                wh, task_wagon, by_wagon[task_wagon], affected_by_wagon.pop(task_wagon), new, update
+    holding = _holding_events(wh, sorted(by_wagon))
+
+    def write(done: tuple[str, list[_Chain], pl.DataFrame]) -> None:
+        wagon_id, affected, new = done
+        stored = wagon_id in holding
+        _update_wagon(wh, wagon_id, by_wagon[wagon_id], affected, new, update, stored=stored)
+        update.wagons += 1
+
+    cursor = con.cursor()  # the reads' own connection: ``con`` is the writer thread's
+    try:
+        with WriteBehind(write) as writer:
+            source = Warehouse(wh.path, cursor, None)
+            tasks = _detect_tasks(source, by_wagon, config, affected_by_wagon)
+            results = (
+                map(_detect_task, tasks) if engine is None else engine.map(_detect_task, tasks)
             )
-            update.wagons += 1
+            found: list[pl.DataFrame] = []
+            for task_wagon, events, last in results:
+                found.append(events)
+                if last:
+                    writer.submit((task_wagon, affected_by_wagon.pop(task_wagon), pl.concat(found)))
+                    found = []
+    finally:
+        cursor.close()
     row = con.execute(sql("q_events_count")).fetchone()
     update.total = int(row[0]) if row is not None else 0
     return update
@@ -591,13 +633,16 @@ def _update_wagon(
     affected: list[_Chain],
     new: pl.DataFrame,
     update: EventUpdate,
+    *,
+    stored: bool = True,
 ) -> None:
     """One wagon, one transaction: its touched chains' events ``new`` (detected again),
-    brought in line with the stored ones; its dirty ranges removed."""
+    brought in line with the stored ones; its dirty ranges removed. ``stored=False``: the
+    wagon holds no events (:func:`_holding_events`), none are read to compare."""
     con = wh.con
     with wh.transaction():
         windows = _merged([(c.from_utc, c.to_utc) for c in affected] + dirty, dt.timedelta(0))
-        old = _events_in(wh, wagon_id, windows)
+        old = _events_in(wh, wagon_id, windows) if stored else _NO_EVENTS
         new_rows = {row["event_id"]: row for row in new.iter_rows(named=True)}
         old_rows = {row["event_id"]: row for row in old.iter_rows(named=True)}
         gone = [i for i, row in old_rows.items() if new_rows.get(i) != row]
@@ -605,9 +650,8 @@ def _update_wagon(
         if gone:
             con.execute(sql("q_events_delete"), {"ids": gone})
         if fresh:
-            batch = new.filter(pl.col("event_id").is_in(fresh)).with_columns(
-                pl.lit(_utc_now()).alias("detected_utc")
-            )
+            batch = new if len(fresh) == new.height else new.filter(pl.col("event_id").is_in(fresh))
+            batch = batch.with_columns(pl.lit(_utc_now()).alias("detected_utc"))
             con.register("event_batch", batch)
             try:
                 con.execute(sql("q_insert_events"))
@@ -627,6 +671,18 @@ def _samples(
     """A wagon's samples in [from_utc, to_utc], sorted by time (then file)."""
     params = {"wagon_id": wagon_id, "from_utc": from_utc, "to_utc": to_utc}
     return wh.con.sql(sql("q_event_samples"), params=params).pl()
+
+
+_NO_EVENTS = pl.DataFrame(schema=EVENT_COLUMNS)
+
+
+def _holding_events(wh: Warehouse, wagon_ids: list[str]) -> set[str]:
+    """Which of ``wagon_ids`` hold stored events, in one query: the others' (every wagon of
+    a first run) have none to compare with, and are not read again one by one."""
+    if not wagon_ids:
+        return set()
+    rows = wh.con.execute(sql("q_events_holding_wagons"), {"wagon_ids": wagon_ids}).fetchall()
+    return {str(r[0]) for r in rows}
 
 
 def _events_in(

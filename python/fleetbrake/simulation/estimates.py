@@ -43,7 +43,8 @@ with one query (:func:`estimation_chunk`, about ``EstimationConfig.chunk_rows`` 
 the wagons' tasks and :func:`estimate_wagon` (pure, picklable, no database) estimates each
 and returns its rows as Arrow; the parent, the single writer, commits them in bulk, several
 whole wagons per transaction (``EstimationConfig.batch_rows``), on a writer thread while it
-reads and hands out the next chunks (:class:`~fleetbrake.simulation.store.WriteBehind`).
+reads and hands out the next chunks (the simulation's pipeline,
+:func:`~fleetbrake.simulation.store.chunk_pipeline`).
 ``engine``: the builtin ``map`` by default, an engine's workers otherwise; the rows are the
 same either way. :func:`fit_revision_noise` fits its wagons on the engine the same way
 (:func:`fit_wagon_noise`, one partition a wagon).
@@ -78,17 +79,15 @@ from fleetbrake.model.estimator import (
 from fleetbrake.model.estimator import WagonSeries as EstimatorSeries
 from fleetbrake.model.rom import ReducedModel
 from fleetbrake.simulation.chains import ChainParams, constant_runs
-from fleetbrake.simulation.predictions import Mapper, Revision
+from fleetbrake.simulation.predictions import Revision
 from fleetbrake.simulation.series import WagonSeries, running_median
 from fleetbrake.simulation.store import (
-    WriteBehind,
+    Mapper,
     chunk_name,
+    chunk_pipeline,
     chunk_table,
-    reader,
     sample_parts,
-    sample_rows,
     utc_now,
-    wagon_chunks,
 )
 from fleetbrake.warehouse.connection import Warehouse, sql
 
@@ -945,39 +944,32 @@ def estimate_wagons(
             todo.append((wagons_by_id[wagon_id], keys[wagon_id], model_key))
     if not todo:
         return report
-    counts = sample_rows(wh)
     holding = estimated_wagon_ids(wh, rev.name)  # the others' rows are only inserted
+    by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
+
+    def read(source: Warehouse, ids: list[str]) -> EstimateChunk:
+        return estimation_chunk(source, [by_id[w] for w in ids], rev, config, power)
 
     def write(batch: list[EstimateResult]) -> None:
         replace_estimates(wh, rev.name, batch, delete=any(r.wagon_id in holding for r in batch))
 
+    results = chunk_pipeline(
+        wh,
+        list(by_id),
+        read=read,
+        compute=estimate_chunk,
+        write=write,
+        result_rows=lambda result: result.seconds,
+        chunk_rows=config.chunk_rows,
+        batch_rows=config.batch_rows,
+        engine=engine,
+    )
     show = progress if progress is not None else os.isatty(1)
     from rich.progress import Progress
 
-    by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
-    pending: list[EstimateResult] = []
-    pending_rows = 0
-    with (
-        reader(wh) as source,
-        WriteBehind(write) as writer,
-        Progress(disable=not show, transient=True) as bar,
-    ):
-        chunks = (
-            estimation_chunk(source, [by_id[w] for w in ids], rev, config, power)
-            for ids in wagon_chunks(list(by_id), counts, config.chunk_rows)
-        )
-        done_chunks = (
-            map(estimate_chunk, chunks) if engine is None else engine.map(estimate_chunk, chunks)
-        )
-        results = (result for chunk in done_chunks for result in chunk)
+    with Progress(disable=not show, transient=True) as bar:
         task = bar.add_task("estimating wagons", total=len(todo))
         for result in results:
-            if pending and pending_rows + result.seconds > config.batch_rows:
-                writer.submit(pending)  # committed on the writer's thread as the work goes on
-                bar.advance(task, len(pending))
-                pending, pending_rows = [], 0
-            pending.append(result)
-            pending_rows += result.seconds
             logger.info(
                 "wagon %s: %d seconds estimated with revision %s (%.0f %% steady)",
                 result.wagon_id,
@@ -987,9 +979,7 @@ def estimate_wagons(
             )
             report.wagons_estimated.append(result.wagon_id)
             report.rows += result.seconds
-        writer.submit(pending)
-        writer.wait()
-        bar.advance(task, len(pending))
+            bar.advance(task)
     return report
 
 

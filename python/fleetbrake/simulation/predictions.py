@@ -33,9 +33,9 @@ same tables), :func:`simulate_chunk` cuts it into the wagons' tasks and
 :func:`simulate_wagon` (pure, picklable, no database) turns each into the rows' columns,
 each span in one call of the reduced model's chain kernel, and the parent writes them in
 bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``), on a writer
-thread while it reads the next chunks (:class:`~fleetbrake.simulation.store.WriteBehind`);
-``simulate_events(engine=...)`` runs the partitions on
-an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
+thread while it reads the next chunks (the stages' one pipeline,
+:func:`~fleetbrake.simulation.store.chunk_pipeline`); ``simulate_events(engine=...)`` runs
+the partitions on an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
 """
 
 from __future__ import annotations
@@ -45,9 +45,9 @@ import hashlib
 import json
 import logging
 import os
-from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Literal, Protocol
+from typing import Literal
 
 import numpy as np
 import polars as pl
@@ -69,22 +69,19 @@ from fleetbrake.simulation.chains import (
 )
 from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 from fleetbrake.simulation.store import (
+    Mapper,
     WagonRows,
     WagonWrite,
-    WriteBehind,
     chunk_name,
+    chunk_pipeline,
     chunk_table,
     data_keys,
     forget_wagon,
-    reader,
     replace_wagons,
     sample_parts,
-    sample_rows,
     simulated_wagons,
     stored_wagon_ids,
-    table_rows,
     utc_now,
-    wagon_chunks,
     wagon_events,
     wagon_parts,
     wagon_samples,
@@ -598,6 +595,10 @@ class WagonResult:
         are)."""
         return WagonRows(self.predictions, self.timeline, self.segments, self.events)
 
+    def row_count(self) -> int:
+        """Rows it writes, in every table (what a transaction's batch is sized by)."""
+        return int(self.predictions.num_rows + self.timeline.num_rows + self.segments.num_rows)
+
 
 def _frame(table: pa.Table) -> pl.DataFrame:
     frame = pl.from_arrow(table)
@@ -728,13 +729,6 @@ def simulate_chunk(chunk: WagonChunk) -> list[WagonResult]:
     return [simulate_wagon(task) for task in chunk_tasks(chunk)]
 
 
-class Mapper(Protocol):
-    """What runs the stage's partitions: an object with ``map(fn, items)`` yielding
-    ``fn(item)`` in the order of ``items`` (a :class:`fleetbrake.engine.Engine`)."""
-
-    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], /) -> Iterator[Any]: ...
-
-
 def simulate_events(
     wh: Warehouse,
     registry: Registry | Mapping[str, WagonConfig],
@@ -756,7 +750,7 @@ def simulate_events(
     builtin ``map``, in this process; an engine's workers otherwise), and the parent writes the
     results in bulk as they come back, several whole wagons per transaction (up to
     ``config.batch_rows`` rows), committed on a writer thread while it reads and hands out the
-    next chunks (:class:`~fleetbrake.simulation.store.WriteBehind`). ``reference``: the
+    next chunks (:func:`~fleetbrake.simulation.store.chunk_pipeline`). ``reference``: the
     segment-by-segment simulation instead of one kernel call per span (the same rows, to
     rounding)."""
     config = config or SimulationConfig()
@@ -801,51 +795,41 @@ def simulate_events(
     show = progress if progress is not None else os.isatty(1)
     from rich.progress import Progress
 
-    counts = sample_rows(wh)
     by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
     holding = stored_wagon_ids(wh, rev.name)  # the others' rows are only inserted
 
-    def write(batch: list[WagonWrite]) -> None:
-        replace_wagons(wh, rev.name, batch, delete=any(w.wagon_id in holding for w in batch))
+    def read(source: Warehouse, ids: list[str]) -> WagonChunk:
+        return wagon_chunk(source, [by_id[w] for w in ids], rev, config, reference=reference)
 
-    pending: list[WagonWrite] = []
-    pending_rows = 0
-    with (
-        reader(wh) as source,
-        WriteBehind(write) as writer,
-        Progress(disable=not show, transient=True) as bar,
-    ):
-        chunks = (
-            wagon_chunk(source, [by_id[w] for w in ids], rev, config, reference=reference)
-            for ids in wagon_chunks(list(by_id), counts, config.chunk_rows)
-        )
-        done_chunks = (
-            map(simulate_chunk, chunks) if engine is None else engine.map(simulate_chunk, chunks)
-        )
-        results = (result for chunk in done_chunks for result in chunk)
+    def write(batch: list[WagonResult]) -> None:
+        writes = [WagonWrite(r.wagon_id, r.rows(), r.data_key, r.model_key) for r in batch]
+        replace_wagons(wh, rev.name, writes, delete=any(w.wagon_id in holding for w in batch))
+
+    results = chunk_pipeline(
+        wh,
+        list(by_id),
+        read=read,
+        compute=simulate_chunk,
+        write=write,
+        result_rows=WagonResult.row_count,
+        chunk_rows=config.chunk_rows,
+        batch_rows=config.batch_rows,
+        engine=engine,
+    )
+    with Progress(disable=not show, transient=True) as bar:
         task = bar.add_task("simulating wagons", total=len(todo))
         for result in results:
-            written = result.rows()
-            wagon_write = WagonWrite(result.wagon_id, written, result.data_key, result.model_key)
-            if pending and pending_rows + wagon_write.row_count > config.batch_rows:
-                writer.submit(pending)  # whole wagons per transaction, on the writer's thread
-                bar.advance(task, len(pending))
-                pending, pending_rows = [], 0
-            pending.append(wagon_write)
-            pending_rows += wagon_write.row_count
             logger.info(
                 "wagon %s: %d events and %d timeline seconds simulated with revision %s",
                 result.wagon_id,
                 result.events,
-                table_rows(written.timeline),
+                result.timeline.num_rows,
                 result.revision,
             )
             report.wagons_simulated.append(result.wagon_id)
             report.events_simulated += result.events
-            report.prediction_rows += table_rows(written.predictions)
-            report.timeline_rows += table_rows(written.timeline)
+            report.prediction_rows += result.predictions.num_rows
+            report.timeline_rows += result.timeline.num_rows
             report.skipped += result.skipped
-        writer.submit(pending)
-        writer.wait()
-        bar.advance(task, len(pending))
+            bar.advance(task)
     return report

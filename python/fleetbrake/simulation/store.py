@@ -17,25 +17,28 @@ from). A wagon's rows of one revision are replaced together, in one transaction.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Any, Protocol, TypeVar
 
+import numpy as np
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 import pyarrow.compute as pc  # type: ignore[import-untyped]
 
+from fleetbrake.engine.writer import WriteBehind
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
+    "Mapper",
     "SimulatedWagon",
     "StoredTimeline",
     "TimelineSpan",
     "WagonRows",
     "WagonWrite",
     "WriteBehind",
+    "chunk_pipeline",
     "chunk_table",
     "data_keys",
     "forget_wagon",
@@ -62,44 +65,6 @@ def utc_now() -> dt.datetime:
     return dt.datetime.now(dt.UTC).replace(tzinfo=None)
 
 
-B = TypeVar("B")
-
-
-class WriteBehind(Generic[B]):
-    """The single writer's commits on a thread of their own, one batch at a time and in
-    order, while the caller reads the next partitions (through :func:`reader`) and keeps the
-    engine's workers fed: DuckDB releases the GIL while it inserts, so a stage's wall clock is
-    its reads, its workers and its inserts overlapped rather than added (``docs/
-    benchmarks.md``). :meth:`submit` waits for the batch before (raising its error) and starts
-    this one; leaving the ``with`` block waits for the last. At most two batches are held:
-    the one being written and the one being gathered."""
-
-    def __init__(self, write: Callable[[B], None]) -> None:
-        self._write = write
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warehouse-writer")
-        self._running: Future[None] | None = None
-
-    def submit(self, batch: B) -> None:
-        self.wait()
-        self._running = self._pool.submit(self._write, batch)
-
-    def wait(self) -> None:
-        """Wait for the batch being written (raising its error)."""
-        running, self._running = self._running, None
-        if running is not None:
-            running.result()
-
-    def __enter__(self) -> WriteBehind[B]:
-        return self
-
-    def __exit__(self, exc_type: object, *rest: object) -> None:
-        try:
-            if exc_type is None:
-                self.wait()
-        finally:
-            self._pool.shutdown(wait=True)  # an error: the batch being written ends first
-
-
 @contextmanager
 def reader(wh: Warehouse) -> Iterator[Warehouse]:
     """A second connection to ``wh``'s database (a DuckDB cursor: the same database and
@@ -111,6 +76,59 @@ def reader(wh: Warehouse) -> Iterator[Warehouse]:
         yield Warehouse(wh.path, cursor, None)
     finally:
         cursor.close()
+
+
+class Mapper(Protocol):
+    """What runs a stage's partitions: an object with ``map(fn, items)`` yielding
+    ``fn(item)`` in the order of ``items`` (a :class:`fleetbrake.engine.Engine`)."""
+
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], /) -> Iterator[Any]: ...
+
+
+C = TypeVar("C")
+R = TypeVar("R")
+
+
+def chunk_pipeline(
+    wh: Warehouse,
+    wagon_ids: Sequence[str],
+    *,
+    read: Callable[[Warehouse, list[str]], C],
+    compute: Callable[[C], list[R]],
+    write: Callable[[list[R]], None],
+    result_rows: Callable[[R], int],
+    chunk_rows: int,
+    batch_rows: int,
+    engine: Mapper | None = None,
+) -> Iterator[R]:
+    """The pipeline of a stage that computes whole wagons and stores their rows (the
+    simulation, the estimate): ``wagon_ids`` in chunks of about ``chunk_rows`` samples
+    (:func:`wagon_chunks`), each chunk ``read`` on a second connection (:func:`reader`: the
+    parent's reads, one query per table), ``compute``d by ``engine.map`` (default: the
+    builtin ``map``, in this process; an engine's workers otherwise: a pure, picklable
+    function of the chunk returning one result per wagon, in order), and the results
+    ``write``n in batches of whole wagons of at most ``batch_rows`` rows (``result_rows``
+    each; one batch may exceed it with its first wagon), one batch per call, on the writer's
+    thread (:class:`WriteBehind`), while the next chunks are read and computed. Yields each
+    result as it comes back, in the order of ``wagon_ids``; the last batch is committed
+    before the generator ends."""
+    counts = sample_rows(wh)
+    pending: list[R] = []
+    held = 0
+    with reader(wh) as source, WriteBehind(write) as writer:
+        chunks = (read(source, ids) for ids in wagon_chunks(wagon_ids, counts, chunk_rows))
+        done = map(compute, chunks) if engine is None else engine.map(compute, chunks)
+        for results in done:
+            for result in results:
+                rows = result_rows(result)
+                if pending and held + rows > batch_rows:
+                    writer.submit(pending)  # whole wagons per transaction, on its thread
+                    pending, held = [], 0
+                pending.append(result)
+                held += rows
+                yield result
+        writer.submit(pending)
+        writer.wait()
 
 
 @dataclass(frozen=True)
@@ -245,7 +263,7 @@ def wagon_parts(
     parts = {}
     for wagon_id, pieces in runs.items():
         part = pa.concat_tables(pieces) if pieces else table.slice(0, 0)
-        if part.num_rows > 1:
+        if part.num_rows > 1 and not _increasing(part.column(order_by[0])):
             order = pc.sort_indices(part.select(list(order_by)), sort_keys=keys)
             if not _in_order(order):  # most wagons' rows are stored in order: no copy
                 part = part.take(order)
@@ -258,6 +276,19 @@ def sample_parts(table: pa.Table, wagon_ids: Sequence[str]) -> dict[str, pa.Tabl
     of the per-wagon query (time, then file) and without ``file_id``: :func:`wagon_parts` as
     every stage that reads samples by chunks cuts them."""
     return wagon_parts(table, wagon_ids, ["time_utc", "file_id"], ["file_id"])
+
+
+def _increasing(column: pa.ChunkedArray) -> bool:
+    """True when ``column`` (a time or an integer, no nulls) strictly increases: sorting on it
+    first changes nothing, whatever the keys after it (most wagons' rows, stored in order),
+    and the sort is not computed. False when unsure (another type, nulls)."""
+    kind = column.type
+    if column.null_count or not (pa.types.is_timestamp(kind) or pa.types.is_integer(kind)):
+        return False
+    values = column.to_numpy()
+    if values.dtype.kind == "M":
+        values = values.view(np.int64)
+    return bool((values[1:] > values[:-1]).all())
 
 
 def _in_order(indices: pa.Array) -> bool:
