@@ -470,6 +470,44 @@ def test_rust_is_numpy_with_the_seat_error_and_the_power_held_at_standstill(
     _assert_same(fast, slow)
 
 
+def test_rust_is_numpy_with_the_quiet_noise_by_cylinder_state(
+    rom: ReducedModel, noisy: WagonSeries, fitted: EstimatorNoise
+) -> None:
+    """σ_q by the cylinder's state (session 9): the steps with the cylinder applied (the logged
+    pressure above the threshold at either end, not at a standstill) are transitions of their
+    own, whose quiet-mode noise is the applied one; the kernels agree, modes and all, and the
+    option changes the filter only through those steps' noise."""
+    manoeuvre = ManoeuvreTest(smoother_lead_s=120.0, applied_quiet_w_per_sqrt_s=0.3)
+    config = dataclasses.replace(
+        OPTIONS,
+        noise=dataclasses.replace(fitted, quiet_power_w_per_sqrt_s=0.03),
+        applied_pressure_bar=0.05,
+        manoeuvre=manoeuvre,
+    )
+    problem = prepare(rom, WAGON, noisy, config=config)
+    assert problem.applied is not None and problem.applied.any() and not problem.applied.all()
+    applied_steps = problem.applied[problem.index]
+    above = np.interp(problem.time_s, noisy.time_s, noisy.p_bar) > 0.05
+    braking = (above[:-1] | above[1:]) & ~problem.held
+    assert np.array_equal(applied_steps, braking)
+    fast = estimate([problem], config=config, engine="rust")[0]
+    slow = estimate([problem], config=config, engine="numpy")[0]
+    _assert_same(fast, slow)
+    # the same σ_q there as elsewhere is the filter without the option (exact recursions:
+    # the applied steps' keys break the steady stretches elsewhere)
+    same = dataclasses.replace(
+        config,
+        manoeuvre=dataclasses.replace(manoeuvre, applied_quiet_w_per_sqrt_s=0.03),
+        steady_tolerance=0.0,
+        smoother_tolerance=0.0,
+    )
+    plain = dataclasses.replace(same, applied_pressure_bar=None)
+    a = estimate([prepare(rom, WAGON, noisy, config=same)], config=same, engine="rust")[0]
+    b = estimate([prepare(rom, WAGON, noisy, config=plain)], config=plain, engine="rust")[0]
+    np.testing.assert_allclose(a.contact_mean_c, b.contact_mean_c, rtol=0, atol=1e-9)
+    assert np.max(np.abs(fast.contact_mean_c - b.contact_mean_c)) > 1e-3
+
+
 def test_the_smoother_lets_the_power_step_where_the_drag_began(
     problem: EstimatorProblem, fitted: EstimatorNoise, dragging: Scenario, noisy: WagonSeries
 ) -> None:
@@ -680,3 +718,27 @@ def test_the_benchmark_runs_both_engines_on_the_same_inputs(rom: ReducedModel) -
     assert figures["max_difference_k"] <= 1e-9
     assert figures["rust_wagon_seconds_per_s"] > 0 and figures["numpy_wagon_seconds_per_s"] > 0
     assert any("rust" in line and "numpy" in line for line in lines)
+
+
+def test_steady_states_and_replayed_excursions_change_no_result(rom: ReducedModel) -> None:
+    """A wagon-day as the benchmark makes it (trips, stops, unlogged standstills) with a
+    reading missing every 400 s: long steady stretches, each broken by an excursion the Rust
+    kernel records the first time and replays afterwards, and regime switches (standstill
+    steps, session starts) between them. The kernel that freezes and replays equals the numpy
+    reference, which computes every covariance step of the steady-state recursion, to 1e-9 on
+    every output: a replay or a frozen step that gave other numbers fails here."""
+    from fleetbrake.bench.estimator import SeriesMaker
+
+    day = SeriesMaker(rom, WagonConfig(wagon_id="BENCH-0000"), distinct_days=1, seed=5).series(0)
+    reading = day.reading_c.copy()
+    reading[np.arange(200, reading.size, 400)] = np.nan
+    series = dataclasses.replace(day, reading_c=reading)
+    config = EstimatorConfig(noise=EstimatorNoise(measurement_k=NOISE_K))
+    problem = prepare(rom, WAGON, series, config=config)
+    assert problem.n_samples > 30_000 and (problem.index != problem.index[0]).any()
+    fast = estimate([problem], config=config, engine="rust")[0]
+    slow = estimate([problem], config=config, engine="numpy")[0]
+    _assert_same(fast, slow)
+    # a fifth of the seconds or more frozen, as many replayed (33 % and 26 % found)
+    assert fast.frozen_fraction == slow.frozen_fraction > 0.2
+    assert fast.replayed_fraction > 0.2 and slow.replayed_fraction == 0.0

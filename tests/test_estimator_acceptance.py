@@ -154,7 +154,11 @@ NOT_MET_RMSE = (
     "band 0.974), but fails the identity bar (441 of 42,859 s outside the filtered band "
     "against at most 85: the log's -8 W in long brakings is too fast for sigma_q 0.03); the "
     "settings that hold identity (sigma_q 0.1, seat error 0.1 K / 600 s) give 0.0535 K "
-    "filtered; docs/estimator.md"
+    "filtered. Session 9: sigma_q by the cylinder's state (those settings with sigma_q "
+    "0.03 released and sigma_qa applied, pressure > 0.05 bar) still cannot do both: seed 3 "
+    "filtered 0.0373 / 0.0397 / 0.0418 / 0.0440 / 0.0486 K at sigma_qa 0.03 / 0.1 / 0.15 / "
+    "0.2 / 0.3 W/s^0.5 (bar 0.0389: sigma_qa <= ~0.08), identity outside the filtered band "
+    "441 / 337 / 190 / 90 / 0 s (bar 85: sigma_qa >= ~0.21); docs/estimator.md"
 )
 
 

@@ -151,5 +151,5 @@ def estimator_run(
     smoother_tolerance: float,
     checkpoint_steps: int,
     outputs_wanted: bool,
-    switching: tuple[float, float, float, float, float, int] | None = None,
+    switching: tuple[float, float, float, float, float, int, float] | None = None,
 ) -> list[dict[str, Any]]: ...

@@ -45,6 +45,11 @@ fn series_arrays<'py>(d: &Bound<'py, PyDict>) -> PyResult<SeriesArrays<'py>> {
 fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<Problem<'a>> {
     let order: usize = item(d, "order")?.extract()?;
     let diagonal: Vec<bool> = item(d, "diagonal")?.extract()?;
+    // per transition, whether the cylinder is applied over it (absent: none)
+    let applied: Vec<bool> = match d.get_item("applied")? {
+        Some(v) if !v.is_none() => v.extract()?,
+        _ => Vec::new(),
+    };
     let (a, gamma, lag_row) = (floats(d, "a")?, floats(d, "gamma")?, floats(d, "lag_row")?);
     let (phi, q_unit, q_gap) = (floats(d, "phi")?, floats(d, "q_unit")?, floats(d, "q_gap")?);
     let (lag_a, lag_b1, lag_power) = (
@@ -75,6 +80,7 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
         lag_a.len() == k,
         lag_b1.len() == k,
         lag_power.len() == k,
+        applied.is_empty() || applied.len() == k,
     ];
     if sizes.iter().any(|ok| !ok) {
         return Err(crate::errors::LengthMismatchError::new_err(format!(
@@ -101,6 +107,7 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
                 lag_b1: lag_b1[t],
                 lag_row: lag_row[t * r..(t + 1) * r].to_vec(),
                 lag_power: lag_power[t],
+                applied: applied.get(t).copied().unwrap_or(false),
             }
         })
         .collect();
@@ -176,6 +183,7 @@ fn outputs<'py>(py: Python<'py>, out: Outputs, n: usize) -> PyResult<Bound<'py, 
     d.set_item("manoeuvre", out.manoeuvre.into_pyarray(py))?;
     d.set_item("manoeuvre_steps", out.manoeuvre_steps)?;
     d.set_item("smoother_frozen_steps", out.smoother_frozen_steps)?;
+    d.set_item("memo_steps", out.memo_steps)?;
     d.set_item("final_state", out.final_state.into_pyarray(py))?;
     d.set_item("final_cov", out.final_cov.into_pyarray(py).reshape([n, n])?)?;
     Ok(d)
@@ -183,8 +191,9 @@ fn outputs<'py>(py: Python<'py>, out: Outputs, n: usize) -> PyResult<Bound<'py, 
 
 /// Filter (and smooth) every problem (dictionaries of flat arrays) with the same noise and
 /// settings; wagons in parallel, the GIL released. Returns one dictionary per problem.
-/// `switching`: (σ_q, window in steps, on, off, hold, the smoother's lead in steps) of the
-/// power noise's two modes, or None for σ_w at every step.
+/// `switching`: (σ_q, window in steps, on, off, hold, the smoother's lead in steps, σ_q over
+/// a step with the cylinder applied) of the power noise's two modes, or None for σ_w at every
+/// step.
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
 #[pyo3(signature = (problems, measurement_k, power_w_per_sqrt_s, smooth, steady_tolerance, smoother_tolerance, checkpoint_steps, outputs_wanted, switching=None))]
@@ -198,7 +207,7 @@ fn estimator_run<'py>(
     smoother_tolerance: f64,
     checkpoint_steps: usize,
     outputs_wanted: bool,
-    switching: Option<(f64, f64, f64, f64, f64, usize)>,
+    switching: Option<(f64, f64, f64, f64, f64, usize, f64)>,
 ) -> PyResult<Vec<Bound<'py, PyDict>>> {
     let dicts: Vec<Bound<'py, PyDict>> = problems
         .iter()
@@ -214,13 +223,14 @@ fn estimator_run<'py>(
     let noise = Noise {
         measurement_k,
         power_w_per_sqrt_s,
-        switching: switching.map(|(q, window, on, off, hold, lead)| Switching {
+        switching: switching.map(|(q, window, on, off, hold, lead, applied)| Switching {
             quiet_w_per_sqrt_s: q,
             window_steps: window,
             on_sigma: on,
             off_sigma: off,
             hold_power_sigma: hold,
             smoother_lead_steps: lead,
+            applied_w_per_sqrt_s: applied,
         }),
     };
     let settings = Settings {
@@ -229,6 +239,7 @@ fn estimator_run<'py>(
         smoother_tolerance,
         checkpoint_steps,
         outputs: outputs_wanted,
+        replay: true,
     };
     let sizes: Vec<usize> = problems.iter().map(Problem::n_state).collect();
     let results = call_detached(py, || run_many(&problems, noise, &settings))?;

@@ -8,7 +8,7 @@
 //!
 //! ```text
 //!     ξ' = A ξ + γ P + w        A diagonal (nominal convection) or dense
-//!     P' = φ P + ω              var ω = σ_w(mode)² q_unit
+//!     P' = φ P + ω              var ω = σ_w(mode, cylinder applied)² q_unit
 //!     (ξ, s) += u ε             var ε = q_gap (an unlogged interval: the block's offset)
 //!     ξ_i += η_i                var η_i = q_modes_i (the seat's model error, a coordinate)
 //!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
@@ -32,9 +32,13 @@
 //! (O(n²) per covariance step instead of O(n³)); and where the step's key (transition,
 //! reading or not) repeats and the covariance has stopped changing (every element by at
 //! most `tol √(Σ_ii Σ_jj)`), the steady gain and covariance are kept and only the mean is
-//! stepped (O(n)). The smoother runs backwards over blocks of `checkpoint_steps` seconds,
-//! each replayed from the filter's checkpoint, so its memory does not grow with the series;
-//! its information matrix `Λ` is frozen the same way inside a steady stretch.
+//! stepped (O(n)); a steady state found again for the same key within that tolerance is the
+//! one found before, and an excursion from it (the keys that leave it and come back) is
+//! recorded the first time and replayed after (`Memo`: the same operations on the same
+//! numbers give the same covariances). The smoother runs backwards over blocks of
+//! `checkpoint_steps` seconds, each replayed from the filter's checkpoint, so its memory does
+//! not grow with the series; its information matrix `Λ` is frozen the same way inside a
+//! steady stretch.
 
 use std::borrow::Cow;
 
@@ -72,6 +76,9 @@ pub struct Transition {
     pub lag_row: Vec<f64>,
     /// The lag's entry on the power.
     pub lag_power: f64,
+    /// Whether the cylinder is applied over the step: the quiet mode's noise is then
+    /// `Switching::applied_w_per_sqrt_s`.
+    pub applied: bool,
 }
 
 /// One wagon's filtering problem.
@@ -131,6 +138,8 @@ pub struct Switching {
     /// that changes the sequence, the smoother runs on a second forward pass with it. 0: the
     /// filter's sequence.
     pub smoother_lead_steps: usize,
+    /// σ_q over a step with the cylinder applied (`Transition::applied`), W/√s.
+    pub applied_w_per_sqrt_s: f64,
 }
 
 /// The filter's mode sequence with the manoeuvre mode begun `lead` steps before each
@@ -165,6 +174,9 @@ pub struct Settings {
     pub checkpoint_steps: usize,
     /// Whether to produce the per-second outputs (false: the likelihood only).
     pub outputs: bool,
+    /// Whether to record excursions from steady states and replay them (`Memo`; false:
+    /// compute every step that is not frozen, the same numbers).
+    pub replay: bool,
 }
 
 /// Per-second estimates of one quantity set (filtered or smoothed).
@@ -207,6 +219,8 @@ pub struct Outputs {
     pub log_likelihood: f64,
     pub updates: usize,
     pub frozen_steps: usize,
+    /// Steps whose covariance was a recorded excursion's (`Memo`), not computed again.
+    pub memo_steps: usize,
     pub smoother_frozen_steps: usize,
     pub final_state: Vec<f64>,
     pub final_cov: Vec<f64>,
@@ -335,25 +349,57 @@ fn axpy<const FMA: bool>(alpha: f64, x: &[f64], y: &mut [f64]) {
     }
 }
 
-/// Four dot products of `x` at once (one pass over `x`): `[x·a, x·b, x·c, x·d]`.
+/// Four dot products of `x` in one pass: `[x·a, x·b, x·c, x·d]`, each summed as `dot` sums
+/// it (four lanes, `(l0 + l1) + (l2 + l3)`, then the tail), so equal to four `dot`s to the
+/// bit. With FMA: one AVX2 register per product (written out: the compiler's own
+/// vectorisation of sixteen scalar accumulators spilled them to the stack).
 #[inline(always)]
 fn dot4<const FMA: bool>(x: &[f64], a: &[f64], b: &[f64], c: &[f64], d: &[f64]) -> [f64; 4] {
-    let mut s = [[0.0f64; 4]; 4];
-    let n4 = x.len() / 4 * 4;
-    for q in (0..n4).step_by(4) {
-        for l in 0..4 {
-            let xv = x[q + l];
-            s[0][l] = madd::<FMA>(xv, a[q + l], s[0][l]);
-            s[1][l] = madd::<FMA>(xv, b[q + l], s[1][l]);
-            s[2][l] = madd::<FMA>(xv, c[q + l], s[2][l]);
-            s[3][l] = madd::<FMA>(xv, d[q + l], s[3][l]);
+    let n = x.len();
+    assert!(a.len() >= n && b.len() >= n && c.len() >= n && d.len() >= n);
+    let n4 = n / 4 * 4;
+    let mut out = [0.0f64; 4];
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        use std::arch::x86_64::*;
+        // SAFETY: FMA is only true inside functions compiled with avx2 and fma (`run_avx2`),
+        // and every load reads four values below n4 <= the length of each slice.
+        unsafe {
+            let mut s = [_mm256_setzero_pd(); 4];
+            for q in (0..n4).step_by(4) {
+                let xv = _mm256_loadu_pd(x.as_ptr().add(q));
+                s[0] = _mm256_fmadd_pd(xv, _mm256_loadu_pd(a.as_ptr().add(q)), s[0]);
+                s[1] = _mm256_fmadd_pd(xv, _mm256_loadu_pd(b.as_ptr().add(q)), s[1]);
+                s[2] = _mm256_fmadd_pd(xv, _mm256_loadu_pd(c.as_ptr().add(q)), s[2]);
+                s[3] = _mm256_fmadd_pd(xv, _mm256_loadu_pd(d.as_ptr().add(q)), s[3]);
+            }
+            for (o, v) in out.iter_mut().zip(s) {
+                let mut l = [0.0f64; 4];
+                _mm256_storeu_pd(l.as_mut_ptr(), v);
+                *o = (l[0] + l[1]) + (l[2] + l[3]);
+            }
         }
     }
-    let mut out = [0.0f64; 4];
-    for (o, lanes) in out.iter_mut().zip(&s) {
-        *o = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+    #[cfg(target_arch = "x86_64")]
+    let vectorised = FMA;
+    #[cfg(not(target_arch = "x86_64"))]
+    let vectorised = false;
+    if !vectorised {
+        let mut s = [[0.0f64; 4]; 4];
+        for q in (0..n4).step_by(4) {
+            for l in 0..4 {
+                let xv = x[q + l];
+                s[0][l] = madd::<FMA>(xv, a[q + l], s[0][l]);
+                s[1][l] = madd::<FMA>(xv, b[q + l], s[1][l]);
+                s[2][l] = madd::<FMA>(xv, c[q + l], s[2][l]);
+                s[3][l] = madd::<FMA>(xv, d[q + l], s[3][l]);
+            }
+        }
+        for (o, lanes) in out.iter_mut().zip(&s) {
+            *o = (lanes[0] + lanes[1]) + (lanes[2] + lanes[3]);
+        }
     }
-    for q in n4..x.len() {
+    for q in n4..n {
         out[0] = madd::<FMA>(x[q], a[q], out[0]);
         out[1] = madd::<FMA>(x[q], b[q], out[1]);
         out[2] = madd::<FMA>(x[q], c[q], out[2]);
@@ -755,6 +801,98 @@ struct Checkpoint {
     s_var: f64,
 }
 
+/// One recorded step of an excursion from a steady state: the filtered covariance after a
+/// step with `key` from its parent (a steady cache or the node before).
+#[derive(Debug, Clone)]
+struct MemoNode {
+    cov: Vec<f64>,
+    gain: Vec<f64>,
+    s_var: f64,
+    mean_var: f64,
+    power_var: f64,
+    /// Filtered variance of each face node, NaN until asked for.
+    node_var: Vec<f64>,
+    children: Vec<(Key, u32)>,
+    /// The steady cache the step entered (its convergence test passed there).
+    steady: Option<usize>,
+}
+
+/// Excursions from steady states, recorded the first time and replayed after: leaving steady
+/// cache `c` with the keys `k1, k2, ...` gives the same covariances, gains and steady cache
+/// every time (the same operations on the same numbers), so a missing reading in a steady
+/// stretch, a switch of convection and back, the first seconds after them, cost the mean's
+/// step only the second time. Bounded by `cap` nodes.
+struct Memo {
+    roots: Vec<Vec<(Key, u32)>>,
+    nodes: Vec<MemoNode>,
+    cap: usize,
+}
+
+/// Where the last filtered covariance is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Last {
+    /// The forward pass's own buffer (`cov`).
+    Buf,
+    /// A steady cache (a frozen step).
+    Cache(usize),
+    /// A recorded excursion's node.
+    Node(usize),
+}
+
+/// Memory for the recorded excursions of one forward pass.
+const MEMO_BYTES: usize = 32 << 20;
+
+impl Memo {
+    fn new(n: usize, replay: bool) -> Self {
+        Memo {
+            roots: Vec::new(),
+            nodes: Vec::new(),
+            cap: if replay {
+                MEMO_BYTES / (8 * (n * n + 2 * n + 64))
+            } else {
+                0
+            },
+        }
+    }
+
+    fn children(&self, last: Last) -> Option<&Vec<(Key, u32)>> {
+        match last {
+            Last::Buf => None,
+            Last::Cache(c) => self.roots.get(c),
+            Last::Node(u) => Some(&self.nodes[u].children),
+        }
+    }
+
+    fn child(&self, last: Last, key: Key) -> Option<usize> {
+        self.children(last)?
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|&(_, u)| u as usize)
+    }
+
+    /// Record `node` as the child of `last` for `key`; None when `last` is not recorded or
+    /// the memory is spent.
+    fn record(&mut self, last: Last, key: Key, node: MemoNode) -> Option<usize> {
+        if self.nodes.len() >= self.cap || matches!(last, Last::Buf) {
+            return None;
+        }
+        let id = self.nodes.len();
+        let list = match last {
+            Last::Cache(c) => {
+                if self.roots.len() <= c {
+                    self.roots.resize(c + 1, Vec::new());
+                }
+                &mut self.roots[c]
+            }
+            Last::Node(u) => &mut self.nodes[u].children,
+            Last::Buf => unreachable!(),
+        };
+        list.push((key, id as u32));
+        self.nodes.push(node);
+        Some(id)
+    }
+}
+
 /// Scratch vectors of a covariance step.
 struct Work {
     a: Vec<f64>,
@@ -781,8 +919,9 @@ struct Kernel<'a> {
     d: Dims,
     m: usize,
     var_v: f64,
-    /// σ_w² of the quiet and the manoeuvre mode.
-    sw2: [f64; 2],
+    /// σ_w² of the quiet and the manoeuvre mode, and of the quiet mode with the cylinder
+    /// applied.
+    sw2: [f64; 3],
     switching: Option<Switching>,
     tol: f64,
     tol_back: f64,
@@ -813,6 +952,10 @@ impl<'a> Kernel<'a> {
                     .map_or(noise.power_w_per_sqrt_s, |s| s.quiet_w_per_sqrt_s)
                     .powi(2),
                 noise.power_w_per_sqrt_s.powi(2),
+                noise
+                    .switching
+                    .map_or(noise.power_w_per_sqrt_s, |s| s.applied_w_per_sqrt_s)
+                    .powi(2),
             ],
             switching: noise.switching,
             tol: settings.steady_tolerance,
@@ -881,7 +1024,11 @@ impl<'a> Kernel<'a> {
             // without a lag, Σh (h on the modes) is summed while the rows are made
             let acc = fused.then(|| (&self.h[..r], &mut *ph));
             tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc);
-            let sw2 = self.sw2[usize::from(manoeuvre)];
+            let sw2 = match (manoeuvre, tr.applied) {
+                (true, _) => self.sw2[1],
+                (false, true) => self.sw2[2],
+                (false, false) => self.sw2[0],
+            };
             pred[r * n + r] = madd::<FMA>(sw2, tr.q_unit, pred[r * n + r]);
             for (i, &q) in tr.q_modes.iter().enumerate() {
                 if q != 0.0 {
@@ -1063,6 +1210,7 @@ pub fn run(problem: &Problem<'_>, noise: Noise, settings: &Settings) -> Result<O
     crate::error::check_positive("power noise", noise.power_w_per_sqrt_s)?;
     if let Some(sw) = noise.switching {
         crate::error::check_positive("quiet power noise", sw.quiet_w_per_sqrt_s)?;
+        crate::error::check_positive("applied quiet power noise", sw.applied_w_per_sqrt_s)?;
         crate::error::check_positive("innovation window", sw.window_steps)?;
         crate::error::check_non_negative("switch-on threshold", sw.on_sigma)?;
         crate::error::check_non_negative("switch-off threshold", sw.off_sigma)?;
@@ -1116,14 +1264,7 @@ fn run_generic<const FMA: bool>(
             forward::<FMA>(&k, &quiet, Some(&modes))
         });
         let pass = led.as_ref().map_or(&fwd, |f| f);
-        let (est, frozen) = smooth::<FMA>(
-            &k,
-            &pass.modes,
-            &pass.manoeuvre,
-            &pass.caches,
-            &pass.checkpoints,
-            settings,
-        );
+        let (est, frozen) = smooth::<FMA>(&k, pass, settings);
         out.smoothed = Some(est);
         out.smoother_frozen_steps = frozen;
     }
@@ -1137,6 +1278,9 @@ struct Forward {
     manoeuvre: Vec<bool>,
     caches: Vec<Steady>,
     checkpoints: Vec<Checkpoint>,
+    memo: Memo,
+    /// The recorded node whose covariance step t replayed (FULL: none).
+    memo_of: Vec<u32>,
 }
 
 // `t` indexes the readings, the modes, the outputs and the steps alike
@@ -1169,6 +1313,9 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
     let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
     let mut w = Work::new(n);
     let mut steady: Option<usize> = None;
+    let mut last = Last::Buf;
+    let mut memo = Memo::new(n, settings.replay);
+    let mut memo_of = vec![FULL; n_t];
     let mut prev_key: Option<Key> = None;
     let mut manoeuvre_of = vec![false; n_t];
     // the innovation test: the normalised innovations' weighted mean, its standard deviation
@@ -1194,17 +1341,33 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         }
         let measured = p.reading_c[t].is_finite();
         let frozen = steady.filter(|&c| Some(caches[c].key) == key);
-        let s_var = match frozen {
-            Some(c) => {
+        let hit = match (frozen, key) {
+            (None, Some(kk)) => memo.child(last, kk),
+            _ => None,
+        };
+        let s_var = match (frozen, hit) {
+            (Some(c), _) => {
                 out.frozen_steps += 1;
                 modes[t] = c as u32;
                 gain.copy_from_slice(&caches[c].gain);
                 caches[c].s_var
             }
-            None => {
-                steady = None;
-                std::mem::swap(&mut prev, &mut cov);
-                let s_var = k.predict_cov::<FMA>(t, manoeuvre, &prev, &mut cov, &mut gain, &mut w);
+            (None, Some(u)) => {
+                out.memo_steps += 1;
+                memo_of[t] = u as u32;
+                gain.copy_from_slice(&memo.nodes[u].gain);
+                memo.nodes[u].s_var
+            }
+            (None, None) => {
+                if last == Last::Buf {
+                    std::mem::swap(&mut prev, &mut cov);
+                }
+                let src: &[f64] = match last {
+                    Last::Buf => &prev,
+                    Last::Cache(c) => &caches[c].cov,
+                    Last::Node(u) => &memo.nodes[u].cov,
+                };
+                let s_var = k.predict_cov::<FMA>(t, manoeuvre, src, &mut cov, &mut gain, &mut w);
                 // `gain` holds Σh: keep it for the update, then scale it into K
                 w.b.copy_from_slice(&gain);
                 if measured {
@@ -1235,12 +1398,25 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         } else {
             (0.0, 0)
         };
-        let (mean_var, node_var, power_var) = match frozen {
-            Some(c) => {
+        let (mean_var, node_var, power_var) = match (frozen, hit) {
+            (Some(c), _) => {
+                last = Last::Cache(c);
                 let s = &caches[c];
                 (s.mean_var, s.node_var[j], s.power_var)
             }
-            None => {
+            (None, Some(u)) => {
+                last = Last::Node(u);
+                steady = memo.nodes[u].steady;
+                if settings.outputs && memo.nodes[u].node_var[j].is_nan() {
+                    let c = k.node_row(j);
+                    k.times::<FMA>(&memo.nodes[u].cov, c, &mut w.a);
+                    memo.nodes[u].node_var[j] = dot::<FMA>(c, &w.a[..r]);
+                }
+                let node = &memo.nodes[u];
+                (node.mean_var, node.node_var[j], node.power_var)
+            }
+            (None, None) => {
+                steady = None;
                 let ph = std::mem::take(&mut w.b);
                 if settings.outputs {
                     let accs = [
@@ -1252,19 +1428,56 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
                     k.filter_cov::<FMA>(&mut cov, &gain, &ph, measured, None);
                 }
                 w.b = ph;
-                if let Some(key_now) = key {
-                    if key == prev_key && converged(&cov, &prev, n, k.tol, &mut w.d) {
-                        let made =
-                            k.make_steady::<FMA>(key_now, &cov, &gain, s_var, settings.smooth);
-                        caches.push(made);
-                        steady = Some(caches.len() - 1);
-                    }
-                }
-                (
+                let vars = (
                     dot::<FMA>(&k.cm, &acc_mean[..r]),
                     dot::<FMA>(k.node_row(j), &acc_node[..r]),
                     cov[r * n + r],
-                )
+                );
+                if let Some(key_now) = key {
+                    let src: &[f64] = match last {
+                        Last::Buf => &prev,
+                        Last::Cache(c) => &caches[c].cov,
+                        Last::Node(u) => &memo.nodes[u].cov,
+                    };
+                    if key == prev_key && converged(&cov, src, n, k.tol, &mut w.d) {
+                        // a steady state met before for this key, within the tolerance, is
+                        // taken again (so excursions from it are recorded once)
+                        let again = caches.iter().position(|c| {
+                            c.key == key_now && converged(&cov, &c.cov, n, k.tol, &mut w.d)
+                        });
+                        steady = Some(again.unwrap_or_else(|| {
+                            caches.push(k.make_steady::<FMA>(
+                                key_now,
+                                &cov,
+                                &gain,
+                                s_var,
+                                settings.smooth,
+                            ));
+                            caches.len() - 1
+                        }));
+                    }
+                    let mut node_var = vec![f64::NAN; k.m];
+                    if settings.outputs {
+                        node_var[j] = vars.1;
+                    }
+                    let node = MemoNode {
+                        cov: cov.clone(),
+                        gain: gain.clone(),
+                        s_var,
+                        mean_var: vars.0,
+                        power_var: vars.2,
+                        node_var,
+                        children: Vec::new(),
+                        steady,
+                    };
+                    last = match memo.record(last, key_now, node) {
+                        Some(u) => Last::Node(u),
+                        None => Last::Buf,
+                    };
+                } else {
+                    last = Last::Buf;
+                }
+                vars
             }
         };
         if let Some(sw) = k.switching {
@@ -1291,10 +1504,10 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         if settings.smooth && t % block == 0 {
             checkpoints.push(Checkpoint {
                 x: x.clone(),
-                cov: if frozen.is_none() {
-                    cov.clone()
-                } else {
-                    Vec::new()
+                cov: match last {
+                    Last::Buf => cov.clone(),
+                    Last::Cache(_) => Vec::new(),
+                    Last::Node(u) => memo.nodes[u].cov.clone(),
                 },
                 gain: gain.clone(),
                 nu,
@@ -1304,7 +1517,11 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         prev_key = key;
     }
     out.final_state = x;
-    out.final_cov = cov; // a steady stretch's cache was made from it
+    out.final_cov = match last {
+        Last::Buf => cov,
+        Last::Cache(c) => caches[c].cov.clone(),
+        Last::Node(u) => memo.nodes[u].cov.clone(),
+    };
     if settings.outputs {
         out.manoeuvre.clone_from(&manoeuvre_of);
     }
@@ -1314,6 +1531,8 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         manoeuvre: manoeuvre_of,
         caches,
         checkpoints,
+        memo,
+        memo_of,
     }
 }
 
@@ -1359,13 +1578,12 @@ impl Replay {
     fn run<const FMA: bool>(
         &mut self,
         k: &Kernel,
-        modes: &[u32],
-        manoeuvre: &[bool],
-        caches: &[Steady],
+        pass: &Forward,
         cp: &Checkpoint,
         t0: usize,
         t1: usize,
     ) {
+        let (modes, manoeuvre, caches) = (&pass.modes, &pass.manoeuvre, &pass.caches);
         let n = k.d.n;
         let nn = n * n;
         self.xs[..n].copy_from_slice(&cp.x);
@@ -1385,6 +1603,12 @@ impl Replay {
                 let c = &caches[modes[t] as usize];
                 gain.copy_from_slice(&c.gain);
                 c.s_var
+            } else if pass.memo_of[t] != FULL {
+                // a recorded excursion's step: what computing it again would give
+                let node = &pass.memo.nodes[pass.memo_of[t] as usize];
+                self.covs[i * nn..(i + 1) * nn].copy_from_slice(&node.cov);
+                gain.copy_from_slice(&node.gain);
+                node.s_var
             } else {
                 let (before, after) = self.covs.split_at_mut(i * nn);
                 let prev: &[f64] = if modes[t - 1] == FULL {
@@ -1428,14 +1652,8 @@ impl Replay {
 /// `λ̃ = Ĉᵀ λ - h ν/S`, `Λ̃ = Ĉᵀ Λ Ĉ + h hᵀ/S` (`Ĉ = I - K hᵀ`); then `λ_t-1 = Fᵀ λ̃`,
 /// `Λ_t-1 = Fᵀ Λ̃ F`. Returns the estimates and the number of steady steps.
 #[inline(always)]
-fn smooth<const FMA: bool>(
-    k: &Kernel,
-    modes: &[u32],
-    manoeuvre: &[bool],
-    caches: &[Steady],
-    checkpoints: &[Checkpoint],
-    settings: &Settings,
-) -> (Estimates, usize) {
+fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (Estimates, usize) {
+    let (modes, caches, checkpoints) = (&pass.modes, &pass.caches, &pass.checkpoints);
     let p = k.p;
     let (r, n) = (k.d.r, k.d.n);
     let nn = n * n;
@@ -1458,7 +1676,7 @@ fn smooth<const FMA: bool>(
     for (b, cp) in checkpoints.iter().enumerate().rev() {
         let t0 = b * block;
         let t1 = (t0 + block).min(n_t);
-        rep.run::<FMA>(k, modes, manoeuvre, caches, cp, t0, t1);
+        rep.run::<FMA>(k, pass, cp, t0, t1);
         for t in (t0..t1).rev() {
             let i = t - t0;
             let mode = modes[t];
@@ -1723,6 +1941,7 @@ mod tests {
                 lag_b1: if lag { lag_b1 } else { 0.0 },
                 lag_row,
                 lag_power,
+                applied: false,
             }
         };
         let e: Vec<f64> = lam.iter().map(|l: &f64| (-l).exp()).collect();
@@ -1854,7 +2073,14 @@ mod tests {
             h[..r].copy_from_slice(&p.c_probe);
         }
         let sw2_of = |t: usize| match (manoeuvre, noise.switching) {
-            (Some(m), Some(sw)) if !m[t] => sw.quiet_w_per_sqrt_s.powi(2),
+            (Some(m), Some(sw)) if !m[t] => {
+                let applied = t > 0 && p.transitions[p.index[t - 1] as usize].applied;
+                if applied {
+                    sw.applied_w_per_sqrt_s.powi(2)
+                } else {
+                    sw.quiet_w_per_sqrt_s.powi(2)
+                }
+            }
             _ => noise.power_w_per_sqrt_s.powi(2),
         };
         let var_v = noise.measurement_k.powi(2);
@@ -2011,6 +2237,7 @@ mod tests {
             off_sigma: 1.0,
             hold_power_sigma: 1.0,
             smoother_lead_steps: 0,
+            applied_w_per_sqrt_s: 0.03,
         }),
     };
 
@@ -2021,6 +2248,7 @@ mod tests {
             smoother_tolerance: tol,
             checkpoint_steps: block,
             outputs: true,
+            replay: true,
         }
     }
 
@@ -2063,6 +2291,40 @@ mod tests {
                 );
                 // the modes matter: σ_w everywhere is another filter
                 let plain = naive(&p, SWITCHING);
+                let diff = plain
+                    .filtered
+                    .power_sd_w
+                    .iter()
+                    .zip(&out.filtered.power_sd_w)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                assert!(diff > 1e-3, "{diff}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_applied_cylinders_quiet_noise_is_the_textbook_filters() {
+        let mut noise = SWITCHING;
+        if let Some(sw) = noise.switching.as_mut() {
+            sw.applied_w_per_sqrt_s = 0.2;
+        }
+        for lag in [false, true] {
+            let mut p = problem(lag, 1000, 7);
+            p.transitions[1].applied = true; // the dense stretches: "brakings"
+            for tol in [0.0, 1e-7] {
+                let out = run(&p, noise, &settings(tol, 64)).unwrap();
+                let reference = naive_modes(&p, noise, Some(&out.manoeuvre));
+                let tol_k = if tol == 0.0 { 1e-9 } else { 1e-5 };
+                assert_estimates("filtered", &out.filtered, &reference.filtered, tol_k);
+                assert_estimates(
+                    "smoothed",
+                    out.smoothed.as_ref().unwrap(),
+                    &reference.smoothed,
+                    10.0 * tol_k,
+                );
+                // and it is another filter than σ_q everywhere
+                let plain = run(&p, SWITCHING, &settings(tol, 64)).unwrap();
                 let diff = plain
                     .filtered
                     .power_sd_w
@@ -2138,6 +2400,42 @@ mod tests {
                 exact.smoothed.as_ref().unwrap(),
                 1e-9,
             );
+        }
+    }
+
+    #[test]
+    fn replayed_excursions_are_the_computed_ones() {
+        // the problem repeats every 1,500 steps (missing readings, a dense stretch, a gap):
+        // the same excursions from the same steady states, recorded once, replayed after
+        for (lag, noise) in [(false, NOISE), (true, NOISE), (false, SWITCHING)] {
+            let p = problem(lag, 9000, 13);
+            for tol in [1e-12, 1e-7] {
+                let replayed = run(&p, noise, &settings(tol, 128)).unwrap();
+                let mut s = settings(tol, 128);
+                s.replay = false;
+                let computed = run(&p, noise, &s).unwrap();
+                assert_eq!(computed.memo_steps, 0);
+                assert!(
+                    replayed.memo_steps > 100,
+                    "{} replayed at {tol}",
+                    replayed.memo_steps
+                );
+                assert_eq!(replayed.frozen_steps, computed.frozen_steps);
+                assert_eq!(replayed.manoeuvre, computed.manoeuvre);
+                // the same operations on the same numbers, but the face node's variance (a
+                // different order of summation where the replay asks for another node)
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&replayed.innovation_k), bits(&computed.innovation_k));
+                assert_eq!(replayed.filtered.mean_c, computed.filtered.mean_c);
+                assert_eq!(replayed.final_cov, computed.final_cov);
+                assert_estimates("filtered", &replayed.filtered, &computed.filtered, 1e-13);
+                assert_estimates(
+                    "smoothed",
+                    replayed.smoothed.as_ref().unwrap(),
+                    computed.smoothed.as_ref().unwrap(),
+                    1e-13,
+                );
+            }
         }
     }
 

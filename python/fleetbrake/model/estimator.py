@@ -87,7 +87,10 @@ largest of the reduced model's face-maximum nodes; its band is that node's.
 not): where that stays the same and the covariance has stopped changing (elementwise, relative
 to ``sqrt(Σ_ii Σ_jj)``, below ``steady_tolerance``), the filter keeps the steady-state gain and
 covariance and only the mean is stepped (standing, cruising, braking alike at the nominal
-convection); the smoother's backward information matrix is frozen the same way. The Rust
+convection); the smoother's backward information matrix is frozen the same way. A steady
+state found again for the same key within the tolerance is the one found before (both
+engines), and the Rust kernel replays a recorded excursion from it (a missing reading and
+the seconds after) instead of computing it again: the same numbers. The Rust
 kernel (``engine="rust"``) does this with structured (diagonal-plus-border) propagators and
 bounded memory; :func:`run_numpy` is the plain numpy implementation of the same algorithm,
 its reference in the tests and its peer in ``bench estimator``.
@@ -205,8 +208,19 @@ class ManoeuvreTest:
     changes the sequence, the smoother runs on a second forward pass with it; the filter and
     its reported modes are unchanged. Counted in steps (``smoother_lead_s / dt_s``), as the
     window is. 0: the filter's sequence."""
+    applied_quiet_w_per_sqrt_s: float | None = None
+    """The quiet mode's diffusion over a step with the cylinder applied
+    (:attr:`EstimatorConfig.applied_pressure_bar`), W/√s: a braking's heat depends on the
+    logged pressure's scale, whose error (0.4 % on the synthetic fleets) acts only while the
+    cylinder is applied. None: σ_q there as elsewhere. ``docs/estimator.md`` (session 9)."""
 
     def __post_init__(self) -> None:
+        applied = self.applied_quiet_w_per_sqrt_s
+        if applied is not None and not (math.isfinite(applied) and applied > 0):
+            raise ValueError(
+                f"ManoeuvreTest.applied_quiet_w_per_sqrt_s must be positive and finite, "
+                f"got {applied!r}"
+            )
         if not (math.isfinite(self.window_s) and self.window_s > 0):
             raise ValueError(f"ManoeuvreTest.window_s must be positive, got {self.window_s!r}")
         if not (math.isfinite(self.smoother_lead_s) and self.smoother_lead_s >= 0):
@@ -220,18 +234,21 @@ class ManoeuvreTest:
 
     def kernel_args(
         self, noise: EstimatorNoise, dt_s: float
-    ) -> tuple[float, float, float, float, float, int] | None:
-        """(σ_q, window in steps, on, off, hold, the smoother's lead in steps) for the
-        kernels; None with one mode."""
-        if noise.quiet_power_w_per_sqrt_s is None:
+    ) -> tuple[float, float, float, float, float, int, float] | None:
+        """(σ_q, window in steps, on, off, hold, the smoother's lead in steps, σ_q with the
+        cylinder applied) for the kernels; None with one mode."""
+        quiet = noise.quiet_power_w_per_sqrt_s
+        if quiet is None:
             return None
+        applied = self.applied_quiet_w_per_sqrt_s
         return (
-            float(noise.quiet_power_w_per_sqrt_s),
+            float(quiet),
             float(self.window_s / dt_s),
             float(self.on_sigma),
             float(self.off_sigma),
             float(self.hold_power_sigma),
             round(self.smoother_lead_s / dt_s),
+            float(quiet if applied is None else applied),
         )
 
 
@@ -295,9 +312,11 @@ class EstimatorConfig:
     recursion, on three wagon-days of a synthetic fleet: at 1e-7 the estimates move by at
     most 0.24 mK and 0.013 W (80 % of the seconds steady, 13-20 % faster than at 1e-8, where
     they moved by 4 µK with 75 % steady); ``docs/estimator.md``."""
-    smoother_tolerance: float = 1e-6
+    smoother_tolerance: float = 1e-5
     """The same for the smoother's information matrix, which only the smoothed standard
-    deviations use (the smoothed means do not depend on it)."""
+    deviations use (the smoothed means do not depend on it). Session 9: 1e-5 instead of 1e-6
+    moves them by at most 13 µK (the contact mean's) and 0.4 mW (the power's) on 8 benchmark
+    wagon-days and makes filter + smoother 19 % faster per CPU-second (``docs/estimator.md``)."""
     checkpoint_steps: int = 256
     """Rust kernel: seconds between the filter's checkpoints, which the smoother replays."""
     manoeuvre: ManoeuvreTest = field(default_factory=ManoeuvreTest)
@@ -325,6 +344,11 @@ class EstimatorConfig:
     kernel 45 % slower per CPU-second); ``docs/estimator.md`` has the figures."""
     seat_error_time_constant_s: float = 600.0
     """τ_b of ``seat_error_sd_k``: how long the seat's model error persists."""
+    applied_pressure_bar: float | None = None
+    """A step has the cylinder applied where either bounding sample's logged pressure exceeds
+    this (bar; the flags' release threshold is 0.05); over such a step (not a standstill, not
+    held) the quiet mode diffuses with ``manoeuvre.applied_quiet_w_per_sqrt_s``. None: no step
+    is told apart (one quiet σ_q)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -353,6 +377,11 @@ class EstimatorConfig:
                 raise ValueError(f"EstimatorConfig.{name} must be >= 0 and finite")
         if self.checkpoint_steps < 1:
             raise ValueError("EstimatorConfig.checkpoint_steps must be >= 1")
+        bar = self.applied_pressure_bar
+        if bar is not None and not (math.isfinite(bar) and bar >= 0):
+            raise ValueError(
+                f"EstimatorConfig.applied_pressure_bar must be >= 0 and finite, got {bar!r}"
+            )
         speed = self.standstill_speed_kmh
         if speed is not None and not (math.isfinite(speed) and speed >= 0):
             raise ValueError(
@@ -456,6 +485,13 @@ class EstimatorProblem:
     q_modes: FloatArray | None = None
     """(K, r): variance added by transition k to each modal coordinate (K²): the seat
     error's coordinate (the last, when the problem has one). None: zeros."""
+    applied: NDArray[np.bool_] | None = None
+    """(K): whether transition k is a step with the cylinder applied (its quiet-mode noise
+    ``ManoeuvreTest.applied_quiet_w_per_sqrt_s``). None: none is."""
+
+    def applied_transitions(self) -> NDArray[np.bool_]:
+        """``applied``, False where not given."""
+        return np.zeros(self.phi.size, dtype=bool) if self.applied is None else self.applied
 
     def mode_noise(self) -> FloatArray:
         """``q_modes``, zeros where not given."""
@@ -617,7 +653,7 @@ class _Transitions:
     offset_var_per_s: float = 0.0
     seat_sd_k: float = 0.0
     seat_tau_s: float = 600.0
-    keys: dict[tuple[bytes, int, bool, bool], int] = field(default_factory=dict)
+    keys: dict[tuple[bytes, int, bool, bool, bool], int] = field(default_factory=dict)
     a: list[FloatArray] = field(default_factory=list)
     gmat: list[FloatArray | None] = field(default_factory=list)
     g: list[FloatArray] = field(default_factory=list)
@@ -628,17 +664,21 @@ class _Transitions:
     lag: list[tuple[float, float, FloatArray, float]] = field(default_factory=list)
     q_gap: list[float] = field(default_factory=list)
     q_modes: list[FloatArray] = field(default_factory=list)
+    applied: list[bool] = field(default_factory=list)
 
     @property
     def seat_error(self) -> bool:
         """Whether the modal state carries the seat's model error as its last coordinate."""
         return self.seat_sd_k > 0
 
-    def get(self, dh: FloatArray, steps: int, dt_s: float, gap: bool, held: bool) -> int:
+    def get(
+        self, dh: FloatArray, steps: int, dt_s: float, gap: bool, held: bool, applied: bool
+    ) -> int:
         """The transition of a step of ``steps`` samples at convection ``h_nominal + dh``;
         ``gap``: an unlogged standstill; ``held``: the unexplained power neither heats nor
-        diffuses over the step (the wheel stands)."""
-        key = (np.ascontiguousarray(dh).tobytes(), steps, gap, held)
+        diffuses over the step (the wheel stands); ``applied``: the cylinder is applied (the
+        quiet mode's noise is ``ManoeuvreTest.applied_quiet_w_per_sqrt_s``)."""
+        key = (np.ascontiguousarray(dh).tobytes(), steps, gap, held, applied)
         found = self.keys.get(key)
         if found is not None:
             return found
@@ -697,6 +737,7 @@ class _Transitions:
         )
         self.lag.append(lag)
         self.q_modes.append(q_modes)
+        self.applied.append(applied)
         return self.keys[key]
 
 
@@ -725,6 +766,18 @@ def _held_steps(
         return np.zeros(gap.size, dtype=bool)
     still = speed_kmh <= config.standstill_speed_kmh
     return gap | (still[:-1] & still[1:])
+
+
+def _applied_steps(
+    p_bar: FloatArray, excluded: NDArray[np.bool_], config: EstimatorConfig
+) -> NDArray[np.bool_]:
+    """Per step (N-1): whether the cylinder is applied over it
+    (:attr:`EstimatorConfig.applied_pressure_bar`): either bounding sample's logged pressure
+    above the threshold, and not ``excluded`` (a standstill gap, a held step)."""
+    if config.applied_pressure_bar is None:
+        return np.zeros(excluded.size, dtype=bool)
+    above = p_bar > config.applied_pressure_bar
+    return (above[:-1] | above[1:]) & ~excluded
 
 
 def prepare(
@@ -837,15 +890,20 @@ def prepare(
         seat_tau_s=config.seat_error_time_constant_s,
     )
     held = _held_steps(values["speed_kmh"], gap, config)
-    # one transition per distinct (convection, length, standstill gap, power held): integer
-    # codes per column, then one key per step (sorting floats row by row is slow)
+    applied = _applied_steps(values["p_bar"], gap | held, config)
+    # one transition per distinct (convection, length, standstill gap, power held, cylinder
+    # applied): integer codes per column, then one key per step (sorting floats row by row
+    # is slow)
     codes = [np.unique(column, return_inverse=True) for column in dh.T]
-    key = (np.rint(steps_of).astype(np.int64) * 2 + gap) * 2 + held
+    key = ((np.rint(steps_of).astype(np.int64) * 2 + gap) * 2 + held) * 2 + applied
     for distinct, inverse_f in codes:
         key = key * max(distinct.size, 1) + inverse_f.reshape(-1)
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     ids = np.array(
-        [table.get(dh[i], int(steps_of[i]), dt, bool(gap[i]), bool(held[i])) for i in first],
+        [
+            table.get(dh[i], int(steps_of[i]), dt, bool(gap[i]), bool(held[i]), bool(applied[i]))
+            for i in first
+        ],
         dtype=np.int64,
     )
     index = ids[inverse.reshape(-1)] if n > 1 else np.zeros(0, dtype=np.int64)
@@ -908,6 +966,7 @@ def prepare(
         gap_dir=uniform,
         held=held,
         q_modes=np.stack(table.q_modes) if table.q_modes else np.zeros((0, r)),
+        applied=np.array(table.applied, dtype=bool),
     )
 
 
@@ -943,6 +1002,9 @@ class KernelOutputs:
     smoothed_power_sd_w: FloatArray | None = None
     smoother_frozen_steps: int = 0
     """Seconds at which the smoother's information matrix was steady."""
+    memo_steps: int = 0
+    """Rust kernel: seconds whose covariance step replayed a recorded excursion from a steady
+    state (the same numbers as computing it; the numpy reference computes every one)."""
     manoeuvre: NDArray[np.bool_] | None = None
     """Whether the step into each second used the manoeuvre mode's σ_w."""
     manoeuvre_steps: int = 0
@@ -994,6 +1056,9 @@ def run_numpy(
         if switching is None
         else (switching[0] ** 2, noise.power_w_per_sqrt_s**2)
     )
+    # the quiet mode's σ² over a step with the cylinder applied
+    sw2_applied = sw2_of[0] if switching is None else switching[6] ** 2
+    applied = p.applied_transitions()
     beta = 0.0 if switching is None else min(1.0 / switching[1], 1.0)
     m_sd = math.sqrt(beta / (2.0 - beta)) if switching is not None else 1.0
     mode = switching is None  # True: the manoeuvre mode
@@ -1036,6 +1101,7 @@ def run_numpy(
     cache_of = np.full(n_t, -1, dtype=np.int64)
     caches: list[_Steady] = []
     steady: _Steady | None = None
+    steady_id = -1
     prev_key: tuple[int, bool, bool] | None = None
     prev_cov = cov
     loglik = 0.0
@@ -1059,14 +1125,15 @@ def run_numpy(
             frozen_steps += 1
             cov_f, gain, s_var = steady.cov, steady.gain, steady.s_var
             mean_var, node_var, power_var = steady.mean_var, steady.node_var, steady.power_var
-            cache_of[t] = len(caches) - 1
+            cache_of[t] = steady_id
         else:
             steady = None
             if t > 0:
                 f = mats[k]
                 cov_pred = f @ cov @ f.T
                 cov_pred = 0.5 * (cov_pred + cov_pred.T)
-                cov_pred[ip, ip] += p.q_unit[k] * sw2_of[int(mode)]
+                sw2 = sw2_applied if (applied[k] and not mode) else sw2_of[int(mode)]
+                cov_pred[ip, ip] += p.q_unit[k] * sw2
                 cov_pred[modal, modal] += q_modes[k]
                 if q_gap[k] > 0:
                     cov_pred += q_gap[k] * gap_cov
@@ -1087,8 +1154,20 @@ def run_numpy(
                 and key == prev_key
                 and _converged(cov_f, prev_cov, steady_tolerance)
             ):
-                steady = _Steady(key, cov_f, gain, s_var, mean_var, node_var, power_var)
-                caches.append(steady)
+                # a steady state met before for this key, within the tolerance, is taken
+                # again (the Rust kernel records the excursions from it once)
+                steady_id = next(
+                    (
+                        i
+                        for i, c in enumerate(caches)
+                        if c.key == key and _converged(cov_f, c.cov, steady_tolerance)
+                    ),
+                    -1,
+                )
+                if steady_id < 0:
+                    caches.append(_Steady(key, cov_f, gain, s_var, mean_var, node_var, power_var))
+                    steady_id = len(caches) - 1
+                steady = caches[steady_id]
         predicted = float(h @ x_prior) + p.t_ref_c
         if measured:
             nu = float(y[t]) - predicted
@@ -1306,6 +1385,7 @@ def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
         "q_gap": c(p.gap_noise()[0], dtype=np.float64),
         "gap_dir": c(p.gap_noise()[1], dtype=np.float64),
         "q_modes": c(p.mode_noise().reshape(-1), dtype=np.float64),
+        "applied": [bool(v) for v in p.applied_transitions()],
     }
 
 
@@ -1371,6 +1451,9 @@ class ContactEstimate:
     """Share of the seconds at which the covariance was steady (the fast path)."""
     final_state: FloatArray
     final_cov: FloatArray
+    replayed_fraction: float = 0.0
+    """Rust kernel: share of the seconds whose covariance step replayed a recorded excursion
+    from a steady state (the second fast path; numpy: 0)."""
     smoothed_contact_mean_c: FloatArray | None = None
     smoothed_contact_mean_sd_k: FloatArray | None = None
     smoothed_contact_max_c: FloatArray | None = None
@@ -1465,6 +1548,7 @@ def _estimate_of(
         frozen_fraction=raw.frozen_steps / steps,
         final_state=raw.final_state,
         final_cov=raw.final_cov,
+        replayed_fraction=raw.memo_steps / steps,
         smoothed_contact_mean_c=pick(raw.smoothed_mean_c),
         smoothed_contact_mean_sd_k=pick(raw.smoothed_mean_sd_k),
         smoothed_contact_max_c=pick(raw.smoothed_max_c),
