@@ -152,34 +152,56 @@ PAUSE_EVENTS = """
 import sys, time
 from pathlib import Path
 import fleetbrake.ingest.events as events
-fleet, db, marker = sys.argv[1], sys.argv[2], Path(sys.argv[3])
-update_wagon = events._update_wagon
-done = []
+fleet, db, marker, hook, commit_events = sys.argv[1], sys.argv[2], Path(sys.argv[3]), sys.argv[4], int(sys.argv[5])
+events._COMMIT_EVENTS = commit_events
+original = getattr(events, hook)
 def pausing(*args, **kwargs):
-    update_wagon(*args, **kwargs)
-    done.append(args[1])
-    if len(done) == 2:  # two wagons' events committed, the third not yet
-        marker.write_text(",".join(done))
-        time.sleep(600)
-events._update_wagon = pausing
+    original(*args, **kwargs)
+    marker.write_text(hook)  # the first batch: committed, or its insert done, not committed
+    time.sleep(600)
+setattr(events, hook, pausing)
 from fleetbrake.ingest.files import IngestConfig, run_ingest
 run_ingest(fleet, db, config=IngestConfig(batch_rows=20_000), progress=False)
 """
 
 
+@pytest.mark.parametrize(
+    ("hook", "committed_wagons"),
+    [
+        ("_update_wagons", 2),  # the first batch (two wagons) committed, the second not begun
+        ("_insert_events", 0),  # inside the first batch's transaction, after its insert
+    ],
+)
 def test_sigkill_during_event_detection_then_rerun_equals_uninterrupted(
-    fleet: Path, reference: dict[str, list[tuple]], tmp_path: Path
+    fleet: Path,
+    reference: dict[str, list[tuple]],
+    tmp_path: Path,
+    hook: str,
+    committed_wagons: int,
 ) -> None:
+    per_wagon = [sum(row[1] == wagon for row in reference["events"]) for wagon in WAGONS]
+    assert all(n > 0 for n in per_wagon)
+    # batches of whole wagons: the first two wagons together, the third alone
+    commit_events = per_wagon[0] + per_wagon[1]
     db = tmp_path / "fleet.duckdb"
     marker = tmp_path / "paused"
-    child = _spawn(PAUSE_EVENTS, str(fleet), str(db), str(marker))
+    child = _spawn(PAUSE_EVENTS, str(fleet), str(db), str(marker), hook, str(commit_events))
     _wait_for(marker, child)
     _kill(child)
     assert _count(db, "SELECT count(*) FROM files") == 62
-    assert _count(db, "SELECT count(DISTINCT wagon_id) FROM event_dirty") == 1
-    assert _count(db, "SELECT count(DISTINCT wagon_id) FROM events") == 2
+    # whole wagons: each either has its events and no dirty range, or dirty ranges and none
+    assert _count(db, "SELECT count(DISTINCT wagon_id) FROM events") == committed_wagons
+    assert _count(db, "SELECT count(DISTINCT wagon_id) FROM event_dirty") == 3 - committed_wagons
+    assert (
+        _count(
+            db,
+            "SELECT count(*) FROM events WHERE wagon_id IN (SELECT wagon_id FROM event_dirty)",
+        )
+        == 0
+    )
     report = run_ingest(fleet, db, config=IngestConfig(**SMALL_BATCHES), progress=False)
-    assert report.results == [] and report.events is not None and report.events.wagons == 1
+    assert report.results == [] and report.events is not None
+    assert report.events.wagons == 3 - committed_wagons
     assert snapshot(db, ignore=WALL_CLOCK) == reference
 
 

@@ -21,8 +21,8 @@ import pytest
 
 from fleetbrake.engine import LocalEngine
 from fleetbrake.simulation import estimates as e
-from fleetbrake.simulation.store import WriteBehind, reader
-from fleetbrake.warehouse.connection import open_warehouse
+from fleetbrake.simulation.store import WriteBehind
+from fleetbrake.warehouse.connection import open_warehouse, reader
 
 
 @dataclass(frozen=True)

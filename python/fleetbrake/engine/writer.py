@@ -23,7 +23,7 @@ B = TypeVar("B")
 class WriteBehind(Generic[B]):
     """The single writer's commits on a thread of their own, one batch at a time and in
     order, while the caller reads the next partitions (through a second connection:
-    :func:`fleetbrake.simulation.store.reader`) and keeps the engine's workers fed.
+    :func:`fleetbrake.warehouse.connection.reader`) and keeps the engine's workers fed.
     :meth:`submit` waits for the batch before (raising its error) and starts this one;
     leaving the ``with`` block waits for the last. At most two batches are held: the one
     being written and the one being gathered."""

@@ -41,7 +41,14 @@ from fleetbrake.model.physics import (
     frictional_flux_w_m2,
 )
 from fleetbrake.simulation.estimates import reading_noise_k
-from fleetbrake.simulation.series import BoolArray, FloatArray, WagonSeries, merge_spans, runs
+from fleetbrake.simulation.series import (
+    BoolArray,
+    FloatArray,
+    WagonSeries,
+    merge_spans,
+    runs,
+    seconds_since,
+)
 
 __all__ = [
     "ESTIMATE_COLUMNS",
@@ -98,7 +105,7 @@ def estimate_on_grid(
     out = {name: np.full(n, np.nan) for name in ESTIMATE_COLUMNS}
     has = np.zeros(n, dtype=bool)
     if frame.height:
-        k = (frame["time_utc"] - series.t0).dt.total_seconds().to_numpy().astype(np.int64)
+        k = seconds_since(frame["time_utc"], series.t0)
         inside = (k >= 0) & (k < n)
         columns = frame.select(  # one polars query for every column
             pl.col(name).cast(pl.Float64).fill_null(np.nan) for name in ESTIMATE_COLUMNS

@@ -678,23 +678,24 @@ def wagon_residual_spread(predictions: pl.DataFrame) -> float | None:
     own data and the revision only, so another wagon's late file cannot move its flags."""
     if predictions.height == 0:
         return None
-    valid = predictions.filter(
-        pl.col("measured_sensor_c").is_not_null() & pl.col("predicted_sensor_c").is_not_null()
-    )
-    per_event = (
-        valid.with_columns(
+    spread = (  # one polars query
+        predictions.lazy()
+        .filter(
+            pl.col("measured_sensor_c").is_not_null() & pl.col("predicted_sensor_c").is_not_null()
+        )
+        .with_columns(
             ((pl.col("measured_sensor_c") - pl.col("predicted_sensor_c")) ** 2).alias("sq")
         )
         .group_by("event_id")
         .agg(pl.col("sq").mean().sqrt().alias("rms_k"), pl.len().alias("readings"))
         .filter(pl.col("readings") >= RESIDUAL_MIN_READINGS)
+        .select(pl.col("rms_k").median())
+        .collect(engine="in-memory")  # the engine of the eager calls it replaces
     )
-    if per_event.height == 0:
-        return None
-    value = per_event["rms_k"].median()
+    value = spread.item() if spread.height else None
     if value is None:
         return None
-    return min(float(value), RESIDUAL_SPREAD_CAP_K)  # type: ignore[arg-type]
+    return min(float(value), RESIDUAL_SPREAD_CAP_K)
 
 
 def _current_estimates(wh: Warehouse, revision_name: str) -> set[str]:

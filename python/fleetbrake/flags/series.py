@@ -18,7 +18,7 @@ import numpy as np
 import polars as pl
 
 from fleetbrake.simulation.chains import ChainParams
-from fleetbrake.simulation.series import FloatArray, WagonSeries
+from fleetbrake.simulation.series import FloatArray, WagonSeries, seconds_since, strictly_increasing
 from fleetbrake.simulation.store import StoredTimeline, TimelineSpan, wagon_events, wagon_samples
 from fleetbrake.warehouse.connection import Warehouse
 
@@ -43,7 +43,7 @@ def span_timeline(series: WagonSeries, span: TimelineSpan) -> SpanTimeline:
     """``span`` (stored for the same samples) on ``series``' grid."""
     predicted = np.full(series.n, np.nan)
     if span.values.height:
-        k = (span.values["time_utc"] - series.t0).dt.total_seconds().to_numpy().astype(np.int64)
+        k = seconds_since(span.values["time_utc"], series.t0)
         inside = (k >= 0) & (k < series.n)
         predicted[k[inside]] = span.values["predicted_sensor_c"].to_numpy()[inside]
     starts = [series.index(t) for t in span.segments["start_utc"]]
@@ -94,13 +94,21 @@ def spans_of(
         )
         return [(series, None) for series in spans]
     out: list[tuple[WagonSeries, SpanTimeline | None]] = []
+    times = samples["time_utc"]
+    ordered = strictly_increasing(times)  # a span's rows: a slice, no polars query
+    at = times.to_numpy() if ordered else None
     for span in stored.spans:
-        part = samples.filter(pl.col("time_utc").is_between(span.start_utc, span.end_utc))
+        if at is not None:
+            lo = int(np.searchsorted(at, np.datetime64(span.start_utc, "us"), "left"))
+            hi = int(np.searchsorted(at, np.datetime64(span.end_utc, "us"), "right"))
+            part = samples.slice(lo, hi - lo)
+        else:
+            part = samples.filter(pl.col("time_utc").is_between(span.start_utc, span.end_utc))
         if part.height == 0:
             continue
         own = events.filter(pl.col("start_utc").is_between(span.start_utc, span.end_utc))
         series = WagonSeries.from_frame(
-            wagon_id, part, ambient_default_c=ambient_default_c, events=own
+            wagon_id, part, ambient_default_c=ambient_default_c, events=own, ordered=ordered
         )
         out.append((series, span_timeline(series, span)))
     return out

@@ -320,15 +320,20 @@ def event_stats(
         return out
     # the wagon's windows as columns, sorted by event and time once; each event a slice
     # (one polars query for every column: each call costs about as much as its arithmetic)
-    rows = predictions.sort(["event_id", "time_utc"], maintain_order=True).select(
-        "event_id",
-        "time_utc",
-        pl.col("measured_sensor_c").cast(pl.Float64).fill_null(np.nan),
-        pl.col("predicted_sensor_c").cast(pl.Float64),
-        pl.col("predicted_contact_max_c").cast(pl.Float64),
-        pl.col("brake_pressure_bar").cast(pl.Float64).fill_null(0.0),
-        pl.col("speed_kmh").cast(pl.Float64).fill_null(0.0),
-        (pl.col("phase") == "heating").fill_null(False).alias("heating"),
+    rows = (
+        predictions.lazy()
+        .sort(["event_id", "time_utc"], maintain_order=True)
+        .select(
+            "event_id",
+            "time_utc",
+            pl.col("measured_sensor_c").cast(pl.Float64).fill_null(np.nan),
+            pl.col("predicted_sensor_c").cast(pl.Float64),
+            pl.col("predicted_contact_max_c").cast(pl.Float64),
+            pl.col("brake_pressure_bar").cast(pl.Float64).fill_null(0.0),
+            pl.col("speed_kmh").cast(pl.Float64).fill_null(0.0),
+            (pl.col("phase") == "heating").fill_null(False).alias("heating"),
+        )
+        .collect(engine="in-memory")  # the engine of the eager calls it replaces
     )
     ids = rows["event_id"].to_numpy()
     times = _times(rows["time_utc"])

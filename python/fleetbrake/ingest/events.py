@@ -44,13 +44,14 @@ Incremental (:func:`update_events`): each ingested file records its time range i
 ``event_dirty`` (in the file's transaction). A wagon's files whose time ranges lie within
 ``max_gap_s`` of each other form a *chain*; since events never bridge larger gaps, a chain's
 events depend only on its own samples. Every chain touching a dirty range is detected again,
-and the events table is brought in line in one transaction per wagon: events that are the
-same are left alone (their ``detected_utc`` unchanged), changed or vanished ones are replaced
-or deleted, new ones inserted, and the wagon's dirty ranges removed. A run killed half-way
-leaves the dirty ranges in place, so the next run does the work again. Samples are loaded a
-few whole chains (at most about 500,000 rows, unless one chain is longer) at a time: a
-partition, detected by an engine's worker when ``update_events`` is given an engine
-(:mod:`fleetbrake.engine`), while this process, the single writer, commits the wagons.
+and the events table is brought in line for a batch of whole wagons (about 1,000 events) in
+one transaction: events that are the same are left alone (their ``detected_utc``
+unchanged), changed or vanished ones are replaced or deleted, new ones inserted, and the
+wagons' dirty ranges removed. A run killed half-way leaves whole wagons done and the others'
+dirty ranges in place, so the next run does their work again. Samples are loaded a few whole
+chains (at most about 500,000 rows, unless one chain is longer) at a time: a partition,
+detected by an engine's worker when ``update_events`` is given an engine
+(:mod:`fleetbrake.engine`), while this process, the single writer, commits the batches.
 """
 
 from __future__ import annotations
@@ -63,11 +64,12 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import duckdb
 import numpy as np
 import polars as pl
 
 from fleetbrake.engine.writer import WriteBehind
-from fleetbrake.warehouse.connection import Warehouse, sql
+from fleetbrake.warehouse.connection import Warehouse, reader, sql
 
 __all__ = [
     "EVENT_COLUMNS",
@@ -456,6 +458,11 @@ class EventUpdate:
 _LOAD_ROWS = 500_000
 """Samples loaded per query at most (whole chains; a longer chain is loaded alone)."""
 
+_COMMIT_EVENTS = 1_000
+"""Events brought in line per transaction at most (whole wagons; a wagon with more is
+committed alone; a wagon without any counts one): ``BEGIN``/``COMMIT`` and the insert cost
+milliseconds whatever their size (``docs/benchmarks.md``, session 9)."""
+
 
 @dataclass(frozen=True)
 class _Chain:
@@ -507,11 +514,12 @@ def update_events(
 
     This process reads each wagon's touched chains (a few at a time, at most about
     ``_LOAD_ROWS`` samples: a partition), ``engine.map`` runs the detection on them (default:
-    the builtin ``map``, here; an engine's workers otherwise), and this process brings each
-    wagon's events in line in one transaction as its partitions come back. The transactions
-    run on a writer thread (:class:`~fleetbrake.engine.writer.WriteBehind`), one wagon at a
-    time and in order, while the next wagons' samples are read on a second connection: the
-    reads and the commits, each a few milliseconds a wagon, overlap instead of adding up."""
+    the builtin ``map``, here; an engine's workers otherwise), and this process brings whole
+    wagons' events in line, a batch of wagons (at most about ``_COMMIT_EVENTS`` events) in one
+    transaction, as their partitions come back. The transactions run on a writer thread
+    (:class:`~fleetbrake.engine.writer.WriteBehind`), one batch at a time and in order, while
+    the next wagons' samples are read on a second connection (:func:`reader`): the reads and
+    the commits overlap instead of adding up."""
     config = config or EventConfig()
     con = wh.con
     update = EventUpdate()
@@ -522,28 +530,29 @@ def update_events(
     affected_by_wagon: dict[str, list[_Chain]] = {}
     holding = _holding_events(wh, sorted(by_wagon))
 
-    def write(done: tuple[str, list[_Chain], pl.DataFrame]) -> None:
-        wagon_id, affected, new = done
-        stored = wagon_id in holding
-        _update_wagon(wh, wagon_id, by_wagon[wagon_id], affected, new, update, stored=stored)
-        update.wagons += 1
+    def write(batch: list[_Detected]) -> None:
+        _update_wagons(wh, batch, by_wagon, holding, update)
 
-    cursor = con.cursor()  # the reads' own connection: ``con`` is the writer thread's
-    try:
-        with WriteBehind(write) as writer:
-            source = Warehouse(wh.path, cursor, None)
-            tasks = _detect_tasks(source, by_wagon, config, affected_by_wagon)
-            results = (
-                map(_detect_task, tasks) if engine is None else engine.map(_detect_task, tasks)
-            )
-            found: list[pl.DataFrame] = []
-            for task_wagon, events, last in results:
-                found.append(events)
-                if last:
-                    writer.submit((task_wagon, affected_by_wagon.pop(task_wagon), pl.concat(found)))
-                    found = []
-    finally:
-        cursor.close()
+    pending: list[_Detected] = []
+    held = 0
+    with reader(wh) as source, WriteBehind(write) as writer:
+        tasks = _detect_tasks(source, by_wagon, config, affected_by_wagon)
+        results = map(_detect_task, tasks) if engine is None else engine.map(_detect_task, tasks)
+        found: list[pl.DataFrame] = []
+        for task_wagon, events, last in results:
+            found.append(events)
+            if not last:
+                continue
+            new = pl.concat(found)
+            found = []
+            rows = max(new.height, 1)
+            if pending and held + rows > _COMMIT_EVENTS:
+                writer.submit(pending)  # whole wagons per transaction, on its thread
+                pending, held = [], 0
+            pending.append(_Detected(task_wagon, affected_by_wagon.pop(task_wagon), new))
+            held += rows
+        if pending:
+            writer.submit(pending)
     row = con.execute(sql("q_events_count")).fetchone()
     update.total = int(row[0]) if row is not None else 0
     return update
@@ -626,43 +635,73 @@ def _load_groups(chains: list[_Chain], affected: list[_Chain]) -> list[list[_Cha
     return groups
 
 
-def _update_wagon(
+@dataclass(frozen=True)
+class _Detected:
+    """A wagon's touched chains and their events, detected again: what its transaction
+    brings in line."""
+
+    wagon_id: str
+    affected: list[_Chain]
+    events: pl.DataFrame
+
+
+def _update_wagons(
     wh: Warehouse,
-    wagon_id: str,
-    dirty: list[tuple[dt.datetime, dt.datetime]],
-    affected: list[_Chain],
-    new: pl.DataFrame,
+    batch: list[_Detected],
+    dirty: dict[str, list[tuple[dt.datetime, dt.datetime]]],
+    holding: set[str],
     update: EventUpdate,
-    *,
-    stored: bool = True,
 ) -> None:
-    """One wagon, one transaction: its touched chains' events ``new`` (detected again),
-    brought in line with the stored ones; its dirty ranges removed. ``stored=False``: the
-    wagon holds no events (:func:`_holding_events`), none are read to compare."""
+    """Whole wagons, one transaction: each wagon's touched chains' events (detected again)
+    brought in line with the stored ones (:func:`_line_up`), then one delete, one insert and
+    the wagons' dirty ranges (``dirty``) removed. A wagon not in ``holding`` holds no events
+    (:func:`_holding_events`): none are read to compare. ``update`` counts them once
+    committed."""
     con = wh.con
     with wh.transaction():
-        windows = _merged([(c.from_utc, c.to_utc) for c in affected] + dirty, dt.timedelta(0))
-        old = _events_in(wh, wagon_id, windows) if stored else _NO_EVENTS
-        new_rows = {row["event_id"]: row for row in new.iter_rows(named=True)}
-        old_rows = {row["event_id"]: row for row in old.iter_rows(named=True)}
-        gone = [i for i, row in old_rows.items() if new_rows.get(i) != row]
-        fresh = [i for i, row in new_rows.items() if old_rows.get(i) != row]
+        lined = [
+            _line_up(wh, wagon, dirty[wagon.wagon_id], wagon.wagon_id in holding) for wagon in batch
+        ]
+        gone = [i for wagon_gone, _, _ in lined for i in wagon_gone]
+        fresh = [frame for _, frame, _ in lined if frame.height]
         if gone:
             con.execute(sql("q_events_delete"), {"ids": gone})
         if fresh:
-            batch = new if len(fresh) == new.height else new.filter(pl.col("event_id").is_in(fresh))
-            batch = batch.with_columns(pl.lit(_utc_now()).alias("detected_utc"))
-            con.register("event_batch", batch)
-            try:
-                con.execute(sql("q_insert_events"))
-            finally:
-                con.unregister("event_batch")
-        con.execute(sql("q_events_clear_dirty"), {"wagon_id": wagon_id})
-    update.chains += len(affected)
-    update.added += len(fresh)
-    update.removed += len(gone)
-    update.unchanged += len(new_rows) - len(fresh)
-    update.changed_ids.extend(sorted(fresh))
+            _insert_events(con, pl.concat(fresh))
+        con.execute(sql("q_events_clear_dirty"), {"wagon_ids": [w.wagon_id for w in batch]})
+    for wagon, (wagon_gone, frame, unchanged) in zip(batch, lined, strict=True):
+        update.wagons += 1
+        update.chains += len(wagon.affected)
+        update.added += frame.height
+        update.removed += len(wagon_gone)
+        update.unchanged += unchanged
+        update.changed_ids.extend(sorted(frame["event_id"].to_list()))
+
+
+def _line_up(
+    wh: Warehouse, wagon: _Detected, dirty: list[tuple[dt.datetime, dt.datetime]], stored: bool
+) -> tuple[list[str], pl.DataFrame, int]:
+    """A wagon's stored events to delete (changed or vanished), its new events to insert
+    (new or changed), how many are unchanged. ``stored=False``: it holds none to read."""
+    windows = _merged([(c.from_utc, c.to_utc) for c in wagon.affected] + dirty, dt.timedelta(0))
+    new = wagon.events
+    old = _events_in(wh, wagon.wagon_id, windows) if stored else _NO_EVENTS
+    new_rows = {row["event_id"]: row for row in new.iter_rows(named=True)}
+    old_rows = {row["event_id"]: row for row in old.iter_rows(named=True)}
+    gone = [i for i, row in old_rows.items() if new_rows.get(i) != row]
+    fresh = [i for i, row in new_rows.items() if old_rows.get(i) != row]
+    frame = new if len(fresh) == new.height else new.filter(pl.col("event_id").is_in(fresh))
+    return gone, frame, len(new_rows) - len(fresh)
+
+
+def _insert_events(con: duckdb.DuckDBPyConnection, events: pl.DataFrame) -> None:
+    """Insert ``events`` (the detection's columns), stamped with ``detected_utc`` now."""
+    batch = events.with_columns(pl.lit(_utc_now()).alias("detected_utc"))
+    con.register("event_batch", batch)
+    try:
+        con.execute(sql("q_insert_events"))
+    finally:
+        con.unregister("event_batch")
 
 
 def _samples(

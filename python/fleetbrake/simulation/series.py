@@ -36,10 +36,34 @@ __all__ = [
     "nan_running_mean",
     "running_median",
     "runs",
+    "seconds_since",
+    "strictly_increasing",
 ]
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
+
+_US_PER_S = 1_000_000
+
+
+def seconds_since(times: pl.Series, t0: dt.datetime) -> IntArray:
+    """Whole seconds from ``t0`` to each of ``times``, truncated toward zero as polars'
+    ``(times - t0).dt.total_seconds()`` has them, in numpy (that expression is three polars
+    queries, and the flags make it for every span)."""
+    if times.dtype != pl.Datetime("us", None) or times.has_nulls():
+        return (times - t0).dt.total_seconds().to_numpy().astype(np.int64)
+    us = (times.to_numpy() - np.datetime64(t0, "us")).astype(np.int64)
+    return np.sign(us) * (np.abs(us) // _US_PER_S)
+
+
+def strictly_increasing(times: pl.Series) -> bool:
+    """``times`` (no nulls) strictly increase: sorting them, or keeping the first row of each
+    time, would leave them as they are."""
+    if times.has_nulls():
+        return False
+    values = times.to_numpy()
+    return bool(values.size < 2 or (values[1:] > values[:-1]).all())
 
 
 @dataclass
@@ -129,19 +153,22 @@ class WagonSeries:
             raise ValueError(f"wagon {wagon_id}: no samples")
         frame = (
             samples
-            if ordered
+            if ordered or strictly_increasing(samples["time_utc"])
             else samples.sort("time_utc", maintain_order=True).unique(
                 "time_utc", keep="first", maintain_order=True
             )
         )
         t0 = frame["time_utc"][0]
-        k = (frame["time_utc"] - t0).dt.total_seconds().to_numpy().astype(np.int64)
+        k = seconds_since(frame["time_utc"], t0)
         n = int(k[-1]) + 1
+        floats = frame.select(  # one polars query for every column
+            pl.col(name).cast(pl.Float64) for name in _FLOAT_COLUMNS if name in frame.columns
+        )
 
         def column(name: str) -> FloatArray:
             out = np.full(n, np.nan)
-            if name in frame.columns:
-                out[k] = frame[name].cast(pl.Float64).to_numpy()
+            if name in floats.columns:
+                out[k] = floats[name].to_numpy()
             return out
 
         present = np.zeros(n, dtype=bool)
@@ -177,6 +204,16 @@ class WagonSeries:
                     series.events.append((event_id, a, b, bool(whole)))
             series.events.sort(key=lambda e: e[1])
         return series
+
+
+_FLOAT_COLUMNS = (
+    "speed_kmh",
+    "brake_pressure_bar",
+    "ambient_temp_c",
+    "block_temp_c",
+    "block_temp_raw_c",
+)
+"""The sample columns :meth:`WagonSeries.from_frame` puts on the grid as floats."""
 
 
 def interpolate_missing(values: FloatArray, default: float) -> FloatArray:

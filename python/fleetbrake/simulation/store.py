@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeVar
 
@@ -28,7 +27,8 @@ import pyarrow as pa  # type: ignore[import-untyped]  # ships no type informatio
 import pyarrow.compute as pc  # type: ignore[import-untyped]
 
 from fleetbrake.engine.writer import WriteBehind
-from fleetbrake.warehouse.connection import Warehouse, sql
+from fleetbrake.simulation.series import strictly_increasing
+from fleetbrake.warehouse.connection import Warehouse, reader, sql
 
 __all__ = [
     "Mapper",
@@ -43,7 +43,6 @@ __all__ = [
     "data_keys",
     "forget_wagon",
     "load_timeline",
-    "reader",
     "replace_wagon",
     "replace_wagons",
     "sample_parts",
@@ -63,19 +62,6 @@ __all__ = [
 
 def utc_now() -> dt.datetime:
     return dt.datetime.now(dt.UTC).replace(tzinfo=None)
-
-
-@contextmanager
-def reader(wh: Warehouse) -> Iterator[Warehouse]:
-    """A second connection to ``wh``'s database (a DuckDB cursor: the same database and
-    settings) for the reads of a stage whose writes run on :class:`WriteBehind`'s thread on
-    ``wh``'s own connection (one connection is not to be used by two threads at once). It
-    sees what was committed. Closed at the end of the block."""
-    cursor = wh.con.cursor()
-    try:
-        yield Warehouse(wh.path, cursor, None)
-    finally:
-        cursor.close()
 
 
 class Mapper(Protocol):
@@ -436,13 +422,41 @@ def stored_timeline(
     stored = StoredTimeline(wagon_id, revision, data_key)
     if segments.height == 0:
         return stored
-    for (start, end), part in segments.group_by(
-        ["span_start_utc", "span_end_utc"], maintain_order=True
-    ):
+    times = values["time_utc"]
+    at = times.to_numpy() if strictly_increasing(times) else None
+    for (start, end), part in _by_span(segments):
         assert isinstance(start, dt.datetime) and isinstance(end, dt.datetime)
-        inside = values.filter(pl.col("time_utc").is_between(start, end))
-        stored.spans.append(
-            TimelineSpan(start, end, part.drop("span_start_utc", "span_end_utc"), inside)
-        )
+        if at is not None:  # the span's rows: a slice, no polars query
+            lo = int(np.searchsorted(at, np.datetime64(start, "us"), "left"))
+            hi = int(np.searchsorted(at, np.datetime64(end, "us"), "right"))
+            inside = values.slice(lo, hi - lo)
+        else:
+            inside = values.filter(pl.col("time_utc").is_between(start, end))
+        stored.spans.append(TimelineSpan(start, end, part, inside))
     stored.spans.sort(key=lambda s: s.start_utc)
     return stored
+
+
+def _by_span(
+    segments: pl.DataFrame,
+) -> list[tuple[tuple[dt.datetime, dt.datetime], pl.DataFrame]]:
+    """``segments`` grouped by (``span_start_utc``, ``span_end_utc``) in the order each span
+    first appears, without those two columns: slices when each span's rows are consecutive
+    (as ``q_simulation_timeline_segments.sql`` orders them), else a polars ``group_by``."""
+    starts = segments["span_start_utc"]
+    ends = segments["span_end_utc"]
+    if not (starts.has_nulls() or ends.has_nulls()):
+        a, b = starts.to_numpy(), ends.to_numpy()
+        cut = np.flatnonzero((a[1:] != a[:-1]) | (b[1:] != b[:-1])) + 1
+        first = np.concatenate([[0], cut])
+        if len(set(zip(a[first].tolist(), b[first].tolist(), strict=True))) == first.size:
+            stops = np.concatenate([cut, [a.size]])
+            rest = segments.drop("span_start_utc", "span_end_utc")
+            return [
+                ((starts[int(i)], ends[int(i)]), rest.slice(int(i), int(j - i)))
+                for i, j in zip(first, stops, strict=True)
+            ]
+    return [
+        (key, part.drop("span_start_utc", "span_end_utc"))
+        for key, part in segments.group_by(["span_start_utc", "span_end_utc"], maintain_order=True)
+    ]

@@ -49,6 +49,7 @@ __all__ = [
     "WarehouseLockedError",
     "apply_schema",
     "open_warehouse",
+    "reader",
     "sql",
     "sql_files",
 ]
@@ -262,6 +263,20 @@ class Warehouse:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextmanager
+def reader(wh: Warehouse) -> Iterator[Warehouse]:
+    """A second connection to ``wh``'s database (a DuckDB cursor: the same database and
+    settings) for the reads of a stage whose writes run on a writer thread
+    (:class:`fleetbrake.engine.writer.WriteBehind`) on ``wh``'s own connection (one
+    connection is not to be used by two threads at once). It sees what was committed.
+    Closed at the end of the block."""
+    cursor = wh.con.cursor()
+    try:
+        yield Warehouse(wh.path, cursor, None)
+    finally:
+        cursor.close()
 
 
 def open_warehouse(

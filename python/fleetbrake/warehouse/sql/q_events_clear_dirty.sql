@@ -1,4 +1,4 @@
--- A wagon's events are up to date: forget its dirty time ranges, in the transaction that
--- updated its events (fleetbrake.ingest.events). Parameters: $wagon_id.
+-- Wagons' events are up to date: forget their dirty time ranges, in the transaction that
+-- updated their events (fleetbrake.ingest.events). Parameters: $wagon_ids (a list).
 DELETE FROM event_dirty
-WHERE wagon_id = $wagon_id;
+WHERE list_contains($wagon_ids, wagon_id);
