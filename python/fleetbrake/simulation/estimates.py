@@ -377,6 +377,9 @@ def _model_key(wagon: WagonConfig, rev: Revision, config: EstimationConfig, powe
             "estimator": estimator,
             "power_noise_w_per_sqrt_s": power,
             "given_noise": None if config.noise is None else dataclasses.asdict(config.noise),
+            # the stage's noise when none is given: σ_v and σ_w are the wagon's and the
+            # revision's, the rest (σ_q, the fallbacks) the class's defaults
+            "default_noise": dataclasses.asdict(EstimatorNoise()),
             "min_measurement_noise_k": config.min_measurement_noise_k,
             "frozen": [config.frozen_min_s, config.frozen_resolution_k, config.frozen_noise_k],
             "speed_median_samples": config.chain.speed_median_samples,
