@@ -173,21 +173,31 @@ def report_agrees_with_v_predictions(db: Path, report: dict, holdout: dt.date) -
 
 
 def check_numerical_term(report: dict) -> None:
-    """The reported intervals are the statistical ones widened by the numerical term: the
+    """The reported intervals are the statistical ones widened by the numerical term (the
     chosen effects refitted through each coarser mesh of the configuration, the largest GCI
-    per parameter added in quadrature about the fitted value (docs/closeloop.md)."""
+    per parameter) and the input term (refitted with the speed's magnitude bias taken out,
+    the shift), added in quadrature about the fitted value (docs/closeloop.md)."""
     methods = report["interval_methods"]
     numerical = methods["numerical"]
+    inputs = methods["input"]
     config = CloseLoopConfig(dt.date(2024, 1, 1))
     assert [g["ratio"] for g in numerical["grids"]] == list(config.numerical_grid_ratios)
+    assert inputs["speed_noise_kmh"] == pytest.approx(0.3, rel=0.1)  # the generator's
     for name, value in report["parameters"].items():
         gcis = [g["gci"][name] for g in numerical["grids"]]
         shifts = [g["shift"][name] for g in numerical["grids"]]
         assert all(math.isfinite(s) for s in shifts), numerical
         assert numerical["half_width"][name] == pytest.approx(max(gcis), rel=1e-5)
+        u_input = inputs["half_width"][name]
+        assert u_input == pytest.approx(abs(inputs["shift"][name]), rel=1e-5)
+        # the shift is from the chosen fit; the reported value may have moved since by the
+        # refit after re-flagging (a few 1e-6 of the value)
+        assert abs(inputs["debiased"][name] - value) == pytest.approx(
+            u_input, abs=1e-5 * abs(value)
+        )
         lo_s, hi_s = methods["statistical"][name]
         lo, hi = report["parameter_intervals"][name]
-        half = math.hypot(max(value - lo_s, hi_s - value), max(gcis))
+        half = math.hypot(max(value - lo_s, hi_s - value), max(gcis), u_input)
         assert (lo, hi) == pytest.approx((value - half, value + half), rel=1e-5), name
         assert lo <= lo_s and hi_s <= hi, name
 

@@ -38,6 +38,7 @@ from fleetbrake.simulation.predictions import (
     predict_wagon,
     stored_wagons,
 )
+from fleetbrake.simulation.series import running_median
 from fleetbrake.synth.generator import SynthConfig, generate_fleet
 from fleetbrake.warehouse.connection import open_warehouse
 
@@ -165,3 +166,97 @@ def test_local_and_inline_engines_close_the_loop_alike(fleet: Fleet, tmp_path: P
     assert [c["effect"] for c in inline["candidates"]] == [c["effect"] for c in local["candidates"]]
     assert inline["cost"]["candidates_fitted"] == local["cost"]["candidates_fitted"]
     assert inline["cost"]["kernel_calls"] == local["cost"]["kernel_calls"] > 0
+
+
+def report_differences(
+    a: Any, b: Any, rel: float = 1e-12, path: str = "", skip: tuple[str, ...] = ("cost/seconds",)
+) -> list[str]:
+    """Where two close-loop reports differ: every number to ``rel`` (relative, 1e-300 K
+    absolute), every other value exactly, the same keys and lengths; the paths in ``skip``
+    (the seconds spent) not compared."""
+    if path.lstrip("/") in skip:
+        return []
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{path}: keys {sorted(a.keys() ^ b.keys())}"]
+        return [d for k in a for d in report_differences(a[k], b[k], rel, f"{path}/{k}", skip)]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} against {len(b)} items"]
+        return [
+            d
+            for i, (u, v) in enumerate(zip(a, b, strict=True))
+            for d in report_differences(u, v, rel, f"{path}[{i}]", skip)
+        ]
+    numbers = (int, float)
+    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool):
+        same = a == b or abs(a - b) <= rel * max(abs(a), abs(b), 1e-300)
+        return [] if same else [f"{path}: {a!r} against {b!r}"]
+    return [] if a == b else [f"{path}: {a!r} against {b!r}"]
+
+
+def test_report_differences_sees_a_change_in_any_number() -> None:
+    a = {"x": [1.0, {"y": 0.5}], "cost": {"seconds": {"total_s": 1.0}}, "s": "a"}
+    assert report_differences(a, a) == []
+    assert report_differences(a, {**a, "cost": {"seconds": {"total_s": 9.0}}}) == []
+    assert report_differences(a, {**a, "x": [1.0, {"y": 0.5 + 1e-9}]}) == [
+        "/x[1]/y: 0.5 against 0.500000001"
+    ]
+    assert report_differences(a, {**a, "s": "b"}) == ["/s: 'a' against 'b'"]
+    assert report_differences(a, {**a, "x": [1.0]}) == ["/x: 2 against 1 items"]
+
+
+@pytest.mark.usefixtures("rom_env")
+def test_the_same_fleet_gives_the_same_report(fleet: Fleet, tmp_path: Path) -> None:
+    """Two close loops on copies of one database (the default method: screening, outliers,
+    choice, intervals with the numerical and input terms, revision, re-flagging) give the same
+    report, every number to 1e-12 (only the seconds spent differ): nothing in the loop
+    depends on an unseeded draw, a set's order, or the order rows come back in."""
+    config = CloseLoopConfig(
+        HOLDOUT,
+        simulation=fleet.simulation,
+        candidates=("convection_speed", "sensor_lag", "ambient_offset"),
+    )
+    reports = []
+    for run in ("first", "second"):
+        db = tmp_path / f"{run}.duckdb"
+        shutil.copy(fleet.db, db)
+        reports.append(run_close_loop(db, HOLDOUT, tmp_path / f"{run}.json", config=config))
+    first, second = reports
+    assert first["new_revision"] is not None, first.get("evidence")
+    assert "input" in first["interval_methods"], first["interval_methods"].keys()
+    assert report_differences(first, second) == []
+
+
+def test_the_speed_noise_is_read_from_the_logged_speed_and_its_bias_taken_out(
+    fleet: Fleet,
+) -> None:
+    """The input term's two pieces on a generated fleet (GPS speed ``|v + e|``, noise 0.3
+    km/h, ``SynthConfig.speed_noise_kmh``): the noise estimated from the logged speed where
+    the wagon moves, within 10 %; the speed debiased, ``sqrt(max(v^2 - noise^2, 0))``: 0
+    where the wagon stands (it logs about its noise there), unchanged to 1e-3 at running
+    speeds, the driving running median debiased alike."""
+    config = CloseLoopConfig(HOLDOUT, simulation=fleet.simulation)
+    with open_warehouse(fleet.db) as wh:
+        wagons = stored_wagons(wh)
+        base = current_revision(wh, refinement=TEST_REFINEMENT)
+        fit, _, _ = _event_sets(wh, base.name, config)
+        loaded = {w: load_wagon(wh, wagons[w], fleet.simulation) for w in fit["wagon_id"]}
+    noise = fitdata.speed_noise_kmh(loaded)
+    assert noise == pytest.approx(0.3, rel=0.1)
+    debiased = fitdata.with_speed_debiased(loaded, noise)
+    width = fleet.simulation.chain.speed_median_samples
+    for wagon_id, data in loaded.items():
+        for before, after in zip(data.spans, debiased[wagon_id].spans, strict=True):
+            raw = np.isfinite(before.speed_raw_kmh)
+            assert np.array_equal(raw, np.isfinite(after.speed_raw_kmh))
+            v = before.speed_raw_kmh[raw]
+            assert np.all(after.speed_raw_kmh[raw][v <= noise] == 0.0)
+            running = v > 30.0
+            np.testing.assert_allclose(after.speed_raw_kmh[raw][running], v[running], rtol=1e-4)
+            np.testing.assert_allclose(
+                running_median(after.speed_kmh, width),
+                np.sqrt(np.maximum(running_median(before.speed_kmh, width) ** 2 - noise**2, 0)),
+                atol=1e-12,
+            )
+        assert data.spans[0].speed_kmh is not debiased[wagon_id].spans[0].speed_kmh  # a copy

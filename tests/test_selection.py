@@ -17,6 +17,7 @@ from fleetbrake.closeloop.selection import (
     blocked_cv_rmse,
     blocked_intervals,
     circular_linear_correlation,
+    combined_half_width,
     distinguishable_from_null,
     effective_sample_size,
     grid_convergence_index,
@@ -325,6 +326,13 @@ def test_numerical_term_is_added_in_quadrature_about_the_estimate():
     assert out["d"] == (4.0, 6.0)  # not given: unchanged
 
 
+def test_numerical_and_input_terms_combine_in_quadrature():
+    out = combined_half_width([{"a": 0.3, "b": 0.0}, {"a": 0.4, "c": 2.0}])
+    assert out == pytest.approx({"a": 0.5, "b": 0.0, "c": 2.0})
+    assert list(out) == ["a", "b", "c"]  # in the order first named
+    assert combined_half_width([]) == {}
+
+
 def test_effect_nulls_name_real_laws_and_parameters():
     from fleetbrake.model.effects import EFFECT_ORDER
 
@@ -514,11 +522,11 @@ def report_dict(**changes):
 def test_report_first_line_is_the_verdict():
     found = render_markdown(report_dict()).splitlines()
     assert found[0].startswith("found: convection_speed")
-    assert "| h_speed | 1.2 | 1.1 | 1.3 | - | - |" in found
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | - | - | - |" in found
     # the statistical method and the numerical term beside the reported interval
     methods = {"widest": {"h_speed": "jackknife"}, "numerical": {"half_width": {"h_speed": 0.05}}}
     with_term = render_markdown(report_dict(interval_methods=methods)).splitlines()
-    assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife | 0.05 |" in with_term
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife | 0.05 | - |" in with_term
     assert any("adequate" in line and "yes" in line for line in found)
     partly = (
         "partly explained: friction_speed explains 76 % of the residual; 1.2 K remains "
@@ -559,7 +567,11 @@ def test_report_names_the_law_the_refusals_and_the_figure_judged():
             "max_ratio": 1.5,
         },
         parameter_intervals={"h_speed": [1.1, 1.3]},
-        interval_methods={"widest": {"h_speed": "jackknife"}},
+        interval_methods={
+            "widest": {"h_speed": "jackknife"},
+            "numerical": {"half_width": {"h_speed": 0.03}},
+            "input": {"half_width": {"h_speed": 0.04}},
+        },
     )
     text = render_markdown(report)
     first = text.splitlines()[0]
@@ -567,5 +579,5 @@ def test_report_names_the_law_the_refusals_and_the_figure_judged():
     assert first.startswith("found: convection_speed (fit RMSE 1.31 -> 0.118 K, 0.105 K without 2")
     assert "| convection_speed[flat_plate] | 12.0 |" in text
     assert "+1.0 % | held-out RMSE 0.5 -> 0.495 K" in text
-    assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife |" in text
+    assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife | 0.03 | 0.04 |" in text
     assert "ratio 1.05 (adequate at most 1.5)" in text

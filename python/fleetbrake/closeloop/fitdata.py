@@ -43,6 +43,7 @@ reduced-model cache, once per process): an engine's workers get the data once ea
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import pickle
@@ -56,6 +57,7 @@ import polars as pl
 
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.effects import DriveInputs, EffectSet
+from fleetbrake.model.estimator import noise_from_second_differences
 from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
 from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
 from fleetbrake.simulation.chains import (
@@ -74,7 +76,14 @@ from fleetbrake.simulation.predictions import (
 )
 from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 
-__all__ = ["FitData", "kernel_calls", "store", "stored"]
+__all__ = [
+    "FitData",
+    "kernel_calls",
+    "speed_noise_kmh",
+    "store",
+    "stored",
+    "with_speed_debiased",
+]
 
 _KERNEL_CALLS = [0]
 
@@ -287,6 +296,61 @@ def _prepare_span(
         select=np.concatenate(select) if select else np.zeros(0, dtype=np.int64),
     )
     return span, done, True
+
+
+MOVING_KMH = 5.0
+"""km/h: :func:`speed_noise_kmh` reads the GPS speed's noise where the logged speed is above
+this on three consecutive seconds (a wagon that moves: its speed changes smoothly)."""
+
+
+def speed_noise_kmh(loaded: Mapping[str, WagonData], moving_kmh: float = MOVING_KMH) -> float:
+    """The logged GPS speed's white noise (km/h), from the data: the second differences of the
+    logged speed (``speed_raw_kmh``) over three consecutive logged seconds all above
+    ``moving_kmh``, of every span of every wagon, scaled robustly
+    (:func:`~fleetbrake.model.estimator.noise_from_second_differences`: 1.4826 MAD / sqrt 6;
+    a train's speed changes smoothly, so its second differences are the noise's). NaN when no
+    such seconds."""
+    parts: list[FloatArray] = []
+    for data in loaded.values():
+        for series in data.spans:
+            v = series.speed_raw_kmh
+            if v.size < 3:
+                continue
+            d2 = v[2:] - 2.0 * v[1:-1] + v[:-2]
+            ok = np.isfinite(d2) & (v[2:] > moving_kmh) & (v[1:-1] > moving_kmh)
+            ok &= v[:-2] > moving_kmh
+            parts.append(d2[ok])
+    d2 = np.concatenate(parts) if parts else np.zeros(0)
+    return noise_from_second_differences(d2) if d2.size >= 3 else math.nan
+
+
+def with_speed_debiased(loaded: Mapping[str, WagonData], noise_kmh: float) -> dict[str, WagonData]:
+    """The wagons with their speed (logged and interpolated) read without the bias its noise
+    puts in a magnitude: ``sqrt(max(v^2 - noise^2, 0))`` (a GPS speed is ``|v + e|``, whose
+    mean square is ``v^2 + noise^2``: at standstill it reads about its noise, not 0; at
+    running speeds the correction is nothing). The input's systematic error, for the
+    sensitivity of a fit to it (the reported intervals' input term, ``closeloop.loop``). The
+    running median the model is driven by commutes with it (it is monotone), so the driving
+    speed is debiased alike."""
+
+    def debiased(v: FloatArray) -> FloatArray:
+        with np.errstate(invalid="ignore"):
+            return np.where(
+                np.isfinite(v), np.sqrt(np.maximum(v * v - noise_kmh * noise_kmh, 0.0)), v
+            )
+
+    return {
+        wagon_id: dataclasses.replace(
+            data,
+            spans=[
+                dataclasses.replace(
+                    s, speed_kmh=debiased(s.speed_kmh), speed_raw_kmh=debiased(s.speed_raw_kmh)
+                )
+                for s in data.spans
+            ],
+        )
+        for wagon_id, data in loaded.items()
+    }
 
 
 _MODELS: dict[tuple[object, ...], Model] = {}

@@ -54,7 +54,9 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    wagon-day jackknife (``parameter_intervals``, ``interval_methods``; these alone decide
    entry), widened for the report by a numerical term: the chosen effects refitted through
    coarser meshes, Roache's grid convergence index of the shift added in quadrature
-   (``interval_methods.numerical``).
+   (``interval_methods.numerical``), and by an input term: the chosen effects refitted with
+   the speed read without the bias its noise (estimated from the data) puts in a magnitude,
+   the shift added in quadrature (``interval_methods.input``).
 5. **Revision.** The chosen effects become a new model revision (the current one, predicting
    with its parent's solver: before and after compare one model form), every
    event is re-simulated with it, the flags are judged again with it (the baseline's flags
@@ -96,6 +98,7 @@ from fleetbrake.closeloop.selection import (
     adequacy,
     block_folds,
     blocked_intervals,
+    combined_half_width,
     describe_drivers,
     distinguishable_from_null,
     effective_sample_size,
@@ -224,6 +227,17 @@ class CloseLoopConfig:
     (distinguishable from the nulls) is judged on the statistical intervals alone."""
     gci_safety_factor: float = GCI_SAFETY_FACTOR
     gci_order: float = GCI_ORDER
+    speed_input_term: bool = True
+    """The reported intervals' input term (ASME V&V 20's u_input by its sensitivity method:
+    the fit with the input's systematic error taken out): the chosen effects refitted once,
+    on the same fit events from the chosen parameters, with the speed read as
+    ``sqrt(max(v^2 - noise^2, 0))`` (:func:`~fleetbrake.closeloop.fitdata.with_speed_debiased`,
+    the noise estimated from the logged speed by
+    :func:`~fleetbrake.closeloop.fitdata.speed_noise_kmh`); the shift per parameter added in
+    quadrature to the statistical half-width with the numerical term. Why: a GPS speed is a
+    magnitude, so where the wagon stands it reads about its noise, not 0, and a convection law
+    steep at low speed turns that into a bias of its exponent the same on every wagon-day,
+    which no resampling sees (docs/closeloop.md, session 9). False: no such term."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
@@ -1316,11 +1330,33 @@ def _close_loop(
         )
         numerical = _numerical_term(best.fitted, coarse_fits, base, config)
         timing["numerical_s"] = time.perf_counter() - t
+    inputs = None
+    speed_noise = fitdata.speed_noise_kmh(loaded) if config.speed_input_term else math.nan
+    if best.fitted is not None and best.fitted.x.size and speed_noise > 0.0:
+        # the chosen effects with the speed's magnitude bias taken out, on the same fit
+        # events, from the chosen parameters: the input term of the reported intervals
+        t = time.perf_counter()
+        added_now = [e for e in best.effects if type(e) not in present]
+        (debiased_fit,) = workers.fit(
+            [
+                task(
+                    FitData.build(
+                        fitdata.with_speed_debiased(loaded, speed_noise), best_events, sim, base
+                    ),
+                    [type(e) for e in added_now],
+                    added_now,
+                    max(4, config.max_nfev // 2),
+                )
+            ]
+        )
+        inputs = _input_term(best.fitted, debiased_fit, speed_noise)
+        timing["input_s"] = time.perf_counter() - t
     _add_verdict(
         report,
         _verdict(best, best_data, base_kept, noise_k, current),
         _intervals(best, best_data),
         numerical,
+        inputs,
     )
     for key in ("fit", "holdout"):
         report[key].update(
@@ -1430,16 +1466,69 @@ def _numerical_term(
     )
 
 
+@dataclass(frozen=True)
+class InputTerm:
+    """The reported intervals' input term: the chosen parameters refitted with the speed's
+    magnitude bias taken out (the logged speed's noise ``speed_noise_kmh``), the refitted
+    parameters, their ``shift`` from the chosen ones, and ``half_width`` its size (keyed as
+    the report's ``parameters``)."""
+
+    speed_noise_kmh: float
+    debiased: dict[str, float]
+    shift: dict[str, float]
+    evaluations: int
+
+    @property
+    def half_width(self) -> dict[str, float]:
+        return {k: abs(v) for k, v in self.shift.items()}
+
+    def to_json(self) -> dict[str, Any]:
+        def g(value: dict[str, float]) -> dict[str, float]:
+            return {k: float(f"{v:.6g}") for k, v in value.items()}
+
+        return {
+            "method": (
+                "sensitivity to the input's systematic error (ASME V&V 20's u_input): the "
+                "chosen effects refitted on the same fit events with the speed read as "
+                "sqrt(max(v^2 - noise^2, 0)) (a GPS speed is a magnitude: at standstill it "
+                "reads its noise), the noise from the logged speed's second differences where "
+                "the wagon moves; the shift added in quadrature to the statistical half-width"
+            ),
+            "speed_noise_kmh": float(f"{self.speed_noise_kmh:.6g}"),
+            "debiased": g(self.debiased),
+            "shift": g(self.shift),
+            "evaluations": self.evaluations,
+            "half_width": g(self.half_width),
+        }
+
+
+def _input_term(fitted: FitResult, debiased: FitResult, noise_kmh: float) -> InputTerm:
+    """The input term of the chosen parameters (``fitted``) from their refit with the speed
+    debiased by ``noise_kmh`` (``debiased``)."""
+    qualified = len({name.split(".", 1)[0] for name in fitted.names}) > 1
+    keys = [_report_key(name, qualified) for name in fitted.names]
+    by_name = dict(zip(debiased.names, debiased.x, strict=True))
+    x = np.array([by_name[name] for name in fitted.names])
+    return InputTerm(
+        noise_kmh,
+        dict(zip(keys, map(float, x), strict=True)),
+        dict(zip(keys, map(float, x - fitted.x), strict=True)),
+        debiased.evaluations,
+    )
+
+
 def _add_verdict(
     report: dict[str, Any],
     verdict: Adequacy,
     intervals: BlockedIntervals | Mapping[str, tuple[float, float]] | None,
     numerical: Numerical | None = None,
+    inputs: InputTerm | None = None,
 ) -> None:
     """The report's ``parameter_intervals``, ``adequate`` and ``unexplained`` (interface.md
     v2), the figures behind the verdict (``adequacy``) and the three statistical intervals
-    the reported ones are the widest of (``interval_methods``), and the numerical term added
-    to them in quadrature (``interval_methods.numerical``, when computed)."""
+    the reported ones are the widest of (``interval_methods``), and the numerical and input
+    terms added to them in quadrature (``interval_methods.numerical`` and ``.input``, when
+    computed)."""
     if isinstance(intervals, BlockedIntervals):
         report["interval_methods"] = {
             "blocks": intervals.blocks,
@@ -1450,10 +1539,16 @@ def _add_verdict(
             "statistical": intervals_for_json(intervals.intervals),
         }
         intervals = intervals.intervals
+        terms: list[Mapping[str, float]] = []
         if numerical is not None:
             report["interval_methods"]["numerical"] = numerical.to_json()
+            terms.append(numerical.half_width)
+        if inputs is not None:
+            report["interval_methods"]["input"] = inputs.to_json()
+            terms.append(inputs.half_width)
+        if terms:
             intervals = with_numerical_term(
-                intervals, report.get("parameters") or {}, numerical.half_width
+                intervals, report.get("parameters") or {}, combined_half_width(terms)
             )
     report.update(
         {

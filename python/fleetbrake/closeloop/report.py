@@ -178,15 +178,16 @@ def render_markdown(
         methods = report.get("interval_methods") or {}
         widest = methods.get("widest") or {}
         numerical = (methods.get("numerical") or {}).get("half_width") or {}
+        inputs = (methods.get("input") or {}).get("half_width") or {}
         lines += [
             "| parameter | value | 95 % low | 95 % high | statistical: widest of | "
-            "numerical (GCI) +- |",
-            "|---|---|---|---|---|---|",
+            "numerical (GCI) +- | input (speed) +- |",
+            "|---|---|---|---|---|---|---|",
         ]
         for name, (lo, hi) in intervals.items():
             lines.append(
                 f"| {name} | {_k(values.get(name))} | {_k(lo)} | {_k(hi)} | "
-                f"{widest.get(name, '-')} | {_k(numerical.get(name))} |"
+                f"{widest.get(name, '-')} | {_k(numerical.get(name))} | {_k(inputs.get(name))} |"
             )
         lines.append("")
     lines += [

@@ -608,6 +608,17 @@ def with_numerical_term(
     return out
 
 
+def combined_half_width(terms: Sequence[Mapping[str, float]]) -> dict[str, float]:
+    """Independent half-widths of the same parameters combined by root sum of squares (ASME
+    V&V 20: the numerical and the input uncertainty); a parameter missing from a term has
+    none from it."""
+    names = [name for term in terms for name in term]
+    return {
+        name: math.sqrt(sum(float(term.get(name, 0.0)) ** 2 for term in terms))
+        for name in dict.fromkeys(names)
+    }
+
+
 EFFECT_NULLS: dict[str, dict[str, float]] = {
     "friction_temperature[linear]": {"fade_per_k": 0.0},
     "heat_partition[effusivity]": {"contact_factor": 1.0},
