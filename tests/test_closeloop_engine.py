@@ -77,6 +77,18 @@ EFFECT_SETS = [
 ]
 
 
+def fit_events(fleet: Fleet) -> tuple[Revision, pl.DataFrame, dict[str, Any]]:
+    """The fleet's current revision, the close loop's fit events and their wagons loaded as
+    the close loop loads them."""
+    config = CloseLoopConfig(HOLDOUT, simulation=fleet.simulation)
+    with open_warehouse(fleet.db) as wh:
+        wagons = stored_wagons(wh)
+        base = current_revision(wh, refinement=TEST_REFINEMENT)
+        fit, _, _ = _event_sets(wh, base.name, config)
+        loaded = {w: load_wagon(wh, wagons[w], fleet.simulation) for w in fit["wagon_id"]}
+    return base, fit, loaded
+
+
 @pytest.mark.usefixtures("rom_env")
 def test_fit_data_predicts_what_predict_wagon_predicts(fleet: Fleet) -> None:
     """For the fit events, the cached arrays run through the chain kernel give the
@@ -84,12 +96,7 @@ def test_fit_data_predicts_what_predict_wagon_predicts(fleet: Fleet) -> None:
     effects acting on the heat input, the convection, the air and the sensor; a
     state-dependent effect (fixed point over the whole chain instead of run by run) to the
     fixed point's tolerance."""
-    config = CloseLoopConfig(HOLDOUT, simulation=fleet.simulation)
-    with open_warehouse(fleet.db) as wh:
-        wagons = stored_wagons(wh)
-        base = current_revision(wh, refinement=TEST_REFINEMENT)
-        fit, _, _ = _event_sets(wh, base.name, config)
-        loaded = {w: load_wagon(wh, wagons[w], fleet.simulation) for w in fit["wagon_id"]}
+    base, fit, loaded = fit_events(fleet)
     assert fit.height > 10 and len(loaded) == 2
     data = FitData.build(loaded, fit, fleet.simulation, base)
     assert all(w.batched for w in data.wagons)  # the kernel path, not the fallback
@@ -236,12 +243,7 @@ def test_the_speed_noise_is_read_from_the_logged_speed_and_its_bias_taken_out(
     the wagon moves, within 10 %; the speed debiased, ``sqrt(max(v^2 - noise^2, 0))``: 0
     where the wagon stands (it logs about its noise there), unchanged to 1e-3 at running
     speeds, the driving running median debiased alike."""
-    config = CloseLoopConfig(HOLDOUT, simulation=fleet.simulation)
-    with open_warehouse(fleet.db) as wh:
-        wagons = stored_wagons(wh)
-        base = current_revision(wh, refinement=TEST_REFINEMENT)
-        fit, _, _ = _event_sets(wh, base.name, config)
-        loaded = {w: load_wagon(wh, wagons[w], fleet.simulation) for w in fit["wagon_id"]}
+    _, _, loaded = fit_events(fleet)
     noise = fitdata.speed_noise_kmh(loaded)
     assert noise == pytest.approx(0.3, rel=0.1)
     debiased = fitdata.with_speed_debiased(loaded, noise)
