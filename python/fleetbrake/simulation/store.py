@@ -269,12 +269,11 @@ def _increasing(column: pa.ChunkedArray) -> bool:
     first changes nothing, whatever the keys after it (most wagons' rows, stored in order),
     and the sort is not computed. False when unsure (another type, nulls)."""
     kind = column.type
-    if column.null_count or not (pa.types.is_timestamp(kind) or pa.types.is_integer(kind)):
+    if not (pa.types.is_timestamp(kind) or pa.types.is_integer(kind)):
         return False
-    values = column.to_numpy()
-    if values.dtype.kind == "M":
-        values = values.view(np.int64)
-    return bool((values[1:] > values[:-1]).all())
+    series = pl.from_arrow(column)
+    assert isinstance(series, pl.Series)  # a column converts to a series
+    return strictly_increasing(series)
 
 
 def _in_order(indices: pa.Array) -> bool:
