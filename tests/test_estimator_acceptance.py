@@ -158,7 +158,13 @@ NOT_MET_RMSE = (
     "0.03 released and sigma_qa applied, pressure > 0.05 bar) still cannot do both: seed 3 "
     "filtered 0.0373 / 0.0397 / 0.0418 / 0.0440 / 0.0486 K at sigma_qa 0.03 / 0.1 / 0.15 / "
     "0.2 / 0.3 W/s^0.5 (bar 0.0389: sigma_qa <= ~0.08), identity outside the filtered band "
-    "441 / 337 / 190 / 90 / 0 s (bar 85: sigma_qa >= ~0.21); docs/estimator.md"
+    "441 / 337 / 190 / 90 / 0 s (bar 85: sigma_qa >= ~0.21). Session 10: noise in proportion "
+    "to the declared braking power, sigma^2 = sigma_q^2 + (g P_declared)^2, on the session-8 "
+    "settings: seed 3 filtered 0.0373 / 0.0410 / 0.0558 / 0.0687 / 0.0926 K at g 0 / 1e-4 / "
+    "3e-4 / 5e-4 / 1e-3 per s^0.5, identity outside the filtered / smoothed band 441/600, "
+    "433/435, 95/75, 0/28, 0/4 s: at g 5e-4 every other bar holds on both seeds (smoothed "
+    "0.0301 K and 0.218 K against 1.63, bands 0.961-0.985, drags within 2.5 %, flags 1.00 / "
+    "1.00, power band 0.998 / 0.992), the filtered bar does not; docs/estimator.md"
 )
 
 

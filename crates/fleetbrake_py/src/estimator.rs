@@ -118,6 +118,16 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
         transitions,
         index: Cow::Borrowed(series.index.as_slice()?),
         w: Cow::Borrowed(series.w.as_slice()?),
+        power_noise: match d.get_item("power_noise")? {
+            Some(v) if !v.is_none() => Cow::Owned(
+                v.extract::<PyReadonlyArray1<'_, f64>>()?
+                    .as_array()
+                    .iter()
+                    .copied()
+                    .collect(),
+            ),
+            _ => Cow::Owned(Vec::new()),
+        },
         reading_c: Cow::Borrowed(series.reading.as_slice()?),
         c_probe: floats(d, "c_probe")?,
         c_mean: floats(d, "c_mean")?,

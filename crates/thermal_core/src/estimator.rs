@@ -8,13 +8,18 @@
 //!
 //! ```text
 //!     ξ' = A ξ + γ P + w        A diagonal (nominal convection) or dense
-//!     P' = φ P + ω              var ω = σ_w(mode, cylinder applied)² q_unit
+//!     P' = φ P + ω              var ω = (σ_w(mode, cylinder applied)² + π_k) q_unit
 //!     (ξ, s) += u ε             var ε = q_gap (an unlogged interval: the block's offset)
 //!     ξ_i += η_i                var η_i = q_modes_i (the seat's model error, a coordinate)
 //!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
 //! ```
 //!
-//! with `w` the modal response to the declared inputs of the step (given per step). The
+//! with `w` the modal response to the declared inputs of the step (given per step) and
+//! `π_k = (g P_declared,k)²` (W²/s, given per step; `Problem::power_noise`) the share of the
+//! power's diffusion that scales with the declared braking power: the declared input's own
+//! error (a scale error of the logged pressure) is in proportion to it. A step with `π_k > 0`
+//! has no steady-state key: its covariance is always computed (released seconds, `π = 0`,
+//! keep the steady path and the replay). The
 //! reading is `y = h x + T_ref + v`, `h = c_p` on the modes (or `e_s` with a lag),
 //! `var v = σ_v²`; NaN skips the update.
 //!
@@ -93,6 +98,9 @@ pub struct Problem<'a> {
     pub index: Cow<'a, [u32]>,
     /// (N - 1, r) row-major: modal response to the declared inputs of each step.
     pub w: Cow<'a, [f64]>,
+    /// (N - 1, or empty: none) the power's diffusion over each step in proportion to the
+    /// declared braking power, `(g P_declared)²`, W²/s (times the transition's `q_unit`).
+    pub power_noise: Cow<'a, [f64]>,
     /// Readings (N), NaN where none.
     pub reading_c: Cow<'a, [f64]>,
     pub c_probe: Vec<f64>,
@@ -311,6 +319,20 @@ impl Problem<'_> {
                 name: "estimator transition index".into(),
                 value: f64::from(bad),
                 reason: format!("only {} transitions", self.transitions.len()),
+            });
+        }
+        if !(self.power_noise.is_empty() || self.power_noise.len() == steps) {
+            return mismatch("estimator power_noise", steps, self.power_noise.len());
+        }
+        if let Some(&bad) = self
+            .power_noise
+            .iter()
+            .find(|q| !(q.is_finite() && **q >= 0.0))
+        {
+            return Err(ThermalError::InvalidParameter {
+                name: "estimator power_noise".into(),
+                value: bad,
+                reason: "must be variances per second (finite, >= 0)".to_string(),
             });
         }
         crate::error::check_finite("t_ref_c", self.t_ref_c)?;
@@ -968,13 +990,20 @@ impl<'a> Kernel<'a> {
 
     #[inline(always)]
     fn key(&self, t: usize, manoeuvre: bool) -> Option<Key> {
-        (t > 0).then(|| {
+        // a step whose power noise follows the declared power is never steady
+        (t > 0 && self.power_noise(t) == 0.0).then(|| {
             (
                 self.p.index[t - 1],
                 self.p.reading_c[t].is_finite(),
                 manoeuvre,
             )
         })
+    }
+
+    /// `(g P_declared)²` of the step into `t` (t > 0), W²/s.
+    #[inline(always)]
+    fn power_noise(&self, t: usize) -> f64 {
+        self.p.power_noise.get(t - 1).copied().unwrap_or(0.0)
     }
 
     /// The mode at the start: the manoeuvre mode only without switching.
@@ -1029,6 +1058,7 @@ impl<'a> Kernel<'a> {
                 (false, true) => self.sw2[2],
                 (false, false) => self.sw2[0],
             };
+            let sw2 = sw2 + self.power_noise(t);
             pred[r * n + r] = madd::<FMA>(sw2, tr.q_unit, pred[r * n + r]);
             for (i, &q) in tr.q_modes.iter().enumerate() {
                 if q != 0.0 {
@@ -1993,6 +2023,7 @@ mod tests {
             transitions,
             index: Cow::Owned(index),
             w: Cow::Owned(w),
+            power_noise: Cow::Owned(Vec::new()),
             reading_c: Cow::Owned(vec![0.0; n_t]),
             c_probe,
             c_mean: vec![0.5, 0.2, 0.4],
@@ -2107,7 +2138,8 @@ mod tests {
                 }
                 x = nx;
                 cov = matmul(&matmul(&f, &cov, n), &transpose(&f, n), n);
-                cov[r * n + r] += sw2_of(t) * p.transitions[k].q_unit;
+                let pi = p.power_noise.get(t - 1).copied().unwrap_or(0.0);
+                cov[r * n + r] += (sw2_of(t) + pi) * p.transitions[k].q_unit;
                 for i in 0..n {
                     for j in 0..n {
                         cov[i * n + j] += p.transitions[k].q_gap * p.gap_dir[i] * p.gap_dir[j];
@@ -2334,6 +2366,63 @@ mod tests {
                     .fold(0.0, f64::max);
                 assert!(diff > 1e-3, "{diff}");
             }
+        }
+    }
+
+    #[test]
+    fn the_declared_power_noise_is_the_textbook_filters_and_keeps_the_fast_paths_exact() {
+        for (lag, noise) in [(false, NOISE), (true, NOISE), (false, SWITCHING)] {
+            let mut p = problem(lag, 9000, 13);
+            // (g P)² on the dense stretches ("brakings"), 0 elsewhere
+            let noise_of: Vec<f64> = p
+                .index
+                .iter()
+                .enumerate()
+                .map(|(t, &k)| {
+                    if k == 1 {
+                        0.04 * (1.0 + (t % 7) as f64)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
+            assert!(noise_of.iter().any(|&q| q > 0.0));
+            p.power_noise = Cow::Owned(noise_of);
+            let exact = run(&p, noise, &settings(0.0, 64)).unwrap();
+            let reference = naive_modes(&p, noise, Some(&exact.manoeuvre));
+            assert_estimates("filtered", &exact.filtered, &reference.filtered, 1e-9);
+            assert_estimates(
+                "smoothed",
+                exact.smoothed.as_ref().unwrap(),
+                &reference.smoothed,
+                1e-8,
+            );
+            // the steady states and the replayed excursions change no result with it on
+            let fast = run(&p, noise, &settings(1e-12, 128)).unwrap();
+            assert!(fast.frozen_steps > 1000, "{} frozen", fast.frozen_steps);
+            assert!(fast.memo_steps > 100, "{} replayed", fast.memo_steps);
+            assert_estimates("filtered", &fast.filtered, &exact.filtered, 1e-9);
+            assert_estimates(
+                "smoothed",
+                fast.smoothed.as_ref().unwrap(),
+                exact.smoothed.as_ref().unwrap(),
+                1e-9,
+            );
+            let mut s = settings(1e-12, 128);
+            s.replay = false;
+            let computed = run(&p, noise, &s).unwrap();
+            assert_eq!(computed.filtered.mean_c, fast.filtered.mean_c);
+            // and it is another filter than without it
+            p.power_noise = Cow::Owned(Vec::new());
+            let plain = run(&p, noise, &settings(0.0, 64)).unwrap();
+            let diff = plain
+                .filtered
+                .power_sd_w
+                .iter()
+                .zip(&exact.filtered.power_sd_w)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(diff > 1e-3, "{diff}");
         }
     }
 

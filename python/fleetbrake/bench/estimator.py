@@ -19,7 +19,12 @@ contact mean and maximum with their bands, the unexplained power, the innovation
 wagons are prepared and estimated ``chunk`` at a time (memory stays that of a chunk);
 
 each timed with and without the preparation of the problems from the series
-(:func:`fleetbrake.model.estimator.prepare`, numpy, shared by both). A wagon-second is one
+(:func:`fleetbrake.model.estimator.prepare`, numpy, shared by both, serial in this process).
+Then end to end as ``run`` estimates: the same series, ``chunk`` wagons a partition, handed to
+the local engine's ``workers`` processes (one Rayon thread each), each partition prepared and
+estimated by the Rust kernel in its worker (the clock from the first partition handed out to
+the last result back, the pool started and this module imported in it first; CPU time the
+workers' own, without shipping the series). A wagon-second is one
 logged second of one wagon. Each figure is given per second of the clock and per second of
 CPU time of this process (all its threads): on a machine busy with other work the latter is
 the steadier, and times the cores it is what an idle machine would give. ``max_difference_k`` is the largest difference of the two
@@ -36,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from fleetbrake.bench import BenchConfigError
+from fleetbrake.engine import default_workers, make_engine
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.estimator import (
     ContactEstimate,
@@ -56,6 +62,21 @@ __all__ = ["SeriesMaker", "bench_estimator", "print_figures"]
 
 NOISE_K = 0.1
 DAY_S = 86_400
+
+
+def _prepare_and_estimate(
+    item: tuple[ReducedModel, WagonConfig, EstimatorConfig, list[WagonSeries]],
+) -> tuple[int, float]:
+    """A partition of the end-to-end pass (a worker's): its wagons prepared and estimated by
+    the Rust kernel; returns the logged wagon-seconds and the worker's CPU seconds for them."""
+    rom, wagon, config, series = item
+    if not series:
+        return 0, 0.0  # the warm-up: this module imported in the worker
+    c0 = time.process_time()
+    problems = [prepare(rom, wagon, s, config=config) for s in series]
+    estimates = estimate(problems, config=config, engine="rust")
+    assert len(estimates) == len(series)
+    return sum(s.time_s.size for s in series), time.process_time() - c0
 
 
 class SeriesMaker:
@@ -120,13 +141,15 @@ def bench_estimator(
     seed: int = 0,
     chunk: int = 16,
     rom: ReducedModel | None = None,
+    workers: int | None = None,
     show: bool = True,
     echo: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Time the Rust kernel on ``wagons`` wagon-days and the numpy implementation on the
     first ``numpy_wagons`` of them; returns the figures (and prints them side by side when
     ``show``). ``rom``: the reduced model to use (default: the reference wagon's at
-    ``refinement``, from the cache)."""
+    ``refinement``, from the cache). ``workers``: the end-to-end pass's processes (None: the
+    cores this process may use; 0: no end-to-end pass)."""
     if wagons < 1 or not 0 <= numpy_wagons <= min(wagons, chunk) or chunk < 1:
         raise BenchConfigError(
             f"bench estimator: need wagons >= 1, chunk >= 1 and 0 <= numpy_wagons <= "
@@ -154,10 +177,14 @@ def bench_estimator(
     steady_seconds = 0.0
     manoeuvre_seconds = 0
     first: list[tuple[EstimatorProblem, ContactEstimate]] = []
+    workers = default_workers() if workers is None else workers
+    partitions: list[tuple[ReducedModel, WagonConfig, EstimatorConfig, list[WagonSeries]]] = []
     for start in range(0, wagons, chunk):
         t0 = time.perf_counter()
         series = [maker.series(w) for w in range(start, min(start + chunk, wagons))]
         generate_s += time.perf_counter() - t0
+        if workers > 0:
+            partitions.append((rom, wagon, config, series))
         seconds += sum(s.time_s.size for s in series)
         numpy_seconds += sum(s.time_s.size for s in series[: max(numpy_wagons - start, 0)])
         t0, c0 = time.perf_counter(), time.process_time()
@@ -174,6 +201,20 @@ def bench_estimator(
         manoeuvre_seconds += sum(int(e.manoeuvre.sum()) for e in rust if e.manoeuvre is not None)
         grid_seconds += sum(p.n_samples for p in problems)
         first.extend(list(zip(problems, rust, strict=True))[: max(numpy_wagons - start, 0)])
+
+    # end to end as `run` does it: prepare and estimate in the engine's workers
+    end_s = end_cpu_s = float("nan")
+    if workers > 0:
+        with make_engine("local", workers) as engine:
+            engine.start()
+            list(engine.map(_prepare_and_estimate, [(rom, wagon, config, [])] * workers))
+            t0 = time.perf_counter()
+            done = list(engine.map(_prepare_and_estimate, partitions))
+            end_s = time.perf_counter() - t0
+        if sum(n for n, _ in done) != seconds:
+            raise BenchConfigError("bench estimator: the end-to-end pass lost wagon-seconds")
+        end_cpu_s = sum(c for _, c in done)
+    partitions.clear()
 
     numpy_prepare_s = prepare_s * numpy_seconds / seconds
     t0, c0 = time.perf_counter(), time.process_time()
@@ -223,6 +264,11 @@ def bench_estimator(
         "rust_with_prepare_wagon_seconds_per_s": rate(seconds, rust_s + prepare_s),
         "rust_cpu_s": round(rust_cpu_s, 3),
         "rust_wagon_seconds_per_cpu_s": rate(seconds, rust_cpu_s),
+        "end_to_end_workers": workers,
+        "end_to_end_s": round(end_s, 3),
+        "end_to_end_wagon_seconds_per_s": rate(seconds, end_s),
+        "end_to_end_cpu_s": round(end_cpu_s, 3),
+        "end_to_end_wagon_seconds_per_cpu_s": rate(seconds, end_cpu_s),
         "numpy_wagons": numpy_wagons,
         "numpy_wagon_seconds": numpy_seconds,
         "numpy_s": round(numpy_s, 3),
@@ -280,6 +326,12 @@ def print_figures(figures: dict[str, Any], echo: Callable[[str], None] = print) 
     ]
     for name, a, b in rows:
         echo(f"  {name:<16} {a:>14} {b:>14}")
+    if figures["end_to_end_workers"] > 0:
+        echo(
+            f"end to end (prepare + kernel in {figures['end_to_end_workers']} workers, as run "
+            f"does): {figures['end_to_end_wagon_seconds_per_s']:,.0f} wagon-seconds/s, "
+            f"{figures['end_to_end_wagon_seconds_per_cpu_s']:,.0f} per CPU-second"
+        )
     echo(
         f"rust is {figures['speedup']}x numpy; the engines differ by at most "
         f"{figures['max_difference_k']:.1e} K; covariance steady in "

@@ -349,6 +349,14 @@ class EstimatorConfig:
     this (bar; the flags' release threshold is 0.05); over such a step (not a standstill, not
     held) the quiet mode diffuses with ``manoeuvre.applied_quiet_w_per_sqrt_s``. None: no step
     is told apart (one quiet σ_q)."""
+    declared_power_noise_per_sqrt_s: float = 0.0
+    """g: a share of the unexplained power's diffusion in proportion to the declared braking
+    power of the step (the friction heat into the block that the logged pressure and speed
+    give), ``σ² = σ_q² + (g P_declared)²`` per second (σ_w² + ... in the manoeuvre mode),
+    1/√s: the declared input's own error (a scale error of the logged pressure, 0.4 % on the
+    synthetic fleets) is in proportion to it, so the filter is loose where, and as much as,
+    the declared heat can be wrong, and tight while released (where the steady path stays).
+    0: none. ``docs/estimator.md`` (session 10)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -377,6 +385,12 @@ class EstimatorConfig:
                 raise ValueError(f"EstimatorConfig.{name} must be >= 0 and finite")
         if self.checkpoint_steps < 1:
             raise ValueError("EstimatorConfig.checkpoint_steps must be >= 1")
+        gain = self.declared_power_noise_per_sqrt_s
+        if not (math.isfinite(gain) and gain >= 0):
+            raise ValueError(
+                f"EstimatorConfig.declared_power_noise_per_sqrt_s must be >= 0 and finite, "
+                f"got {gain!r}"
+            )
         bar = self.applied_pressure_bar
         if bar is not None and not (math.isfinite(bar) and bar >= 0):
             raise ValueError(
@@ -488,6 +502,18 @@ class EstimatorProblem:
     applied: NDArray[np.bool_] | None = None
     """(K): whether transition k is a step with the cylinder applied (its quiet-mode noise
     ``ManoeuvreTest.applied_quiet_w_per_sqrt_s``). None: none is."""
+
+    power_noise: FloatArray | None = None
+    """(N-1): ``(g P_declared)²`` of each step, W²/s: the power's diffusion over the step in
+    proportion to the declared braking power
+    (:attr:`EstimatorConfig.declared_power_noise_per_sqrt_s`), added to σ² (times
+    ``q_unit``); such a step is never steady. None: zeros."""
+
+    def step_power_noise(self) -> FloatArray:
+        """``power_noise``, zeros where not given."""
+        if self.power_noise is None:
+            return np.zeros(self.index.size)
+        return self.power_noise
 
     def applied_transitions(self) -> NDArray[np.bool_]:
         """``applied``, False where not given."""
@@ -935,6 +961,10 @@ def prepare(
     if seat_error:
         cov0[r - 1, r - 1] = config.seat_error_sd_k**2
     lag_rows = table.lag
+    # the declared braking power of each step (W into the block), its share of the noise
+    declared_w = step_flux * wagon.geometry.contact_area_m2
+    gain = config.declared_power_noise_per_sqrt_s
+    power_noise = np.where(held | gap, 0.0, (gain * declared_w) ** 2)
     return EstimatorProblem(
         wagon_id=series.wagon_id,
         order=r,
@@ -967,6 +997,7 @@ def prepare(
         held=held,
         q_modes=np.stack(table.q_modes) if table.q_modes else np.zeros((0, r)),
         applied=np.array(table.applied, dtype=bool),
+        power_noise=np.ascontiguousarray(power_noise, dtype=np.float64),
     )
 
 
@@ -1059,6 +1090,7 @@ def run_numpy(
     # the quiet mode's σ² over a step with the cylinder applied
     sw2_applied = sw2_of[0] if switching is None else switching[6] ** 2
     applied = p.applied_transitions()
+    power_noise = p.step_power_noise()
     beta = 0.0 if switching is None else min(1.0 / switching[1], 1.0)
     m_sd = math.sqrt(beta / (2.0 - beta)) if switching is not None else 1.0
     mode = switching is None  # True: the manoeuvre mode
@@ -1112,7 +1144,8 @@ def run_numpy(
             mode = bool(forced_modes[t])
         measured = bool(np.isfinite(y[t]))
         k = int(p.index[t - 1]) if t > 0 else -1  # the transition into t
-        key = (k, measured, mode) if t > 0 else None
+        # a step whose noise follows the declared power is never steady
+        key = (k, measured, mode) if t > 0 and power_noise[t - 1] == 0.0 else None
         mode_of[t] = mode
         if t > 0:
             x_prior = mats[k] @ x
@@ -1133,7 +1166,7 @@ def run_numpy(
                 cov_pred = f @ cov @ f.T
                 cov_pred = 0.5 * (cov_pred + cov_pred.T)
                 sw2 = sw2_applied if (applied[k] and not mode) else sw2_of[int(mode)]
-                cov_pred[ip, ip] += p.q_unit[k] * sw2
+                cov_pred[ip, ip] += p.q_unit[k] * (sw2 + power_noise[t - 1])
                 cov_pred[modal, modal] += q_modes[k]
                 if q_gap[k] > 0:
                     cov_pred += q_gap[k] * gap_cov
@@ -1386,6 +1419,7 @@ def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
         "gap_dir": c(p.gap_noise()[1], dtype=np.float64),
         "q_modes": c(p.mode_noise().reshape(-1), dtype=np.float64),
         "applied": [bool(v) for v in p.applied_transitions()],
+        "power_noise": c(p.step_power_noise(), dtype=np.float64),
     }
 
 
