@@ -36,6 +36,7 @@ from fleetbrake.flags import (
     load_flag_config,
     merge_sensor_faults,
     raise_flags,
+    same_readings,
     segment_stats,
 )
 from fleetbrake.simulation.chains import ChainParams, segment_bounds
@@ -286,6 +287,31 @@ def test_dragging_window_heats_while_the_model_cools() -> None:
     assert find_dragging(series, segments_of(series, predicted), excluded=[(0, n)]) == []
     # the model's own heating is no drag
     assert find_dragging(series, segments_of(series, predicted + drag)) == []
+
+
+def test_segments_left_the_same_readings_are_the_same_segments() -> None:
+    """The flags skip a span's second ``segment_stats`` when the sensor faults leave out no
+    further reading (``same_readings``): masking seconds that hold no finite reading changes no
+    segment; masking one that does is seen."""
+    n = 4200
+    predicted = np.linspace(40.0, 36.0, n)
+    measured = noisy(predicted + np.clip((np.arange(n) - 1800) / 1800.0, 0.0, 1.0) * 15.0)
+    measured[1000:1100] = np.nan  # a dropout
+    series = make_series(measured, speed=72.0)
+    bounds, kinds = segment_bounds(series, ChainParams())
+    config = FlagConfig()
+    broken = ~np.isfinite(series.measured_c)
+    wider = broken.copy()
+    wider[1000:1100] = True  # the dropout again: no reading there
+    assert same_readings(series, broken, wider)
+    first = segment_stats(series, predicted, bounds, kinds, config, invalid=broken)
+    again = segment_stats(series, predicted, bounds, kinds, config, invalid=wider)
+    assert repr(first) == repr(again)  # bit for bit, NaN included
+    wider[2000:2300] = True  # a fault over readings that are there
+    assert not same_readings(series, broken, wider)
+    assert repr(segment_stats(series, predicted, bounds, kinds, config, invalid=wider)) != repr(
+        first
+    )
 
 
 def test_loose_sensor_falls_to_the_air() -> None:

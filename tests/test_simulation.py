@@ -112,6 +112,32 @@ def test_the_gap_that_cuts_a_simulation_is_the_one_that_ends_an_event() -> None:
         assert ("gap" in kinds) == cut, hole_s
 
 
+def test_spans_are_cut_at_long_gaps_whatever_the_order_of_the_rows() -> None:
+    """``spans_from_frame`` cuts the samples where a gap exceeds ``bridge_max_s`` (rows as the
+    warehouse hands them, in time order, are cut as they are; shuffled rows with a repeated
+    time are sorted, the first of each time kept, and give the same spans)."""
+    n = 900
+    times = [T0 + dt.timedelta(seconds=k + (400 if k >= 500 else 0)) for k in range(n)]
+    frame = pl.DataFrame(
+        {
+            "time_utc": pl.Series(times, dtype=pl.Datetime("us")),
+            "speed_kmh": np.full(n, 50.0),
+            "brake_pressure_bar": np.zeros(n),
+            "block_temp_c": np.linspace(20.0, 30.0, n),
+            "ambient_temp_c": np.full(n, 8.0),
+        }
+    )
+    spans = WagonSeries.spans_from_frame("W1", frame, ambient_default_c=8.0, bridge_max_s=300.0)
+    assert [(s.t0, s.n) for s in spans] == [(times[0], 500), (times[500], 400)]
+    shuffled = pl.concat([frame[::-1], frame[10:11].with_columns(block_temp_c=pl.lit(99.0))])
+    again = WagonSeries.spans_from_frame("W1", shuffled, ambient_default_c=8.0, bridge_max_s=300.0)
+    assert [(s.t0, s.n) for s in again] == [(s.t0, s.n) for s in spans]
+    for a, b in zip(spans, again, strict=True):
+        assert np.array_equal(a.measured_c, b.measured_c)
+    one = WagonSeries.spans_from_frame("W1", frame, ambient_default_c=8.0, bridge_max_s=401.0)
+    assert [(s.t0, s.n) for s in one] == [(times[0], 900 + 400)]  # a 401 s gap is bridged
+
+
 def test_readings_a_broken_or_frozen_sensor_gave_never_anchor() -> None:
     n = 3000
     rng = np.random.default_rng(0)

@@ -53,7 +53,14 @@ from fleetbrake.flags.sensor import (
     merge_sensor_faults,
 )
 from fleetbrake.flags.series import SpanTimeline, load_spans
-from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
+from fleetbrake.flags.stats import (
+    EventStat,
+    Segment,
+    event_stats,
+    same_readings,
+    segment_stats,
+    unsure_mask,
+)
 
 __all__ = [
     "CONFIG_KEYS",
@@ -95,6 +102,7 @@ __all__ = [
     "load_spans",
     "merge_sensor_faults",
     "raise_flags",
+    "same_readings",
     "segment_stats",
     "unsure_mask",
     "wagon_residual_spread",

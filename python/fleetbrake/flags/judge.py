@@ -82,7 +82,14 @@ from fleetbrake.flags.sensor import (
     merge_sensor_faults,
 )
 from fleetbrake.flags.series import SpanTimeline, spans_of
-from fleetbrake.flags.stats import EventStat, Segment, event_stats, segment_stats, unsure_mask
+from fleetbrake.flags.stats import (
+    EventStat,
+    Segment,
+    event_stats,
+    same_readings,
+    segment_stats,
+    unsure_mask,
+)
 from fleetbrake.fleet.registry import Registry, WagonConfig
 from fleetbrake.simulation.chains import constant_runs
 from fleetbrake.simulation.estimates import estimated_wagons, estimation_data_keys
@@ -193,15 +200,19 @@ def _judge_span(
         failed = find_innovation_faults(series, estimate, config, scale_k=scale_k)
         findings = date_sensor_faults(series, findings, failed, config)
     fault_mask = _mask_of(series, findings)
-    segments = segment_stats(
-        series,
-        predicted,
-        timeline.bounds,
-        timeline.kinds,
-        config,
-        unsure=unsure,
-        invalid=fault_mask | frozen_runs,
-    )
+    # the segments again with every sensor fault left out (the same ones when that leaves
+    # out no further reading: most spans)
+    left_out = fault_mask | frozen_runs
+    if not same_readings(series, broken, left_out):
+        segments = segment_stats(
+            series,
+            predicted,
+            timeline.bounds,
+            timeline.kinds,
+            config,
+            unsure=unsure,
+            invalid=left_out,
+        )
     return _SpanVerdict(series, findings, segments, runs(fault_mask), unsure, estimate)
 
 
@@ -322,7 +333,7 @@ class FlagTask:
     """The revision's ``timeline_segments`` of the wagon (``q_simulation_timeline_segments``);
     None: no current timeline, the readings alone are judged."""
     timeline: pa.Table | None = None
-    """Its ``timeline`` rows (``q_simulation_timeline.sql``)."""
+    """Its ``timeline`` rows, the predicted sensor temperature (``q_flags_timeline.sql``)."""
     predictions: pa.Table | None = None
     """Its ``predictions`` of the revision (``q_flags_predictions.sql``)."""
     wagon: WagonConfig | None = None
@@ -456,7 +467,7 @@ def flag_task(
         note=note,
         data_key=data_key,
         segments=arrow("q_simulation_timeline_segments", timed) if current else None,
-        timeline=arrow("q_simulation_timeline", timed) if current else None,
+        timeline=arrow("q_flags_timeline", timed) if current else None,
         predictions=arrow("q_flags_predictions", timed) if current else None,
         wagon=wagon,
         rev=rev,
@@ -529,7 +540,7 @@ def flag_chunk(
         samples=chunk_table(wh, "q_simulation_chunk_samples", ids),
         events=chunk_table(wh, "q_simulation_chunk_events", ids),
         segments=chunk_table(wh, "q_simulation_chunk_timeline_segments", current, **timed),
-        timeline=chunk_table(wh, "q_simulation_chunk_timeline", current, **timed),
+        timeline=chunk_table(wh, "q_flags_chunk_timeline", current, **timed),
         predictions=chunk_table(wh, "q_flags_chunk_predictions", current, **timed),
         estimates=(
             chunk_table(wh, "q_flags_chunk_estimates", estimated, **timed) if estimated else None

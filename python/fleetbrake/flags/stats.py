@@ -22,7 +22,14 @@ from fleetbrake.simulation.series import (
     runs,
 )
 
-__all__ = ["EventStat", "Segment", "event_stats", "segment_stats", "unsure_mask"]
+__all__ = [
+    "EventStat",
+    "Segment",
+    "event_stats",
+    "same_readings",
+    "segment_stats",
+    "unsure_mask",
+]
 
 _SAME_VALUE_KMH = 1e-9
 """km/h: logged speeds closer than this are one value repeated (numerical equality)."""
@@ -259,6 +266,15 @@ def segment_stats(
             )
         )
     return out
+
+
+def same_readings(series: WagonSeries, invalid_a: BoolArray, invalid_b: BoolArray) -> bool:
+    """Whether leaving out the readings at ``invalid_a`` or at ``invalid_b`` leaves the same
+    readings: they differ only at seconds without a finite reading, which
+    :func:`segment_stats` ignores either way, so it gives the same segments for both (a
+    span's second call is then skipped: most spans have no sensor fault)."""
+    differ = invalid_a != invalid_b
+    return not bool(np.isfinite(series.measured_c[differ]).any())
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ gap, and starts afresh after a longer one.
 from __future__ import annotations
 
 import datetime as dt
+import itertools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -114,13 +115,16 @@ class WagonSeries:
         (each event in the stretch holding its activation)."""
         if samples.height == 0:
             return []
-        frame = samples.sort("time_utc", maintain_order=True).unique(
-            "time_utc", keep="first", maintain_order=True
+        frame = (
+            samples  # as the warehouse's queries hand them: sorting would leave them as they are
+            if strictly_increasing(samples["time_utc"])
+            else samples.sort("time_utc", maintain_order=True).unique(
+                "time_utc", keep="first", maintain_order=True
+            )
         )
-        gap = frame["time_utc"].diff().dt.total_seconds().fill_null(0)
-        parts = frame.with_columns(_span=(gap > bridge_max_s).cum_sum()).partition_by(
-            "_span", maintain_order=True, include_key=False
-        )
+        gap = frame["time_utc"].diff().dt.total_seconds().fill_null(0).to_numpy()
+        cuts = [0, *(np.flatnonzero(gap[1:] > bridge_max_s) + 1).tolist(), frame.height]
+        parts = [frame.slice(a, b - a) for a, b in itertools.pairwise(cuts)]  # no copies
         out = []
         for part in parts:
             t0, t1 = part["time_utc"][0], part["time_utc"][-1]
