@@ -179,17 +179,21 @@ def _judge_span(
     predicted = timeline.predicted_c
     findings += find_frozen(series, config, predicted)
     unsure = unsure_mask(series, timeline.gaps, config)
+
     # loose and drifting against the model, frozen readings included (a loose sensor may end
     # up reading a constant air temperature: that is still reading the air)
-    segments = segment_stats(
-        series,
-        predicted,
-        timeline.bounds,
-        timeline.kinds,
-        config,
-        unsure=unsure,
-        invalid=broken,
-    )
+    def segments_leaving_out(invalid: BoolArray) -> list[Segment]:
+        return segment_stats(
+            series,
+            predicted,
+            timeline.bounds,
+            timeline.kinds,
+            config,
+            unsure=unsure,
+            invalid=invalid,
+        )
+
+    segments = segments_leaving_out(broken)
     loose = find_loose(series, segments, config, predicted)
     loose_mask = _mask_of(series, loose)
     rest = [s for s in segments if not loose_mask[s.start : s.stop].any()]
@@ -204,15 +208,7 @@ def _judge_span(
     # out no further reading: most spans)
     left_out = fault_mask | frozen_runs
     if not same_readings(series, broken, left_out):
-        segments = segment_stats(
-            series,
-            predicted,
-            timeline.bounds,
-            timeline.kinds,
-            config,
-            unsure=unsure,
-            invalid=left_out,
-        )
+        segments = segments_leaving_out(left_out)
     return _SpanVerdict(series, findings, segments, runs(fault_mask), unsure, estimate)
 
 
