@@ -20,7 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import hashlib
+import inspect
 import json
+import os
+import shutil
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +44,8 @@ from fleetbrake.model.rom import FullModelRunner
 from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.synth.config import draw_effect
 from fleetbrake.synth.generator import FleetTruth, SynthConfig, generate_fleet, load_truth
+
+REPO = Path(__file__).resolve().parents[1]
 
 WAGONS = 4
 """Registered wagons per fleet (with 4: wagon 1 clean, a dragging brake on 2, a weak brake on
@@ -150,6 +157,171 @@ def writer_for(wagon: WagonConfig) -> FullModelRunner:
     return _WRITERS[key]
 
 
+# ------------------------------------------------------------------ the written fleets' cache
+
+WRITER_SOURCES: tuple[str, ...] = (
+    "python/fleetbrake/__init__.py",
+    "python/fleetbrake/errors.py",
+    "python/fleetbrake/synth",
+    "python/fleetbrake/fleet",
+    "python/fleetbrake/model/__init__.py",
+    "python/fleetbrake/model/effects.py",
+    "python/fleetbrake/model/physics.py",
+    "python/fleetbrake/model/rom.py",
+    "python/fleetbrake/model/thermal.py",
+    "python/fleetbrake/model/timeline.py",
+    "crates/thermal_core/src",
+    "crates/thermal_core/Cargo.toml",
+    "crates/fleetbrake_py/src",
+    "crates/fleetbrake_py/Cargo.toml",
+    "Cargo.lock",
+)
+"""What writes an acceptance fleet, relative to the repository: ``fleetbrake.synth`` and the
+modules it runs (``test_closeloop_fleet_cache`` checks that every ``fleetbrake`` module whose
+code runs while a fleet is written by the full model is here), and the Rust of the full
+model (its mesh, elements, assembly and time stepping, and their bindings). A directory
+stands for its ``.py`` and ``.rs`` files; ``WRITER_SOURCES_EXCLUDED`` are left out. The
+built extension is not hashed: a run uses the one built from these sources."""
+WRITER_SOURCES_EXCLUDED: frozenset[str] = frozenset({"estimator.rs"})
+"""Files that do not write a fleet: the Kalman filter's kernel and its bindings (the
+pipeline's estimator, not the generator's)."""
+WRITER_FUNCTIONS: tuple[Callable[..., Any], ...] = (
+    candidate_laws,
+    draw_case_effect,
+    synth_config,
+    writer_for,
+)
+"""This module's writing part: its source is part of the writer's version."""
+
+
+def writer_source_files(sources: Sequence[str] = WRITER_SOURCES, root: Path = REPO) -> list[Path]:
+    """The files of ``sources`` (a directory: its ``.py`` and ``.rs`` files at any depth),
+    sorted; a source that does not exist is an error."""
+    files: list[Path] = []
+    for name in sources:
+        path = root / name
+        if path.is_file():
+            files.append(path)
+        elif path.is_dir():
+            files += [
+                f
+                for f in path.rglob("*")
+                if f.suffix in {".py", ".rs"}
+                and f.is_file()
+                and f.name not in WRITER_SOURCES_EXCLUDED
+            ]
+        else:
+            raise FileNotFoundError(f"{path}: a writer source that does not exist")
+    return sorted(set(files))
+
+
+def writer_version(
+    config: SynthConfig,
+    refinement: float = FE_REFINEMENT,
+    sources: Sequence[str] = WRITER_SOURCES,
+    root: Path = REPO,
+) -> str:
+    """The hash (sha256, hex) of what determines a written fleet: the full model's
+    ``refinement``, the ``config`` (seed, drawn effect and its parameters, everything else),
+    the source of this module's writing part (``WRITER_FUNCTIONS``) and the content of every
+    writer source file (:func:`writer_source_files`, by its path under ``root``). Any change
+    to one of them gives another version, so a changed writer never reuses a stale fleet."""
+    digest = hashlib.sha256()
+
+    def put(label: str, data: bytes) -> None:
+        digest.update(f"{label}\0{len(data)}\0".encode())
+        digest.update(data)
+
+    put("refinement", repr(float(refinement)).encode())
+    put("config", json.dumps(config.to_dict(), sort_keys=True, default=str).encode())
+    for function in WRITER_FUNCTIONS:
+        put(function.__name__, inspect.getsource(function).encode())
+    for path in writer_source_files(sources, root):
+        put(path.relative_to(root).as_posix(), path.read_bytes())
+    return digest.hexdigest()
+
+
+def fleet_cache_root() -> Path | None:
+    """Where written acceptance fleets are kept: ``$FLEETBRAKE_ACCEPTANCE_CACHE``, else
+    ``~/.cache/fleetbrake/acceptance``; None (no cache) when the variable is ``off``."""
+    env = os.environ.get("FLEETBRAKE_ACCEPTANCE_CACHE")
+    if env == "off":
+        return None
+    return Path(env) if env else Path.home() / ".cache" / "fleetbrake" / "acceptance"
+
+
+def cached_fleet(
+    name: str,
+    config: SynthConfig,
+    fleet_dir: Path,
+    write: Callable[[Path], object],
+    *,
+    version: str,
+    root: Path,
+) -> bool:
+    """Put the fleet of (``name``, ``config.seed``, ``version``) in ``fleet_dir`` (which must not
+    exist), a copy of the cached one; on a miss ``write(directory)`` writes it first into a
+    temporary directory under ``root``, renamed into place once complete (a run killed while
+    writing leaves no entry; of two runs writing one entry the first rename wins). True when
+    the fleet came from the cache. The run works on its copy: the cached fleet is only read."""
+    entry = root / f"{name}-s{config.seed}-{version[:24]}"
+    reused = (entry / "fleet").is_dir()
+    if not reused:
+        root.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{entry.name}.", dir=root))
+        try:
+            write(staging / "fleet")
+            about = {
+                "case": name,
+                "seed": config.seed,
+                "writer_version": version,
+                "config": config.to_dict(),
+                "written_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+            }
+            (staging / "writer.json").write_text(
+                json.dumps(about, indent=1, default=str), encoding="utf-8"
+            )
+            try:
+                staging.rename(entry)
+            except OSError:
+                if not (entry / "fleet").is_dir():  # not another run's complete entry
+                    raise
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+    shutil.copytree(entry / "fleet", fleet_dir)
+    return reused
+
+
+def write_case_fleet(
+    case: Case,
+    fleet_dir: Path,
+    full_model_for: Callable[[WagonConfig], FullModelRunner] = writer_for,
+    seconds: dict[str, float] | None = None,
+) -> FleetTruth:
+    """The case's fleet in ``fleet_dir``, written by ``full_model_for``; with the default writer
+    (:func:`writer_for`) a copy from the cache (:func:`fleet_cache_root`) when it holds the
+    fleet of this case, seed and :func:`writer_version`, else written and cached.
+    ``seconds["generate"]`` (written) or ``seconds["from_cache"]`` (copied) is set."""
+    config = synth_config(case)
+    root = fleet_cache_root()
+    spent = {} if seconds is None else seconds
+    began = time.perf_counter()
+    if full_model_for is not writer_for or root is None:
+        truth = generate_fleet(fleet_dir, config, rom=full_model_for)
+        spent["generate"] = time.perf_counter() - began
+        return truth
+    reused = cached_fleet(
+        case.name,
+        config,
+        fleet_dir,
+        lambda d: generate_fleet(d, config, rom=writer_for),
+        version=writer_version(config),
+        root=root,
+    )
+    spent["from_cache" if reused else "generate"] = time.perf_counter() - began
+    return load_truth(fleet_dir)
+
+
 def make_outcome(
     case: Case,
     out_dir: Path,
@@ -157,13 +329,12 @@ def make_outcome(
     full_model_for: Callable[[WagonConfig], FullModelRunner] = writer_for,
 ) -> Outcome:
     """Generate ``case`` in ``out_dir`` with the full model (``full_model_for``, by default
-    :func:`writer_for`: ``FE_REFINEMENT``), ``run`` it (reduced model at ``rom_refinement``,
-    in this process), then close the loop with the holdout on the last day."""
+    :func:`writer_for`: ``FE_REFINEMENT``, the fleet then copied from the cache when it holds
+    it, :func:`write_case_fleet`), ``run`` it (reduced model at ``rom_refinement``, in this
+    process), then close the loop with the holdout on the last day."""
     config = synth_config(case)
     seconds: dict[str, float] = {}
-    began = time.perf_counter()
-    truth = generate_fleet(out_dir / "fleet", config, rom=full_model_for)
-    seconds["generate"] = time.perf_counter() - began
+    truth = write_case_fleet(case, out_dir / "fleet", full_model_for, seconds)
     db = out_dir / "fleet.duckdb"
     simulation = SimulationConfig(refinement=rom_refinement)
     began = time.perf_counter()

@@ -29,6 +29,16 @@ Every case takes half an hour or more on a shared 2-core machine, most of it the
 at refinement 0.6 writing the fleet (26 min for ambient_offset under load 7-10; 54 s at the
 former 0.2; docs/closeloop.md, "Session 9"), then ``run`` and the close loop: the module is
 ``slow``; run one case at a time.
+
+A written fleet is kept: under ``$FLEETBRAKE_ACCEPTANCE_CACHE`` (default
+``~/.cache/fleetbrake/acceptance``; ``off`` for none), keyed by the case, its seed and the
+writer's version (``acceptance_fleets.writer_version``: a hash of ``FE_REFINEMENT``, the
+SynthConfig with its drawn effect, the source of ``fleetbrake.synth`` and of the full-model
+modules it runs, Python and Rust, and the writing part of ``acceptance_fleets``), written
+into a temporary directory and renamed into place when complete. A case whose fleet is
+cached copies it into its own directory (the ``from_cache`` seconds instead of
+``generate``) and pays only for ``run`` and the close loop; a changed writer has another
+version and writes the fleet again (``test_closeloop_fleet_cache``).
 """
 
 from __future__ import annotations

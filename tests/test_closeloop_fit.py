@@ -5,6 +5,7 @@ residual there)."""
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 
 import numpy as np
@@ -14,6 +15,7 @@ from fleetbrake.closeloop.loop import (
     Candidate,
     CloseLoopConfig,
     CloseLoopConfigError,
+    CloseLoopError,
     _fit,
     _steps,
     refit_moved,
@@ -304,3 +306,67 @@ def test_brakings_over_a_frozen_gps_speed_are_left_out_of_the_fit() -> None:
     )
     loaded = {"SGG-0001": SimpleNamespace(spans=[series])}
     assert _unknown_heat_events(loaded) == frozenset({"A"})  # type: ignore[arg-type]
+
+
+class ThreeBrakingsMisread(ThreeBrakings):
+    """:class:`ThreeBrakings` with the model driven by an input read ``misread`` times too
+    large (the rise each candidate predicts scaled by it): an input's systematic error."""
+
+    def __init__(self, alphas: tuple[float, ...], drop_above: float, misread: float) -> None:
+        super().__init__(alphas, drop_above)
+        self.misread = misread
+
+    def predicted(self, effects: EffectSet) -> np.ndarray:
+        return AMBIENT_C + self.misread * (super().predicted(effects) - AMBIENT_C)
+
+
+def test_the_input_term_is_gauss_newton_steps_that_agree_with_the_refit():
+    """The input term (``input_shift``): the chosen parameters' response to an input's
+    systematic error by Gauss-Newton steps with the fit's Jacobian, one evaluation of the
+    residual with the input changed each, agrees with refitting with it changed (session 9's
+    method). The heat partition's flux factor is nonlinear in alpha: an input read 1 % (5 %)
+    wrong moves alpha by 0.0028 (0.0133), the first step (``gauss_newton_shift``, the linear
+    sensitivity) is 1 % (5 %) off the refit's shift, the steps to a step of 5 % of the shift
+    0.01 % (0.25 %) in 2-3 evaluations. A parameter on a bound the step would cross stays on
+    it."""
+    from fleetbrake.closeloop.loop import (
+        effects_at,
+        gauss_newton_shift,
+        input_shift,
+        parameter_bounds,
+    )
+
+    brakings = ThreeBrakings((0.72, 0.70, 0.74), drop_above=1.0)
+    fitted = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    lower, upper = parameter_bounds([HeatPartition])
+    assert (lower, upper) == (pytest.approx([0.0]), pytest.approx([0.999]))
+    for misread in (1.01, 0.99, 1.05, 0.95):
+        moved = ThreeBrakingsMisread((0.72, 0.70, 0.74), 1.0, misread)
+        refit = _fit(moved, EffectSet(), [HeatPartition], list(fitted.effects), max_nfev=14)
+        wanted = refit.x[0] - fitted.x[0]
+        assert abs(wanted) > 2e-3
+        first = gauss_newton_shift(fitted, moved.residuals([fitted.effects])[0], lower, upper)
+        assert first[0] == pytest.approx(wanted, rel=1.5 * abs(misread - 1.0))
+        shift, evaluations = input_shift(
+            fitted,
+            lambda x, moved=moved: moved.residuals([effects_at(fitted, [HeatPartition], x)])[0],
+            lower,
+            upper,
+        )
+        assert shift[0] == pytest.approx(wanted, rel=5e-3) and evaluations <= 3
+    # unchanged input, no shift
+    same = gauss_newton_shift(fitted, brakings.residuals([fitted.effects])[0], lower, upper)
+    assert same == pytest.approx([0.0], abs=1e-12)
+    # the fitted alpha on its lower bound: a step down stays there, a step up is taken
+    on_bound = dataclasses.replace(fitted, x=np.array([0.0]))
+
+    def moved_along_jacobian(size: float) -> np.ndarray:  # a step of -size
+        r = np.full(on_bound.scored.shape, np.nan)
+        r[on_bound.scored] = on_bound.aligned + size * on_bound.jacobian[:, 0]
+        return r
+
+    assert gauss_newton_shift(on_bound, moved_along_jacobian(1e-3), lower, upper) == [0.0]
+    up = gauss_newton_shift(on_bound, moved_along_jacobian(-1e-3), lower, upper)
+    assert up == pytest.approx([1e-3], rel=1e-9)
+    with pytest.raises(CloseLoopError, match="not the fit's events"):
+        gauss_newton_shift(fitted, np.zeros(3), lower, upper)

@@ -54,9 +54,10 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    wagon-day jackknife (``parameter_intervals``, ``interval_methods``; these alone decide
    entry), widened for the report by a numerical term: the chosen effects refitted through
    coarser meshes, Roache's grid convergence index of the shift added in quadrature
-   (``interval_methods.numerical``), and by an input term: the chosen effects refitted with
-   the speed read without the bias its noise (estimated from the data) puts in a magnitude,
-   the shift added in quadrature (``interval_methods.input``).
+   (``interval_methods.numerical``), and by an input term: the chosen parameters' shift when
+   the speed is read without the bias its noise (estimated from the data) puts in a
+   magnitude, by Gauss-Newton steps with the fit's Jacobian (a sensitivity), added in
+   quadrature (``interval_methods.input``).
 5. **Revision.** The chosen effects become a new model revision (the current one, predicting
    with its parent's solver: before and after compare one model form), every
    event is re-simulated with it, the flags are judged again with it (the baseline's flags
@@ -75,7 +76,7 @@ import logging
 import math
 import tempfile
 import time
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -229,15 +230,20 @@ class CloseLoopConfig:
     gci_order: float = GCI_ORDER
     speed_input_term: bool = True
     """The reported intervals' input term (ASME V&V 20's u_input by its sensitivity method:
-    the fit with the input's systematic error taken out): the chosen effects refitted once,
-    on the same fit events from the chosen parameters, with the speed read as
+    the parameters' response to the input's systematic error taken out): the residual of the
+    chosen parameters evaluated on the same fit events with the speed read as
     ``sqrt(max(v^2 - noise^2, 0))`` (:func:`~fleetbrake.closeloop.fitdata.with_speed_debiased`,
     the noise estimated from the logged speed by
-    :func:`~fleetbrake.closeloop.fitdata.speed_noise_kmh`); the shift per parameter added in
-    quadrature to the statistical half-width with the numerical term. Why: a GPS speed is a
+    :func:`~fleetbrake.closeloop.fitdata.speed_noise_kmh`), and the parameters moved by
+    Gauss-Newton steps with the Jacobian the fit already has, one evaluation each
+    (:func:`input_shift`; until session 10 a refit from the chosen parameters, about 20
+    evaluations); the shift per parameter added in quadrature to the statistical half-width with the numerical term. Why: a GPS speed is a
     magnitude, so where the wagon stands it reads about its noise, not 0, and a convection law
     steep at low speed turns that into a bias of its exponent the same on every wagon-day,
     which no resampling sees (docs/closeloop.md, session 9). False: no such term."""
+    input_step_tolerance: float = 0.05
+    """The input term's Gauss-Newton steps stop when a step is at most this share of the
+    shift in every parameter (:func:`input_shift`)."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
@@ -353,6 +359,18 @@ def _steps(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, rel: float) -> np.ndar
     return np.where(backward, -lb_dist, h)
 
 
+def parameter_bounds(classes: Sequence[type[Effect]]) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted parameters' bounds, in the fit's order (each class's ``PARAMETER_RANGES``
+    order): a law's ``LIMITS``, unbounded where it has none."""
+    lo, hi = [], []
+    for cls in classes:
+        for pname in cls.PARAMETER_RANGES:
+            lim_lo, lim_hi = cls.LIMITS.get(pname, (None, None))
+            lo.append(-np.inf if lim_lo is None else lim_lo)
+            hi.append(np.inf if lim_hi is None else lim_hi)
+    return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+
+
 def _fit(
     evaluator: Evaluator,
     base: EffectSet,
@@ -369,18 +387,15 @@ def _fit(
     from scipy.optimize import least_squares
 
     names: list[tuple[type[Effect], str]] = []
-    x0, lo, hi, scale = [], [], [], []
+    x0, scale = [], []
     starting = {type(e): e for e in (start or [])}
     for cls in classes:
         for pname, (a, b) in cls.PARAMETER_RANGES.items():
-            lim_lo, lim_hi = cls.LIMITS.get(pname, (None, None))
             names.append((cls, pname))
             init = starting[cls].parameters[pname] if cls in starting else 0.5 * (a + b)
             x0.append(init)
-            lo.append(-np.inf if lim_lo is None else lim_lo)
-            hi.append(np.inf if lim_hi is None else lim_hi)
             scale.append(b - a)
-    lower, upper = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    lower, upper = parameter_bounds(classes)
 
     def build(x: np.ndarray) -> EffectSet:
         params: dict[type[Effect], dict[str, float]] = {cls: {} for cls in classes}
@@ -1333,23 +1348,24 @@ def _close_loop(
     inputs = None
     speed_noise = fitdata.speed_noise_kmh(loaded) if config.speed_input_term else math.nan
     if best.fitted is not None and best.fitted.x.size and speed_noise > 0.0:
-        # the chosen effects with the speed's magnitude bias taken out, on the same fit
-        # events, from the chosen parameters: the input term of the reported intervals
+        # the chosen parameters' residual with the speed's magnitude bias taken out, on the
+        # same fit events, and the parameters' response to it by the fit's Jacobian: the
+        # input term of the reported intervals
         t = time.perf_counter()
         added_now = [e for e in best.effects if type(e) not in present]
-        (debiased_fit,) = workers.fit(
-            [
-                task(
-                    FitData.build(
-                        fitdata.with_speed_debiased(loaded, speed_noise), best_events, sim, base
-                    ),
-                    [type(e) for e in added_now],
-                    added_now,
-                    max(4, config.max_nfev // 2),
-                )
-            ]
+        debiased_data = FitData.build(
+            fitdata.with_speed_debiased(loaded, speed_noise), best_events, sim, base
         )
-        inputs = _input_term(best.fitted, debiased_fit, speed_noise)
+        fitted_now, classes_now = best.fitted, [type(e) for e in added_now]
+        lower, upper = parameter_bounds(classes_now)
+        shift, steps = input_shift(
+            fitted_now,
+            lambda x: workers.evaluate(debiased_data, [effects_at(fitted_now, classes_now, x)])[0],
+            lower,
+            upper,
+            config.input_step_tolerance,
+        )
+        inputs = _input_term(fitted_now, shift, speed_noise, steps)
         timing["input_s"] = time.perf_counter() - t
     _add_verdict(
         report,
@@ -1468,10 +1484,10 @@ def _numerical_term(
 
 @dataclass(frozen=True)
 class InputTerm:
-    """The reported intervals' input term: the chosen parameters refitted with the speed's
-    magnitude bias taken out (the logged speed's noise ``speed_noise_kmh``), the refitted
-    parameters, their ``shift`` from the chosen ones, and ``half_width`` its size (keyed as
-    the report's ``parameters``)."""
+    """The reported intervals' input term: the chosen parameters moved by the speed's
+    magnitude bias taken out (the logged speed's noise ``speed_noise_kmh``; Gauss-Newton
+    steps with the fit's Jacobian, :func:`input_shift`), the moved parameters, their ``shift`` from the chosen
+    ones, and ``half_width`` its size (keyed as the report's ``parameters``)."""
 
     speed_noise_kmh: float
     debiased: dict[str, float]
@@ -1489,10 +1505,11 @@ class InputTerm:
         return {
             "method": (
                 "sensitivity to the input's systematic error (ASME V&V 20's u_input): the "
-                "chosen effects refitted on the same fit events with the speed read as "
+                "chosen parameters' residual on the same fit events with the speed read as "
                 "sqrt(max(v^2 - noise^2, 0)) (a GPS speed is a magnitude: at standstill it "
                 "reads its noise), the noise from the logged speed's second differences where "
-                "the wagon moves; the shift added in quadrature to the statistical half-width"
+                "the wagon moves, and the parameters' shift by Gauss-Newton steps with the "
+                "fit's Jacobian; the shift added in quadrature to the statistical half-width"
             ),
             "speed_noise_kmh": float(f"{self.speed_noise_kmh:.6g}"),
             "debiased": g(self.debiased),
@@ -1502,18 +1519,95 @@ class InputTerm:
         }
 
 
-def _input_term(fitted: FitResult, debiased: FitResult, noise_kmh: float) -> InputTerm:
-    """The input term of the chosen parameters (``fitted``) from their refit with the speed
-    debiased by ``noise_kmh`` (``debiased``)."""
+def gauss_newton_shift(
+    fitted: FitResult, moved: np.ndarray, lower: np.ndarray, upper: np.ndarray
+) -> np.ndarray:
+    """One Gauss-Newton step of the fitted parameters' response to a change of the data or an
+    input: from ``fitted.x`` with the fit's own Jacobian, ``dx = -J^+ (r_moved - r)`` on the
+    fit's scored seconds (``moved``: the residual at ``fitted.x`` with the input changed, on
+    the evaluator's seconds, ``r`` the fit's own residual ``fitted.aligned``; a second it does
+    not predict counts as unchanged). To first order this is the refit's shift (the fit's
+    residual being orthogonal to J at its optimum); a parameter on a bound the step would
+    cross stays there, and the step is kept within ``lower`` .. ``upper``."""
+    if moved.shape != fitted.scored.shape:
+        raise CloseLoopError(
+            f"the moved residual has {moved.size} seconds, the fit {fitted.scored.size}: "
+            "not the fit's events"
+        )
+    change = moved[fitted.scored] - fitted.aligned
+    change = np.where(np.isfinite(change), change, 0.0)
+    jac = fitted.jacobian
+    free = np.ones(fitted.x.size, dtype=bool)
+    step = np.zeros(fitted.x.size)
+    for _ in range(fitted.x.size + 1):  # a bound leaves a parameter at a time
+        step[:] = 0.0
+        if free.any():
+            # columns scaled to unit norm: parameters of very different sizes in one solve
+            norms = np.linalg.norm(jac[:, free], axis=0)
+            norms = np.where(norms > 0.0, norms, 1.0)
+            solved = np.linalg.lstsq(jac[:, free] / norms, -change, rcond=None)[0]
+            step[free] = solved / norms
+        crossing = free & (
+            ((fitted.x <= lower) & (step < 0.0)) | ((fitted.x >= upper) & (step > 0.0))
+        )
+        if not crossing.any():
+            break
+        free &= ~crossing
+    return np.clip(fitted.x + step, lower, upper) - fitted.x
+
+
+def effects_at(fitted: FitResult, classes: Sequence[type[Effect]], x: np.ndarray) -> EffectSet:
+    """``fitted``'s effect set with the parameters of ``classes`` (the fitted ones, in the
+    fit's order) set to ``x``, built as the fit builds it."""
+    effects = EffectSet(tuple(e for e in fitted.effects if type(e) not in classes))
+    values = iter(map(float, x))
+    for cls in classes:
+        effects = effects.with_effect(
+            cls.from_parameters({name: next(values) for name in cls.PARAMETER_RANGES})
+        )
+    return effects
+
+
+def input_shift(
+    fitted: FitResult,
+    residual_at: Callable[[np.ndarray], np.ndarray],
+    lower: np.ndarray,
+    upper: np.ndarray,
+    tolerance: float = 0.05,
+    max_steps: int = 5,
+) -> tuple[np.ndarray, int]:
+    """The fitted parameters' shift when an input changes (``residual_at(x)``: the residual
+    at parameters ``x`` with the input changed, on the evaluator's seconds): Gauss-Newton
+    steps with the fit's own Jacobian (the chord method: one evaluation a step, no new
+    Jacobian), each from where the last one ended against the fit's residual, until a step is
+    at most ``tolerance`` of the shift in every parameter (or ``max_steps``). The first step
+    is the linear sensitivity; the next ones take up the curvature a steep law has over the
+    shift (convection_speed's exponent: the first step 70 % of the refit's shift, the third
+    90 %; docs/closeloop.md, session 10). Returns the shift and the evaluations spent."""
+    x = fitted.x.copy()
+    floor = 1e-12 * (1.0 + np.abs(fitted.x))
+    evaluations = 0
+    while evaluations < max_steps:
+        step = gauss_newton_shift(dataclasses.replace(fitted, x=x), residual_at(x), lower, upper)
+        evaluations += 1
+        x = x + step
+        if np.all(np.abs(step) <= tolerance * np.abs(x - fitted.x) + floor):
+            break
+    return x - fitted.x, evaluations
+
+
+def _input_term(
+    fitted: FitResult, shift: np.ndarray, noise_kmh: float, evaluations: int
+) -> InputTerm:
+    """The input term of the chosen parameters (``fitted``) from their ``shift`` with the
+    speed debiased by ``noise_kmh`` (:func:`input_shift`, in ``evaluations``)."""
     qualified = len({name.split(".", 1)[0] for name in fitted.names}) > 1
     keys = [_report_key(name, qualified) for name in fitted.names]
-    by_name = dict(zip(debiased.names, debiased.x, strict=True))
-    x = np.array([by_name[name] for name in fitted.names])
     return InputTerm(
         noise_kmh,
-        dict(zip(keys, map(float, x), strict=True)),
-        dict(zip(keys, map(float, x - fitted.x), strict=True)),
-        debiased.evaluations,
+        dict(zip(keys, map(float, fitted.x + shift), strict=True)),
+        dict(zip(keys, map(float, shift), strict=True)),
+        evaluations,
     )
 
 
