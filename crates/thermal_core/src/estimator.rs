@@ -2226,6 +2226,16 @@ mod tests {
         }
     }
 
+    /// That two outputs differ somewhere by more than `at_least` (an option changed something).
+    fn assert_differ(name: &str, a: &[f64], b: &[f64], at_least: f64) {
+        let diff = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(diff > at_least, "{name} changed by only {diff}");
+    }
+
     fn assert_close(name: &str, a: &[f64], b: &[f64], tol: f64) {
         assert_eq!(a.len(), b.len(), "{name}: lengths");
         for (t, (x, y)) in a.iter().zip(b).enumerate() {
@@ -2323,14 +2333,12 @@ mod tests {
                 );
                 // the modes matter: σ_w everywhere is another filter
                 let plain = naive(&p, SWITCHING);
-                let diff = plain
-                    .filtered
-                    .power_sd_w
-                    .iter()
-                    .zip(&out.filtered.power_sd_w)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f64::max);
-                assert!(diff > 1e-3, "{diff}");
+                assert_differ(
+                    "power_sd_w",
+                    &plain.filtered.power_sd_w,
+                    &out.filtered.power_sd_w,
+                    1e-3,
+                );
             }
         }
     }
@@ -2357,14 +2365,12 @@ mod tests {
                 );
                 // and it is another filter than σ_q everywhere
                 let plain = run(&p, SWITCHING, &settings(tol, 64)).unwrap();
-                let diff = plain
-                    .filtered
-                    .power_sd_w
-                    .iter()
-                    .zip(&out.filtered.power_sd_w)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f64::max);
-                assert!(diff > 1e-3, "{diff}");
+                assert_differ(
+                    "power_sd_w",
+                    &plain.filtered.power_sd_w,
+                    &out.filtered.power_sd_w,
+                    1e-3,
+                );
             }
         }
     }
@@ -2415,14 +2421,12 @@ mod tests {
             // and it is another filter than without it
             p.power_noise = Cow::Owned(Vec::new());
             let plain = run(&p, noise, &settings(0.0, 64)).unwrap();
-            let diff = plain
-                .filtered
-                .power_sd_w
-                .iter()
-                .zip(&exact.filtered.power_sd_w)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f64::max);
-            assert!(diff > 1e-3, "{diff}");
+            assert_differ(
+                "power_sd_w",
+                &plain.filtered.power_sd_w,
+                &exact.filtered.power_sd_w,
+                1e-3,
+            );
         }
     }
 
@@ -2458,13 +2462,12 @@ mod tests {
                     tol_k,
                 );
                 let before = plain.smoothed.as_ref().unwrap();
-                let diff = before
-                    .power_w
-                    .iter()
-                    .zip(&out.smoothed.as_ref().unwrap().power_w)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f64::max);
-                assert!(diff > 1e-6, "the led smoother changed nothing: {diff}");
+                assert_differ(
+                    "the led smoother's power_w",
+                    &before.power_w,
+                    &out.smoothed.as_ref().unwrap().power_w,
+                    1e-6,
+                );
             }
         }
         assert_eq!(led_modes(&[false, false, true, true], 0), None);
