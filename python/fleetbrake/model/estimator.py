@@ -962,9 +962,13 @@ def prepare(
         cov0[r - 1, r - 1] = config.seat_error_sd_k**2
     lag_rows = table.lag
     # the declared braking power of each step (W into the block), its share of the noise
-    declared_w = step_flux * wagon.geometry.contact_area_m2
+    # (none at all with the option off: no array of zeros per wagon-second to build and ship)
     gain = config.declared_power_noise_per_sqrt_s
-    power_noise = np.where(held | gap, 0.0, (gain * declared_w) ** 2)
+    power_noise = (
+        np.where(held | gap, 0.0, (gain * step_flux * wagon.geometry.contact_area_m2) ** 2)
+        if gain > 0.0
+        else None
+    )
     return EstimatorProblem(
         wagon_id=series.wagon_id,
         order=r,
@@ -997,7 +1001,7 @@ def prepare(
         held=held,
         q_modes=np.stack(table.q_modes) if table.q_modes else np.zeros((0, r)),
         applied=np.array(table.applied, dtype=bool),
-        power_noise=np.ascontiguousarray(power_noise, dtype=np.float64),
+        power_noise=power_noise,
     )
 
 
@@ -1419,7 +1423,7 @@ def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
         "gap_dir": c(p.gap_noise()[1], dtype=np.float64),
         "q_modes": c(p.mode_noise().reshape(-1), dtype=np.float64),
         "applied": [bool(v) for v in p.applied_transitions()],
-        "power_noise": c(p.step_power_noise(), dtype=np.float64),
+        "power_noise": None if p.power_noise is None else c(p.power_noise, dtype=np.float64),
     }
 
 
