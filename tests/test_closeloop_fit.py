@@ -349,7 +349,9 @@ def test_the_input_term_is_gauss_newton_steps_that_agree_with_the_refit():
         assert first[0] == pytest.approx(wanted, rel=1.5 * abs(misread - 1.0))
         shift, evaluations = input_shift(
             fitted,
-            lambda x, moved=moved: moved.residuals([effects_at(fitted, [HeatPartition], x)])[0],
+            lambda x, moved=moved: moved.residuals(
+                [effects_at(fitted.effects, [HeatPartition], x)]
+            )[0],
             lower,
             upper,
         )

@@ -237,10 +237,11 @@ class CloseLoopConfig:
     :func:`~fleetbrake.closeloop.fitdata.speed_noise_kmh`), and the parameters moved by
     Gauss-Newton steps with the Jacobian the fit already has, one evaluation each
     (:func:`input_shift`; until session 10 a refit from the chosen parameters, about 20
-    evaluations); the shift per parameter added in quadrature to the statistical half-width with the numerical term. Why: a GPS speed is a
-    magnitude, so where the wagon stands it reads about its noise, not 0, and a convection law
-    steep at low speed turns that into a bias of its exponent the same on every wagon-day,
-    which no resampling sees (docs/closeloop.md, session 9). False: no such term."""
+    evaluations); the shift per parameter added in quadrature to the statistical half-width
+    with the numerical term. Why: a GPS speed is a magnitude, so where the wagon stands it
+    reads about its noise, not 0, and a convection law steep at low speed turns that into a
+    bias of its exponent the same on every wagon-day, which no resampling sees
+    (docs/closeloop.md, session 9). False: no such term."""
     input_step_tolerance: float = 0.05
     """The input term's Gauss-Newton steps stop when a step is at most this share of the
     shift in every parameter (:func:`input_shift`)."""
@@ -398,13 +399,7 @@ def _fit(
     lower, upper = parameter_bounds(classes)
 
     def build(x: np.ndarray) -> EffectSet:
-        params: dict[type[Effect], dict[str, float]] = {cls: {} for cls in classes}
-        for (cls, pname), value in zip(names, x, strict=True):
-            params[cls][pname] = float(value)
-        effects = base
-        for cls in classes:
-            effects = effects.with_effect(cls.from_parameters(params[cls]))
-        return effects
+        return effects_at(base, classes, x)
 
     # every parameter vector is simulated once (the optimiser's first call is the starting
     # point, the fit's residual its last accepted point); each is scored on the seconds the
@@ -1360,7 +1355,9 @@ def _close_loop(
         lower, upper = parameter_bounds(classes_now)
         shift, steps = input_shift(
             fitted_now,
-            lambda x: workers.evaluate(debiased_data, [effects_at(fitted_now, classes_now, x)])[0],
+            lambda x: workers.evaluate(
+                debiased_data, [effects_at(fitted_now.effects, classes_now, x)]
+            )[0],
             lower,
             upper,
             config.input_step_tolerance,
@@ -1486,8 +1483,9 @@ def _numerical_term(
 class InputTerm:
     """The reported intervals' input term: the chosen parameters moved by the speed's
     magnitude bias taken out (the logged speed's noise ``speed_noise_kmh``; Gauss-Newton
-    steps with the fit's Jacobian, :func:`input_shift`), the moved parameters, their ``shift`` from the chosen
-    ones, and ``half_width`` its size (keyed as the report's ``parameters``)."""
+    steps with the fit's Jacobian, :func:`input_shift`), the moved parameters, their
+    ``shift`` from the chosen ones, and ``half_width`` its size (keyed as the report's
+    ``parameters``)."""
 
     speed_noise_kmh: float
     debiased: dict[str, float]
@@ -1556,11 +1554,15 @@ def gauss_newton_shift(
     return np.clip(fitted.x + step, lower, upper) - fitted.x
 
 
-def effects_at(fitted: FitResult, classes: Sequence[type[Effect]], x: np.ndarray) -> EffectSet:
-    """``fitted``'s effect set with the parameters of ``classes`` (the fitted ones, in the
-    fit's order) set to ``x``, built as the fit builds it."""
-    effects = EffectSet(tuple(e for e in fitted.effects if type(e) not in classes))
+def effects_at(base: EffectSet, classes: Sequence[type[Effect]], x: np.ndarray) -> EffectSet:
+    """``base`` with an effect of each of ``classes`` at the parameters ``x`` (in the fit's
+    order: class by class, each in its ``PARAMETER_RANGES`` order), replacing one of the same
+    name: how :func:`_fit` builds each candidate point, and the input term a fitted one."""
+    wanted = sum(len(cls.PARAMETER_RANGES) for cls in classes)
+    if len(x) != wanted:
+        raise CloseLoopError(f"{len(x)} parameters for the {wanted} of {classes}")
     values = iter(map(float, x))
+    effects = base
     for cls in classes:
         effects = effects.with_effect(
             cls.from_parameters({name: next(values) for name in cls.PARAMETER_RANGES})
