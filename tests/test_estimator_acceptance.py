@@ -10,8 +10,11 @@ faults, run through ``run_fleet`` (the ``estimate`` stage) and read from
   estimated drag power within 20 % of the true one;
 - the truth inside the 95 % band for 90-99 % of the seconds;
 - flag precision and recall no worse than the detectors' (1.00 / 1.00 on these fleets);
-- identity: a noise-free fleet that follows the declared model gives the model's prediction
-  within the band, the unexplained power within its bounds of 0.
+- identity: a noise-free fleet that follows the declared model (the pressure logged at the
+  log's 1 mbar) gives the model's prediction within the band, the unexplained power within
+  its bounds of 0;
+- the same fleet through synth's 7 mbar pressure sensor: the unexplained power follows the
+  heat that the quantised pressure leaves out (an input error the filter should resolve).
 
 Run with ``-s`` to see the figures (``docs/estimator.md`` quotes them).
 """
@@ -33,9 +36,11 @@ import pytest
 from acceptance_fleets import flag_score
 from fleetbrake.app.run import run_fleet
 from fleetbrake.engine import InlineEngine
-from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.fleet.registry import WagonConfig, load_registry
 from fleetbrake.model.estimator import Z95
+from fleetbrake.model.physics import KMH_TO_M_S, block_force_n, heat_partition_alpha
 from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.synth import generator as synth_generator
 from fleetbrake.synth.generator import SynthConfig, generate_fleet
 from fleetbrake.synth.truth import FleetTruth
 
@@ -164,7 +169,16 @@ NOT_MET_RMSE = (
     "3e-4 / 5e-4 / 1e-3 per s^0.5, identity outside the filtered / smoothed band 441/600, "
     "433/435, 95/75, 0/28, 0/4 s: at g 5e-4 every other bar holds on both seeds (smoothed "
     "0.0301 K and 0.218 K against 1.63, bands 0.961-0.985, drags within 2.5 %, flags 1.00 / "
-    "1.00, power band 0.998 / 0.992), the filtered bar does not; docs/estimator.md"
+    "1.00, power band 0.998 / 0.992), the filtered bar does not. Session 11: the identity "
+    "fleet now logs the pressure at the log's 1 mbar (synth's 7 mbar was an input error, "
+    "now its own test); there the session-8 settings hold identity (0 / 0 s outside, power "
+    "band 1.000 / 1.000) and keep 0.0373 / 0.0286 K, but on the 7 mbar fleet they do not "
+    "follow the logged pressure's -6.7 W (smoothed -66 %, live -70 %, inside the power band "
+    "for 46 / 37 % of the long brakings' s against >= 90 %), the clean wagon's innovations' "
+    "likelihood does not choose them (66,056 / 73,929 against up to 66,334 / 74,297 for "
+    "settings that fail the bands or the RMSE) and they run at 0.45-0.52x the defaults' "
+    "wagon-s per CPU-second (320,000-390,000 quiet against the bar's 500,000); "
+    "docs/estimator.md"
 )
 
 
@@ -292,15 +306,20 @@ def test_flags_are_as_good_as_the_detectors(fleets: list[Fleet]) -> None:
         assert score.precision >= 1.0 and score.recall >= 1.0, score.misses
 
 
-@pytest.fixture(scope="module")
-def declared_fleet(
-    tmp_path_factory: pytest.TempPathFactory,
-    reduced_model_for: Callable[..., object],
-    rom_refinement: float,
-    rom_cache_dir: Path,
-) -> Iterator[Fleet]:
+LOG_RESOLUTION_BAR = 0.001
+"""The log format's own resolution of the pressure (three decimals, ``fleet-data.md``)."""
+
+
+def _declared_fleet(
+    root: Path,
+    model_for: Callable[..., object],
+    refinement: float,
+    cache_dir: Path,
+    pressure_quantum_bar: float,
+) -> Fleet:
     """One wagon-day that follows the declared model: written by the reduced model itself,
-    no anomaly, noise-free readings and inputs."""
+    no anomaly, noise-free readings and inputs, the pressure logged in steps of
+    ``pressure_quantum_bar`` (synth's sensor: 7 mbar)."""
     config = SynthConfig(
         wagons=1,
         days=1,
@@ -324,9 +343,44 @@ def declared_fleet(
         odd_columns=False,
     )
     with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
-        root = tmp_path_factory.mktemp("estimator-declared")
-        yield _fleet(root, config, reduced_model_for, rom_refinement)
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(cache_dir))
+        mp.setattr(synth_generator, "PRESSURE_QUANTUM_BAR", pressure_quantum_bar)
+        return _fleet(root, config, model_for, refinement)
+
+
+@pytest.fixture(scope="module")
+def declared_fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., object],
+    rom_refinement: float,
+    rom_cache_dir: Path,
+) -> Fleet:
+    """The identity fleet: noise-free readings, the pressure at the log's own resolution
+    (1 mbar). synth's 7 mbar sensor is a reading error of the input (a long braking at a
+    true 0.8156 bar is logged as 0.819 bar, a few watts of heat the declared inputs do not
+    explain), which a filter is right to resolve: ``declared_fleet_7mbar``."""
+    root = tmp_path_factory.mktemp("estimator-declared")
+    return _declared_fleet(
+        root, reduced_model_for, rom_refinement, rom_cache_dir, LOG_RESOLUTION_BAR
+    )
+
+
+@pytest.fixture(scope="module")
+def declared_fleet_7mbar(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., object],
+    rom_refinement: float,
+    rom_cache_dir: Path,
+) -> Fleet:
+    """The same wagon-day with the pressure logged through synth's 7 mbar sensor."""
+    root = tmp_path_factory.mktemp("estimator-declared-7mbar")
+    return _declared_fleet(
+        root,
+        reduced_model_for,
+        rom_refinement,
+        rom_cache_dir,
+        synth_generator.PRESSURE_QUANTUM_BAR,
+    )
 
 
 def test_identity_a_fleet_following_the_declared_model(declared_fleet: Fleet) -> None:
@@ -352,7 +406,120 @@ def test_identity_a_fleet_following_the_declared_model(declared_fleet: Fleet) ->
         hi = rows[f"{prefix}unexplained_power_hi_w"].to_numpy()
         share = float(np.mean((lo <= 0) & (hi >= 0)))
         print(f"identity {prefix or 'filtered'}: power band holds 0 for {share:.4f} of the s")
-        # 0.98: in long brakings the log's pressure reads 0.4 % above the truth's (0.819
-        # against 0.8156 bar), a real -8 W against the logged inputs that the quiet band
-        # (±6 W) resolves
         assert share >= 0.98, prefix
+
+
+LONG_BRAKING_S = 120
+"""A long braking: at least this many seconds with the logged pressure applied."""
+SETTLE_S = 60
+"""The first seconds of a braking, left out: the filter needs them to see an input error."""
+
+
+def _implied_power_w(fleet: Fleet) -> pl.DataFrame:
+    """The rows with the logged pressure and speed and ``implied_w``: the heat into the block
+    that the logged inputs do not explain, the truth's (true pressure and speed) less the
+    declared model's from the logged ones (``physics``'s force chain and heat partition, as
+    the model builds its input)."""
+    samples = _query(
+        fleet.db,
+        "SELECT wagon_id, time_utc, brake_pressure_bar AS logged_p_bar, "
+        "speed_kmh AS logged_speed_kmh FROM samples",
+    ).with_columns(pl.col("time_utc").cast(pl.Datetime("us")))
+    samples = samples.unique(["wagon_id", "time_utc"], keep="first")
+    rows = fleet.rows.join(samples, on=["wagon_id", "time_utc"], how="left")
+    registry = load_registry(fleet.db.parent / "fleet" / "fleet.toml").wagons
+    implied = np.full(rows.height, np.nan)
+    for wagon_id in set(rows["wagon_id"].to_list()):
+        wagon = registry[wagon_id]
+        at = (rows["wagon_id"] == wagon_id).to_numpy()
+        force_n = np.asarray(block_force_n(wagon, rows["logged_p_bar"].to_numpy()[at]))
+        declared_w = (
+            (1.0 - heat_partition_alpha(wagon))
+            * wagon.friction_coefficient
+            * force_n
+            * rows["logged_speed_kmh"].to_numpy()[at]
+            * KMH_TO_M_S
+        )
+        implied[at] = rows["true_power_w"].to_numpy()[at] - declared_w
+    return rows.with_columns(pl.Series("implied_w", implied))
+
+
+def _long_brakings(rows: pl.DataFrame) -> list[tuple[int, int]]:
+    """The row ranges of the long brakings (one wagon's rows in time order)."""
+    assert rows["wagon_id"].n_unique() == 1
+    applied = (rows["logged_p_bar"].to_numpy() > 0.05).astype(int)
+    edges = np.flatnonzero(np.diff(np.r_[0, applied, 0]))
+    return [
+        (int(a), int(b))
+        for a, b in zip(edges[::2], edges[1::2], strict=True)
+        if b - a >= LONG_BRAKING_S
+    ]
+
+
+def test_the_power_follows_the_logged_pressures_own_error(
+    declared_fleet_7mbar: Fleet, declared_fleet: Fleet
+) -> None:
+    """The declared model's fleet logged through synth's 7 mbar pressure sensor: an input
+    error (a braking at a true 0.8156 bar logged as 0.819) that a filter should resolve as
+    unexplained power. Over the long brakings (after their first minute) the heat the logged
+    inputs miss is inside the power's 95 % band for at least 90 % of the seconds; where it is
+    5 W or more, the smoothed power over the braking and the live one over its second half
+    are within 20 % of it (the issue's drag bar) and the smoothed band leaves out 0 for most
+    of its seconds. The 1 mbar fleet's missing heat is small (so it is the
+    quantisation, not the model): its worst long braking misses less than a fifth of the 7 mbar
+    fleet's worst."""
+    rows = _implied_power_w(declared_fleet_7mbar)
+    runs = _long_brakings(rows)
+    assert len(runs) >= 5
+    exact = _implied_power_w(declared_fleet)
+
+    def worst_w(frame: pl.DataFrame) -> float:
+        return max(
+            abs(float(frame["implied_w"].to_numpy()[a + SETTLE_S : b].mean()))
+            for a, b in _long_brakings(frame)
+        )
+
+    print(
+        f"missing heat of the worst long braking: 7 mbar {worst_w(rows):.2f} W, "
+        f"1 mbar {worst_w(exact):.2f} W"
+    )
+    assert worst_w(exact) < 0.2 * worst_w(rows)
+    inside: dict[str, list[np.ndarray]] = {"": [], "smoothed_": []}
+    large = 0
+    for a, b in runs:
+        part = rows[a + SETTLE_S : b]
+        implied = part["implied_w"].to_numpy()
+        for prefix, shares in inside.items():
+            lo = part[f"{prefix}unexplained_power_lo_w"].to_numpy()
+            hi = part[f"{prefix}unexplained_power_hi_w"].to_numpy()
+            shares.append((lo <= implied) & (implied <= hi))
+        if abs(float(implied.mean())) < 5.0:
+            continue
+        large += 1
+        second_half = part.tail(part.height // 2)
+        smoothed = float(part["smoothed_unexplained_power_w"].to_numpy().mean() / implied.mean())
+        live = float(
+            second_half["unexplained_power_w"].to_numpy().mean()
+            / second_half["implied_w"].to_numpy().mean()
+        )
+        zero_in = float(
+            np.mean(
+                (part["smoothed_unexplained_power_lo_w"].to_numpy() <= 0)
+                & (part["smoothed_unexplained_power_hi_w"].to_numpy() >= 0)
+            )
+        )
+        print(
+            f"7 mbar: braking of {b - a} s at {part['logged_p_bar'].to_numpy().mean():.3f} bar: "
+            f"missing {implied.mean():+.2f} W, smoothed {smoothed - 1:+.1%}, live (2nd half) "
+            f"{live - 1:+.1%}, smoothed band holding 0 for {zero_in:.2f} of the s"
+        )
+        assert abs(smoothed - 1) <= 0.2 and abs(live - 1) <= 0.2, (smoothed, live)
+        assert zero_in < 0.5
+    assert large >= 1  # the fleet has an input error worth resolving
+    for prefix, shares in inside.items():
+        share = float(np.mean(np.concatenate(shares)))
+        print(
+            f"7 mbar: {len(runs)} long brakings, the missing heat inside the "
+            f"{prefix.rstrip('_') or 'filtered'} power band for {share:.3f} of their s"
+        )
+        assert share >= 0.9, prefix
