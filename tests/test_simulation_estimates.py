@@ -221,6 +221,61 @@ def test_the_revisions_sigma_w_is_fitted_on_the_engine_as_in_the_parent(
     assert len(json.loads(found["inline"].fit_wagons)) >= 2  # wagons fitted apart
 
 
+def test_a_state_dependent_revisions_filtered_passes_are_the_smoothed_ones_without_smoothing(
+    fleet: Fleet, rom_cache_dir: Path
+) -> None:
+    """``fit_wagon_noise`` evaluates a fade on the first estimate's filtered contact, which it
+    takes from filter-only passes (``_estimate(smooth=False)``): their filtered values, and so
+    their number of passes and the fit, are those of the smoothed estimate, bit for bit; and
+    ``estimate_contact`` iterates a fade on filter-only passes, smoothing only the last one."""
+    import numpy as np
+
+    from fleetbrake.model import estimator as m
+    from fleetbrake.model.effects import EffectSet, FrictionTemperature
+    from fleetbrake.simulation.predictions import Revision, revision
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        with open_warehouse(fleet.db, read_only=True) as wh:
+            base = revision(wh, "declared")
+            wagon_id = min(w for w in e.estimation_data_keys(wh) if w in fleet.registry.wagons)
+            wagon = fleet.registry.wagons[wagon_id]
+            task = e.estimate_task(wh, wagon, base, fleet.config, 3.0, data_key="", model_key="")
+        rev = Revision(
+            "fade",
+            EffectSet((FrictionTemperature(fade_per_k=2.0e-3),)),
+            base.solver,
+            base.refinement,
+        )
+        series, _ = e.estimator_series(
+            wagon,
+            pl.DataFrame(pl.from_arrow(task.samples)),
+            fleet.config.chain,
+            config=fleet.config,
+        )
+        noise = e.wagon_noise(series, fleet.config, 3.0)
+        calls: dict[bool, list[bool]] = {True: [], False: []}
+        run = m.estimate
+        found = {}
+        for smooth in (True, False):
+
+            def counted(*args: Any, _to: list[bool] = calls[smooth], **kwargs: Any) -> Any:
+                _to.append(kwargs["smooth"])
+                return run(*args, **kwargs)
+
+            mp.setattr(m, "estimate", counted)
+            found[smooth] = e._estimate(wagon, series, rev, fleet.config, noise, smooth=smooth)
+    smoothed, filtered = found[True], found[False]
+    assert smoothed is not None and filtered is not None
+    # the fade iterated on filter-only passes; the smoothed estimate smooths the last once more
+    assert calls[False] == [False] * len(calls[False]) and len(calls[False]) >= 2
+    assert calls[True] == calls[False] + [True]
+    assert filtered.smoothed_contact_mean_c is None
+    for name in ("contact_mean_c", "contact_mean_sd_k", "innovation_k", "innovation_var_k2"):
+        assert np.array_equal(getattr(filtered, name), getattr(smoothed, name), equal_nan=True)
+    assert filtered.log_likelihood == smoothed.log_likelihood
+
+
 def test_write_behind_commits_in_order_on_its_thread_and_raises_a_writes_error() -> None:
     """``WriteBehind``: batches written one at a time, in order, off the caller's thread;
     the caller goes on while one is written; a failed write raises at the next submit or at

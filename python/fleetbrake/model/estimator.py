@@ -1625,26 +1625,30 @@ def estimate_contact(
 ) -> ContactEstimate:
     """The estimate of one wagon's series under a model revision. A state-dependent effect
     (friction fade) is evaluated on the filtered contact temperature of the previous pass,
-    until that changes by less than ``tol_k`` (at most ``max_iterations`` passes)."""
+    until that changes by less than ``tol_k`` (at most ``max_iterations`` passes): those
+    passes filter only (the smoother changes no filtered value), and the last one's problem
+    is smoothed once at the end."""
     contact: FloatArray | None = None
-    for _ in range(max_iterations if effects.state_dependent else 1):
+    iterate = effects.state_dependent
+    for _ in range(max_iterations if iterate else 1):
         problem = prepare(
             rom, wagon, series, effects=effects, config=config, h_w_m2k=h_w_m2k, contact_c=contact
         )
-        result = estimate([problem], config=config, smooth=smooth, engine=engine)[0]
-        if not effects.state_dependent:
+        result = estimate([problem], config=config, smooth=smooth and not iterate, engine=engine)[0]
+        if not iterate:
             return result
         if contact is not None and float(np.max(np.abs(result.contact_mean_c - contact))) < tol_k:
-            return result
+            break
         contact = result.contact_mean_c
-    logger.warning(
-        "wagon %s: the state-dependent effects' estimate still moved by more than %g K after "
-        "%d passes",
-        series.wagon_id,
-        tol_k,
-        max_iterations,
-    )
-    return result
+    else:
+        logger.warning(
+            "wagon %s: the state-dependent effects' estimate still moved by more than %g K "
+            "after %d passes",
+            series.wagon_id,
+            tol_k,
+            max_iterations,
+        )
+    return estimate([problem], config=config, smooth=True, engine=engine)[0] if smooth else result
 
 
 # --------------------------------------------------------------------------------------------
