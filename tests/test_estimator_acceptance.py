@@ -1,8 +1,17 @@
 """Issue 14's bars for the virtual sensor, shown on fleets written by the FULL finite-element
-model (``fleetbrake.synth`` with ``solver="full"``: another mesh, another integrator than the
-reduced model the pipeline estimates with), with dragging brakes, weak brakes and sensor
-faults, run through ``run_fleet`` (the ``estimate`` stage) and read from
-``v_contact_estimates`` / ``contact_estimates``:
+model (``fleetbrake.synth`` with ``solver="full"``: not the reduced model the pipeline
+estimates with, which differs from it by its reduction and its time integration), with
+dragging brakes, weak brakes and sensor faults, run through ``run_fleet`` (the ``estimate``
+stage) and read from ``v_contact_estimates`` / ``contact_estimates``.
+
+The writer is the close loop's (``acceptance_fleets.writer_for``, ``FE_REFINEMENT`` 0.6: the
+6,131-node mesh the reduced model is reduced from) and the fleets come from its cache
+(``acceptance_fleets.cached_fleet``, written once per writer version;
+``FLEETBRAKE_ACCEPTANCE_CACHE=off`` writes them afresh). Until session 11 they were written at
+0.2 (409 nodes), a mesh coarser than the model's: in a hard braking that writer's seat is
+0.1-0.2 K off the 0.6 mesh's, while the reduced model's is within 0.01 K, so most of the
+seat's disagreement the filter was chasing was the writer's mesh error (docs/estimator.md,
+"Session 11 (second)"). The bars:
 
 - contact-mean RMSE against the truth over normal operation, filtered and smoothed, at most
   the open-loop prediction's (the stored timeline);
@@ -33,7 +42,8 @@ import numpy as np
 import polars as pl
 import pytest
 
-from acceptance_fleets import flag_score
+import acceptance_fleets
+from acceptance_fleets import cached_fleet, flag_score, fleet_cache_root, writer_for, writer_version
 from fleetbrake.app.run import run_fleet
 from fleetbrake.engine import InlineEngine
 from fleetbrake.fleet.registry import WagonConfig, load_registry
@@ -41,13 +51,15 @@ from fleetbrake.model.estimator import Z95
 from fleetbrake.model.physics import KMH_TO_M_S, block_force_n, heat_partition_alpha
 from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.synth import generator as synth_generator
-from fleetbrake.synth.generator import SynthConfig, generate_fleet
+from fleetbrake.synth.generator import SynthConfig, generate_fleet, load_truth
 from fleetbrake.synth.truth import FleetTruth
 
 pytestmark = pytest.mark.slow
 
-FE_REFINEMENT = 0.2
-"""The full model's mesh that writes the fleets (409 hex20 nodes, as ``test_closeloop``)."""
+FE_REFINEMENT = acceptance_fleets.FE_REFINEMENT
+"""The full model's mesh that writes the fleets: the close loop's writer (0.6, 6,131 hex20
+nodes, the mesh the reduced model is reduced from), so the fleets' truth is not the writer's
+own mesh error (it was 0.2, 409 nodes, until session 11: docs/estimator.md)."""
 SEEDS = (3, 4)
 """Two fleets of 4 wagons x 2 days (wagon 1 clean, a dragging brake on 2, a weak brake on 3,
 sensor faults on 2-4; synth's unregistered and badly registered wagons besides)."""
@@ -75,9 +87,27 @@ def _query(db: Path, text: str, params: dict[str, Any] | None = None) -> pl.Data
 
 
 def _fleet(
-    root: Path, config: SynthConfig, model_for: Callable[..., Any], refinement: float
+    root: Path,
+    config: SynthConfig,
+    model_for: Callable[..., Any],
+    refinement: float,
+    cache_as: str | None = None,
 ) -> Fleet:
-    truth = generate_fleet(root / "fleet", config, rom=model_for)
+    """``config``'s fleet written by ``model_for`` into ``root/fleet`` (with ``cache_as``: a
+    copy of the acceptance cache's, written there once per writer version), run, and read."""
+    cache = fleet_cache_root() if cache_as is not None else None
+    if cache_as is None or cache is None:
+        truth = generate_fleet(root / "fleet", config, rom=model_for)
+    else:
+        cached_fleet(
+            cache_as,
+            config,
+            root / "fleet",
+            lambda d: generate_fleet(d, config, rom=model_for),
+            version=writer_version(config),
+            root=cache,
+        )
+        truth = load_truth(root / "fleet")
     db = root / "fleet.duckdb"
     run_fleet(
         root / "fleet",
@@ -113,7 +143,6 @@ def _fleet(
 @pytest.fixture(scope="module")
 def fleets(
     tmp_path_factory: pytest.TempPathFactory,
-    full_model_for: Callable[..., Any],
     rom_refinement: float,
     rom_cache_dir: Path,
 ) -> Iterator[list[Fleet]]:
@@ -130,7 +159,9 @@ def fleets(
                 refinement=FE_REFINEMENT,
             )
             root = tmp_path_factory.mktemp(f"estimator-acceptance-{seed}")
-            out.append(_fleet(root, config, full_model_for, rom_refinement))
+            out.append(
+                _fleet(root, config, writer_for, rom_refinement, cache_as="estimator-acceptance")
+            )
         yield out
 
 
@@ -151,42 +182,38 @@ def _rmse(x: np.ndarray, y: np.ndarray) -> float:
 
 
 NOT_MET_RMSE = (
-    "issue 14's first bar is not met on full-FE fleets by the defaults: over normal operation "
-    "(seed 3) the filtered contact mean is 0.108 K RMSE and the smoothed 0.0397 K against the "
-    "open loop's 0.0389 K. Session 8: sigma_q 0.03 with the seat-error coordinate (0.07 K, "
-    "100 s), the power held at standstill and the smoother's lead (120 s) meets it on both "
-    "seeds (0.0373 / 0.0286 K) and every other bar of the fleets and the drag day (smoothed "
-    "band 0.974), but fails the identity bar (441 of 42,859 s outside the filtered band "
-    "against at most 85: the log's -8 W in long brakings is too fast for sigma_q 0.03); the "
-    "settings that hold identity (sigma_q 0.1, seat error 0.1 K / 600 s) give 0.0535 K "
-    "filtered. Session 9: sigma_q by the cylinder's state (those settings with sigma_q "
-    "0.03 released and sigma_qa applied, pressure > 0.05 bar) still cannot do both: seed 3 "
-    "filtered 0.0373 / 0.0397 / 0.0418 / 0.0440 / 0.0486 K at sigma_qa 0.03 / 0.1 / 0.15 / "
-    "0.2 / 0.3 W/s^0.5 (bar 0.0389: sigma_qa <= ~0.08), identity outside the filtered band "
-    "441 / 337 / 190 / 90 / 0 s (bar 85: sigma_qa >= ~0.21). Session 10: noise in proportion "
-    "to the declared braking power, sigma^2 = sigma_q^2 + (g P_declared)^2, on the session-8 "
-    "settings: seed 3 filtered 0.0373 / 0.0410 / 0.0558 / 0.0687 / 0.0926 K at g 0 / 1e-4 / "
-    "3e-4 / 5e-4 / 1e-3 per s^0.5, identity outside the filtered / smoothed band 441/600, "
-    "433/435, 95/75, 0/28, 0/4 s: at g 5e-4 every other bar holds on both seeds (smoothed "
-    "0.0301 K and 0.218 K against 1.63, bands 0.961-0.985, drags within 2.5 %, flags 1.00 / "
-    "1.00, power band 0.998 / 0.992), the filtered bar does not. Session 11: the identity "
-    "fleet now logs the pressure at the log's 1 mbar (synth's 7 mbar was an input error, "
-    "now its own test); there the session-8 settings hold identity (0 / 0 s outside, power "
-    "band 1.000 / 1.000) and keep 0.0373 / 0.0286 K, but on the 7 mbar fleet they do not "
-    "follow the logged pressure's -6.7 W (smoothed -66 %, live -70 %, inside the power band "
-    "for 46 / 37 % of the long brakings' s against >= 90 %), the clean wagon's innovations' "
-    "likelihood does not choose them (66,056 / 73,929 against up to 66,334 / 74,297 for "
-    "settings that fail the bands or the RMSE) and they run at 0.45-0.52x the defaults' "
-    "wagon-s per CPU-second (320,000-390,000 quiet against the bar's 500,000); "
-    "docs/estimator.md"
+    "issue 14's first bar, filtered, is not met by the defaults on fleets written at the "
+    "model's own mesh (0.6): over normal operation the filtered contact mean is 0.0557 K "
+    "RMSE against the open loop's 0.0294 K on seed 3 (seed 4: 1.348 against 1.633 K, met); "
+    "the smoothed meets it on both (0.0200, 0.466 K). Smaller sigma_q meets it (seed 3: "
+    "0.0289 K at 0.05 W/s^0.5, 0.0266 at 0.03) but then the 7 mbar input-error test fails "
+    "(the missing heat inside the power band for 0.63 / 0.60 and 0.59 / 0.47 of the long "
+    "brakings' s against >= 0.90); sigma_q 0.03 with sigma_qa 0.3 while applied holds that "
+    "test and gives 0.0325 K. On the 0.2 writer's fleets (until session 11) the defaults "
+    "gave 0.108 / 0.0397 K against 0.0389; docs/estimator.md, sessions 8-11"
+)
+NOT_MET_BAND = (
+    "issue 14's band bar (90-99 %) is not met by the defaults on fleets written at the "
+    "model's own mesh (0.6): over normal operation the filtered band holds the truth for "
+    "0.998 (seed 3) / 0.996 (seed 4) of the seconds, above 0.99 (the smoothed 0.992 / 0.989; "
+    "over every second outside the faults 0.983 / 0.986 and 0.964 / 0.972): the noise set "
+    "against the 0.2 writer's mesh error (sigma_q 0.3 W/s^0.5, sigma_o 3 mK/s^0.5, median "
+    "half-width 0.20 K) is too loose for a world the reduced model follows within 0.01 K at "
+    "the seat; docs/estimator.md, session 11 (second)"
 )
 
 
-@pytest.mark.xfail(strict=True, reason=NOT_MET_RMSE)
-@pytest.mark.parametrize("output", ["filtered", "smoothed"])
+@pytest.mark.parametrize(
+    "output",
+    [
+        pytest.param("filtered", marks=pytest.mark.xfail(strict=True, reason=NOT_MET_RMSE)),
+        "smoothed",
+    ],
+)
 def test_the_estimate_beats_the_open_loop_prediction_over_normal_operation(
     fleets: list[Fleet], output: str
 ) -> None:
+    every = []
     for f in fleets:
         normal = ~_mask(f.rows, f.truth, ("dragging_brake", "weak_brake", "sensor_fault"))
         rows = f.rows.filter(pl.Series(normal))
@@ -201,8 +228,10 @@ def test_the_estimate_beats_the_open_loop_prediction_over_normal_operation(
             )
         }
         print(f"seed {f.truth.config.seed}: normal operation, {rows.height} s, RMSE K", figures)
+        every.append(figures)
+    for figures in every:  # every seed's figures printed before the first failure
         assert figures["filtered"] < 3 * figures["open loop"]  # the filter is not lost
-        assert figures[output] <= figures["open loop"]
+        assert figures[output] <= figures["open loop"], figures
 
 
 def _drag_errors(fleets: list[Fleet]) -> list[tuple[dict[str, float], dict[str, float]]]:
@@ -267,10 +296,12 @@ def test_a_dragging_brakes_live_power(fleets: list[Fleet]) -> None:
         assert abs(power["live, 2nd half"]) <= 0.2, power
 
 
+@pytest.mark.xfail(strict=True, reason=NOT_MET_BAND)
 def test_the_truth_is_inside_the_95_percent_band(fleets: list[Fleet]) -> None:
     """90-99 % of the seconds, over every estimated second outside the sensor faults (a
     faulty reading the stage does not recognise misleads any filter), and over normal
     operation; filtered and smoothed."""
+    every = []
     for f in fleets:
         faults = _mask(f.rows, f.truth, ("sensor_fault",))
         normal = ~_mask(f.rows, f.truth, ("dragging_brake", "weak_brake", "sensor_fault"))
@@ -289,9 +320,11 @@ def test_the_truth_is_inside_the_95_percent_band(fleets: list[Fleet]) -> None:
             {k: round(v, 3) for k, v in shares.items()},
             f"median half-width {np.median(half):.3f} K",
         )
+        every.append((f.truth.config.seed, shares, float(np.median(half))))
+    for seed, shares, median_half in every:  # every seed printed before the first failure
         for name, share in shares.items():
-            assert 0.90 <= share <= 0.99, (name, share)
-        assert float(np.median(half)) < 1.0
+            assert 0.90 <= share <= 0.99, (seed, name, share)
+        assert median_half < 1.0
 
 
 def test_flags_are_as_good_as_the_detectors(fleets: list[Fleet]) -> None:
