@@ -56,7 +56,7 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    coarser meshes, Roache's grid convergence index of the shift added in quadrature
    (``interval_methods.numerical``), and by an input term: the chosen parameters' shift when
    the speed is read without the bias its noise (estimated from the data) puts in a
-   magnitude, by Gauss-Newton steps with the fit's Jacobian (a sensitivity), added in
+   magnitude, by quasi-Newton steps from the fit's Jacobian (a sensitivity), added in
    quadrature (``interval_methods.input``).
 5. **Revision.** The chosen effects become a new model revision (the current one, predicting
    with its parent's solver: before and after compare one model form), every
@@ -235,15 +235,15 @@ class CloseLoopConfig:
     ``sqrt(max(v^2 - noise^2, 0))`` (:func:`~fleetbrake.closeloop.fitdata.with_speed_debiased`,
     the noise estimated from the logged speed by
     :func:`~fleetbrake.closeloop.fitdata.speed_noise_kmh`), and the parameters moved by
-    Gauss-Newton steps with the Jacobian the fit already has, one evaluation each
-    (:func:`input_shift`; until session 10 a refit from the chosen parameters, about 20
-    evaluations); the shift per parameter added in quadrature to the statistical half-width
+    quasi-Newton steps from the Jacobian the fit already has (Broyden-updated), one
+    evaluation each (:func:`input_shift`; until session 10 a refit from the chosen
+    parameters, about 20 evaluations); the shift per parameter added in quadrature to the statistical half-width
     with the numerical term. Why: a GPS speed is a magnitude, so where the wagon stands it
     reads about its noise, not 0, and a convection law steep at low speed turns that into a
     bias of its exponent the same on every wagon-day, which no resampling sees
     (docs/closeloop.md, session 9). False: no such term."""
     input_step_tolerance: float = 0.05
-    """The input term's Gauss-Newton steps stop when a step is at most this share of the
+    """The input term's steps stop when a step is at most this share of the
     shift in every parameter (:func:`input_shift`)."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
@@ -635,9 +635,10 @@ def _screen_events(fit: pl.DataFrame, count: int) -> pl.DataFrame:
 
 class _Workers:
     """Where a run's fits go: the engine (the inline one when none), and the data it is
-    handed. The local engine's workers read each data set once from a file this run writes
-    (:func:`fitdata.store`), the inline engine uses the objects, Ray gets them with the
-    task."""
+    handed. Work that runs in this process (no engine, or a single task: an engine is not
+    worth one) gets the data objects; the local engine's workers read each data set once
+    from a file this run writes (:func:`fitdata.store`, only when tasks go to them), Ray gets
+    them with the task."""
 
     def __init__(self, engine: Engine | None) -> None:
         self.engine = engine
@@ -651,8 +652,10 @@ class _Workers:
         self.fits = 0
         self.timing: dict[str, float] = {}
 
-    def ref(self, data: FitData) -> FitData | str:
-        if not self.files:
+    def ref(self, data: FitData | str) -> FitData | str:
+        """What an engine's task is handed for ``data``: the object, or with the local
+        engine the file it is stored in (written once per data set)."""
+        if not self.files or isinstance(data, str):
             return data
         if id(data) not in self._refs:
             if self._dir is None:
@@ -661,12 +664,17 @@ class _Workers:
             self._refs[id(data)] = str(fitdata.store(data, path))
         return self._refs[id(data)]
 
+    def _inline(self, items: list[Any]) -> bool:
+        return self.engine is None or len(items) <= 1
+
     def _map(self, fn: Any, items: list[Any]) -> list[Any]:
-        if self.engine is None or len(items) <= 1:
+        if self._inline(items):
             return [fn(item) for item in items]
-        return list(self.engine.map(fn, items))
+        return list(self.engine.map(fn, items))  # type: ignore[union-attr]
 
     def fit(self, tasks: list[FitTask]) -> list[FitResult]:
+        if not self._inline(tasks):
+            tasks = [dataclasses.replace(t, data=self.ref(t.data)) for t in tasks]
         results: list[FitResult] = self._map(fit_task, tasks)
         if self.remote and len(tasks) > 1:
             self.kernel_calls += sum(r.kernel_calls for r in results)
@@ -674,8 +682,10 @@ class _Workers:
         return results
 
     def evaluate(self, data: FitData, effect_sets: Sequence[EffectSet]) -> list[np.ndarray]:
-        ref = self.ref(data)
-        out = self._map(eval_task, [EvalTask(ref, (e,)) for e in effect_sets])
+        tasks = [EvalTask(data, (e,)) for e in effect_sets]
+        if not self._inline(tasks):
+            tasks = [dataclasses.replace(t, data=self.ref(data)) for t in tasks]
+        out = self._map(eval_task, tasks)
         if self.remote and len(effect_sets) > 1:
             self.kernel_calls += sum(calls for _, calls in out)
         return [residuals[0] for residuals, _ in out]
@@ -953,7 +963,7 @@ def _close_loop(
         data: FitData, classes: Sequence[type[Effect]], start: Sequence[Effect] | None, nfev: int
     ) -> FitTask:
         return FitTask(
-            workers.ref(data),
+            data,
             base.effects,
             tuple(classes),
             None if start is None else tuple(start),
@@ -1482,8 +1492,8 @@ def _numerical_term(
 @dataclass(frozen=True)
 class InputTerm:
     """The reported intervals' input term: the chosen parameters moved by the speed's
-    magnitude bias taken out (the logged speed's noise ``speed_noise_kmh``; Gauss-Newton
-    steps with the fit's Jacobian, :func:`input_shift`), the moved parameters, their
+    magnitude bias taken out (the logged speed's noise ``speed_noise_kmh``; quasi-Newton
+    steps from the fit's Jacobian, :func:`input_shift`), the moved parameters, their
     ``shift`` from the chosen ones, and ``half_width`` its size (keyed as the report's
     ``parameters``)."""
 
@@ -1506,8 +1516,9 @@ class InputTerm:
                 "chosen parameters' residual on the same fit events with the speed read as "
                 "sqrt(max(v^2 - noise^2, 0)) (a GPS speed is a magnitude: at standstill it "
                 "reads its noise), the noise from the logged speed's second differences where "
-                "the wagon moves, and the parameters' shift by Gauss-Newton steps with the "
-                "fit's Jacobian; the shift added in quadrature to the statistical half-width"
+                "the wagon moves, and the parameters' shift where the changed residual meets "
+                "the fit's normal equations, by quasi-Newton steps from the fit's Jacobian "
+                "(Broyden-updated); the shift added in quadrature to the statistical half-width"
             ),
             "speed_noise_kmh": float(f"{self.speed_noise_kmh:.6g}"),
             "debiased": g(self.debiased),
@@ -1515,6 +1526,53 @@ class InputTerm:
             "evaluations": self.evaluations,
             "half_width": g(self.half_width),
         }
+
+
+def _normal_change(fitted: FitResult, moved: np.ndarray) -> np.ndarray:
+    """``J^T (r_moved - r)`` on the fit's scored seconds: how far ``moved`` (a residual on the
+    evaluator's seconds) is from satisfying the fit's normal equations as the fit's own
+    residual ``r`` (``fitted.aligned``) does; a second it does not predict counts as
+    unchanged."""
+    if moved.shape != fitted.scored.shape:
+        raise CloseLoopError(
+            f"the moved residual has {moved.size} seconds, the fit {fitted.scored.size}: "
+            "not the fit's events"
+        )
+    change = moved[fitted.scored] - fitted.aligned
+    change = np.where(np.isfinite(change), change, 0.0)
+    return np.asarray(fitted.jacobian.T @ change, dtype=np.float64)
+
+
+def _bounded_step(
+    normal: np.ndarray,
+    g: np.ndarray,
+    x: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    norms: np.ndarray,
+) -> np.ndarray:
+    """The step ``dx`` solving ``normal dx = -g`` (``normal``: p x p, the normal matrix of the
+    parameters' response), scaled by ``norms`` (parameters of very different sizes in one
+    solve); a parameter on a bound the step would cross stays there, and ``x + dx`` is kept
+    within ``lower`` .. ``upper``."""
+    free = np.ones(x.size, dtype=bool)
+    step = np.zeros(x.size)
+    for _ in range(x.size + 1):  # a bound leaves a parameter at a time
+        step[:] = 0.0
+        if free.any():
+            n = norms[free]
+            scaled = normal[np.ix_(free, free)] / np.outer(n, n)
+            step[free] = np.linalg.lstsq(scaled, -g[free] / n, rcond=None)[0] / n
+        crossing = free & (((x <= lower) & (step < 0.0)) | ((x >= upper) & (step > 0.0)))
+        if not crossing.any():
+            break
+        free &= ~crossing
+    return np.asarray(np.clip(x + step, lower, upper) - x, dtype=np.float64)
+
+
+def _column_norms(jacobian: np.ndarray) -> np.ndarray:
+    norms = np.linalg.norm(jacobian, axis=0)
+    return np.asarray(np.where(norms > 0.0, norms, 1.0), dtype=np.float64)
 
 
 def gauss_newton_shift(
@@ -1527,31 +1585,10 @@ def gauss_newton_shift(
     not predict counts as unchanged). To first order this is the refit's shift (the fit's
     residual being orthogonal to J at its optimum); a parameter on a bound the step would
     cross stays there, and the step is kept within ``lower`` .. ``upper``."""
-    if moved.shape != fitted.scored.shape:
-        raise CloseLoopError(
-            f"the moved residual has {moved.size} seconds, the fit {fitted.scored.size}: "
-            "not the fit's events"
-        )
-    change = moved[fitted.scored] - fitted.aligned
-    change = np.where(np.isfinite(change), change, 0.0)
     jac = fitted.jacobian
-    free = np.ones(fitted.x.size, dtype=bool)
-    step = np.zeros(fitted.x.size)
-    for _ in range(fitted.x.size + 1):  # a bound leaves a parameter at a time
-        step[:] = 0.0
-        if free.any():
-            # columns scaled to unit norm: parameters of very different sizes in one solve
-            norms = np.linalg.norm(jac[:, free], axis=0)
-            norms = np.where(norms > 0.0, norms, 1.0)
-            solved = np.linalg.lstsq(jac[:, free] / norms, -change, rcond=None)[0]
-            step[free] = solved / norms
-        crossing = free & (
-            ((fitted.x <= lower) & (step < 0.0)) | ((fitted.x >= upper) & (step > 0.0))
-        )
-        if not crossing.any():
-            break
-        free &= ~crossing
-    return np.clip(fitted.x + step, lower, upper) - fitted.x
+    return _bounded_step(
+        jac.T @ jac, _normal_change(fitted, moved), fitted.x, lower, upper, _column_norms(jac)
+    )
 
 
 def effects_at(base: EffectSet, classes: Sequence[type[Effect]], x: np.ndarray) -> EffectSet:
@@ -1570,6 +1607,11 @@ def effects_at(base: EffectSet, classes: Sequence[type[Effect]], x: np.ndarray) 
     return effects
 
 
+MAX_BROYDEN_CONDITION = 1e8
+"""An update of the input term's normal matrix (:func:`input_shift`) that would leave it worse
+conditioned than this (scaled by the Jacobian's column norms) is not taken."""
+
+
 def input_shift(
     fitted: FitResult,
     residual_at: Callable[[np.ndarray], np.ndarray],
@@ -1579,20 +1621,49 @@ def input_shift(
     max_steps: int = 5,
 ) -> tuple[np.ndarray, int]:
     """The fitted parameters' shift when an input changes (``residual_at(x)``: the residual
-    at parameters ``x`` with the input changed, on the evaluator's seconds): Gauss-Newton
-    steps with the fit's own Jacobian (the chord method: one evaluation a step, no new
-    Jacobian), each from where the last one ended against the fit's residual, until a step is
-    at most ``tolerance`` of the shift in every parameter (or ``max_steps``). The first step
-    is the linear sensitivity; the next ones take up the curvature a steep law has over the
-    shift (convection_speed's exponent: the first step 70 % of the refit's shift, the third
-    90 %; docs/closeloop.md, session 10). Returns the shift and the evaluations spent."""
+    at parameters ``x`` with the input changed, on the evaluator's seconds): the ``x`` where
+    the changed residual satisfies the fit's normal equations as the fit's own residual does,
+    ``J^T (r_moved(x) - r) = 0`` (``J`` the fit's Jacobian), by quasi-Newton steps on those
+    p equations, one evaluation each. The first step is the Gauss-Newton one with ``J^T J``
+    (:func:`gauss_newton_shift`, the linear sensitivity); after each, the p x p matrix is
+    corrected by Broyden's update along the step taken with the change of ``J^T r`` it
+    brought (no new evaluation: the response over the shift as measured, not as the fit's
+    Jacobian says). Stops when a step is at most ``tolerance`` of the shift in every
+    parameter (or after ``max_steps`` evaluations).
+
+    Why not the chord alone (``J^T J`` every step, until session 11): the fit's Jacobian is a
+    forward difference of 5 % (a secant on the scale of a convection quantum,
+    ``H_QUANTUM_W_M2K``); over the input term's much smaller shift a convection law's
+    residual responds by 30-50 % of what that Jacobian says (a convection varying inside a
+    piece is rounded, so on that scale the residual is a step function of the parameters),
+    and the chord then contracts by only 0.5-0.7 a step: on the bench fleet it ran to its 5
+    steps 5 % short of its own limit (docs/closeloop.md, session 11). A parameter on a bound
+    the step would cross stays there. Returns the shift and the evaluations spent."""
+    jac = fitted.jacobian
+    norms = _column_norms(jac)
+    normal = jac.T @ jac
     x = fitted.x.copy()
     floor = 1e-12 * (1.0 + np.abs(fitted.x))
     evaluations = 0
+    g_last: np.ndarray | None = None
+    step = np.zeros(x.size)
     while evaluations < max_steps:
-        step = gauss_newton_shift(dataclasses.replace(fitted, x=x), residual_at(x), lower, upper)
+        g = _normal_change(fitted, residual_at(x))
         evaluations += 1
+        if g_last is not None and float(step @ step) > 0.0:
+            updated = normal + np.outer(g - g_last - normal @ step, step) / float(step @ step)
+            if np.linalg.cond(updated / np.outer(norms, norms)) < MAX_BROYDEN_CONDITION:
+                normal = updated
+        g_last = g
+        step = _bounded_step(normal, g, x, lower, upper, norms)
         x = x + step
+        logger.debug(
+            "input term: evaluation %d, |J^T dr| %.4g, step %s, shift %s",
+            evaluations,
+            float(np.linalg.norm(g)),
+            np.array2string(step, precision=6),
+            np.array2string(x - fitted.x, precision=6),
+        )
         if np.all(np.abs(step) <= tolerance * np.abs(x - fitted.x) + floor):
             break
     return x - fitted.x, evaluations
