@@ -43,7 +43,13 @@ from fleetbrake.model.effects import LAWS, Effect, EffectSet, effect_from_dict
 from fleetbrake.model.rom import FullModelRunner
 from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.synth.config import draw_effect
-from fleetbrake.synth.generator import FleetTruth, SynthConfig, generate_fleet, load_truth
+from fleetbrake.synth.generator import (
+    BlockSimulator,
+    FleetTruth,
+    SynthConfig,
+    generate_fleet,
+    load_truth,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -292,17 +298,18 @@ def cached_fleet(
     return reused
 
 
-def write_case_fleet(
-    case: Case,
+def write_fleet(
+    name: str,
+    config: SynthConfig,
     fleet_dir: Path,
-    full_model_for: Callable[[WagonConfig], FullModelRunner] = writer_for,
+    full_model_for: Callable[[WagonConfig], BlockSimulator] = writer_for,
     seconds: dict[str, float] | None = None,
 ) -> FleetTruth:
-    """The case's fleet in ``fleet_dir``, written by ``full_model_for``; with the default writer
-    (:func:`writer_for`) a copy from the cache (:func:`fleet_cache_root`) when it holds the
-    fleet of this case, seed and :func:`writer_version`, else written and cached.
-    ``seconds["generate"]`` (written) or ``seconds["from_cache"]`` (copied) is set."""
-    config = synth_config(case)
+    """``config``'s fleet in ``fleet_dir``, written by ``full_model_for``; with the default
+    writer (:func:`writer_for`) a copy from the cache (:func:`fleet_cache_root`) when it holds
+    the fleet of this ``name``, seed and :func:`writer_version`, else written and cached (any
+    other writer, or no cache: written here). ``seconds["generate"]`` (written) or
+    ``seconds["from_cache"]`` (copied) is set."""
     root = fleet_cache_root()
     spent = {} if seconds is None else seconds
     began = time.perf_counter()
@@ -311,7 +318,7 @@ def write_case_fleet(
         spent["generate"] = time.perf_counter() - began
         return truth
     reused = cached_fleet(
-        case.name,
+        name,
         config,
         fleet_dir,
         lambda d: generate_fleet(d, config, rom=writer_for),
@@ -320,6 +327,17 @@ def write_case_fleet(
     )
     spent["from_cache" if reused else "generate"] = time.perf_counter() - began
     return load_truth(fleet_dir)
+
+
+def write_case_fleet(
+    case: Case,
+    fleet_dir: Path,
+    full_model_for: Callable[[WagonConfig], BlockSimulator] = writer_for,
+    seconds: dict[str, float] | None = None,
+) -> FleetTruth:
+    """The case's fleet (:func:`synth_config`) in ``fleet_dir``: :func:`write_fleet` under the
+    case's name."""
+    return write_fleet(case.name, synth_config(case), fleet_dir, full_model_for, seconds)
 
 
 def make_outcome(

@@ -6,7 +6,7 @@ stage) and read from ``v_contact_estimates`` / ``contact_estimates``.
 
 The writer is the close loop's (``acceptance_fleets.writer_for``, ``FE_REFINEMENT`` 0.6: the
 6,131-node mesh the reduced model is reduced from) and the fleets come from its cache
-(``acceptance_fleets.cached_fleet``, written once per writer version;
+(``acceptance_fleets.write_fleet``, written once per writer version;
 ``FLEETBRAKE_ACCEPTANCE_CACHE=off`` writes them afresh). Until session 11 they were written at
 0.2 (409 nodes), a mesh coarser than the model's: in a hard braking that writer's seat is
 0.1-0.2 K off the 0.6 mesh's, while the reduced model's is within 0.01 K, so most of the
@@ -43,15 +43,15 @@ import polars as pl
 import pytest
 
 import acceptance_fleets
-from acceptance_fleets import cached_fleet, flag_score, fleet_cache_root, writer_for, writer_version
+from acceptance_fleets import flag_score, write_fleet, writer_for
 from fleetbrake.app.run import run_fleet
 from fleetbrake.engine import InlineEngine
 from fleetbrake.fleet.registry import WagonConfig, load_registry
 from fleetbrake.model.estimator import Z95
-from fleetbrake.model.physics import KMH_TO_M_S, block_force_n, heat_partition_alpha
+from fleetbrake.model.physics import friction_power_series_w, heat_partition_alpha
 from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.synth import generator as synth_generator
-from fleetbrake.synth.generator import SynthConfig, generate_fleet, load_truth
+from fleetbrake.synth.generator import SynthConfig
 from fleetbrake.synth.truth import FleetTruth
 
 pytestmark = pytest.mark.slow
@@ -91,23 +91,12 @@ def _fleet(
     config: SynthConfig,
     model_for: Callable[..., Any],
     refinement: float,
-    cache_as: str | None = None,
+    name: str = "estimator-acceptance",
 ) -> Fleet:
-    """``config``'s fleet written by ``model_for`` into ``root/fleet`` (with ``cache_as``: a
-    copy of the acceptance cache's, written there once per writer version), run, and read."""
-    cache = fleet_cache_root() if cache_as is not None else None
-    if cache_as is None or cache is None:
-        truth = generate_fleet(root / "fleet", config, rom=model_for)
-    else:
-        cached_fleet(
-            cache_as,
-            config,
-            root / "fleet",
-            lambda d: generate_fleet(d, config, rom=model_for),
-            version=writer_version(config),
-            root=cache,
-        )
-        truth = load_truth(root / "fleet")
+    """``config``'s fleet written by ``model_for`` into ``root/fleet`` (the acceptance
+    writer's: a copy of the cache's under ``name``, written there once per writer version;
+    :func:`acceptance_fleets.write_fleet`), run, and read."""
+    truth = write_fleet(name, config, root / "fleet", model_for)
     db = root / "fleet.duckdb"
     run_fleet(
         root / "fleet",
@@ -159,9 +148,7 @@ def fleets(
                 refinement=FE_REFINEMENT,
             )
             root = tmp_path_factory.mktemp(f"estimator-acceptance-{seed}")
-            out.append(
-                _fleet(root, config, writer_for, rom_refinement, cache_as="estimator-acceptance")
-            )
+            out.append(_fleet(root, config, writer_for, rom_refinement))
         yield out
 
 
@@ -465,13 +452,8 @@ def _implied_power_w(fleet: Fleet) -> pl.DataFrame:
     for wagon_id in set(rows["wagon_id"].to_list()):
         wagon = registry[wagon_id]
         at = (rows["wagon_id"] == wagon_id).to_numpy()
-        force_n = np.asarray(block_force_n(wagon, rows["logged_p_bar"].to_numpy()[at]))
-        declared_w = (
-            (1.0 - heat_partition_alpha(wagon))
-            * wagon.friction_coefficient
-            * force_n
-            * rows["logged_speed_kmh"].to_numpy()[at]
-            * KMH_TO_M_S
+        declared_w = (1.0 - heat_partition_alpha(wagon)) * friction_power_series_w(
+            wagon, rows["logged_p_bar"].to_numpy()[at], rows["logged_speed_kmh"].to_numpy()[at]
         )
         implied[at] = rows["true_power_w"].to_numpy()[at] - declared_w
     return rows.with_columns(pl.Series("implied_w", implied))
