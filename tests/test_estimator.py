@@ -787,3 +787,65 @@ def test_rust_is_numpy_with_noise_in_proportion_to_the_declared_power(rom: Reduc
     assert np.array_equal(a.smoothed_contact_mean_sd_k, b.smoothed_contact_mean_sd_k)
     # and it is another filter where the brake works
     assert np.max(np.abs(fast.unexplained_power_sd_w - a.unexplained_power_sd_w)) > 0.1
+
+
+@pytest.mark.parametrize("tau_b_s", [0.0, 30.0])
+def test_rust_is_numpy_with_the_braking_power_state(rom: ReducedModel, tau_b_s: float) -> None:
+    """Session 12: the braking's power ``P_b`` as a state of its own
+    (``brake_power_w_per_sqrt_s``): a random walk over exactly the steps with declared friction
+    heat, decaying (τ_b > 0) or forgotten (τ_b = 0) elsewhere; the reported power ``P + P_b``.
+    On a benchmark wagon-day with a reading missing every 400 s the Rust kernel (steady states
+    and replayed excursions where it can) equals the numpy reference to 1e-9; the option off
+    leaves the problem as it was (no ``P_b``, the state one shorter)."""
+    from fleetbrake.bench.estimator import SeriesMaker
+
+    day = SeriesMaker(rom, WagonConfig(wagon_id="BENCH-0000"), distinct_days=1, seed=5).series(0)
+    reading = day.reading_c.copy()
+    reading[np.arange(200, reading.size, 400)] = np.nan
+    series = dataclasses.replace(day, reading_c=reading)
+    noise = EstimatorNoise(measurement_k=NOISE_K, quiet_power_w_per_sqrt_s=0.03)
+    config = EstimatorConfig(
+        noise=noise, brake_power_w_per_sqrt_s=0.3, brake_power_time_constant_s=tau_b_s
+    )
+    problem = prepare(rom, WAGON, series, config=config)
+    assert problem.brake and problem.brake_phi is not None and problem.brake_q is not None
+    assert problem.n_state == rom.order + 2
+    # P_b diffuses over exactly the steps whose declared heat is not zero (brakings)
+    flux = declared_sample_flux(
+        np.interp(problem.time_s, series.time_s, series.p_bar),
+        np.interp(problem.time_s, series.time_s, series.speed_kmh),
+    )
+    braking = 0.5 * (flux[:-1] + flux[1:]) > 0
+    on = problem.brake_q[problem.index] > 0
+    assert np.array_equal(on, braking) and 0.01 < on.mean() < 0.5
+    assert np.all(problem.brake_phi[problem.index][on] == 1.0)
+    off_phi = problem.brake_phi[problem.index][~on]
+    step_s = np.diff(problem.time_s)[~on]
+    assert np.allclose(off_phi, np.exp(-step_s / tau_b_s) if tau_b_s > 0 else 0.0, rtol=1e-12)
+    fast = estimate([problem], config=config, engine="rust")[0]
+    slow = estimate([problem], config=config, engine="numpy")[0]
+    _assert_same(fast, slow)
+    # the same seconds steady (few: a braking leaves P's variance raised, and with σ_q 0.03
+    # it settles slowly; docs/estimator.md, session 12)
+    assert fast.frozen_fraction == slow.frozen_fraction
+    # the option off: the problem and the filter as they were
+    plain = EstimatorConfig(noise=noise)
+    p_plain = prepare(rom, WAGON, series, config=plain)
+    assert p_plain.brake_phi is None and p_plain.n_state == rom.order + 1
+    b = estimate([p_plain], config=plain, engine="rust")[0]
+    assert np.max(np.abs(fast.unexplained_power_w - b.unexplained_power_w)) > 0.1
+
+
+@pytest.mark.parametrize(
+    ("changes", "named"),
+    [
+        ({"brake_power_w_per_sqrt_s": 0.0}, "brake_power_w_per_sqrt_s"),
+        ({"brake_power_w_per_sqrt_s": float("nan")}, "brake_power_w_per_sqrt_s"),
+        ({"brake_power_time_constant_s": -1.0}, "brake_power_time_constant_s"),
+    ],
+)
+def test_the_braking_power_states_settings_are_checked(
+    changes: dict[str, float], named: str
+) -> None:
+    with pytest.raises(ValueError, match=named):
+        EstimatorConfig(**changes)  # type: ignore[arg-type]

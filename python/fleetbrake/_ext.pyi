@@ -142,6 +142,10 @@ def rom_simulate_batch(
     drive: NDArray[np.float64],
     t_ref: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]: ...
+
+# ``problems``: the dicts of ``fleetbrake.model.estimator._as_kernel_args``; the optional keys
+# ("applied", "q_modes", "power_noise", "brake_phi"/"brake_q": the braking's power P_b per
+# transition) absent or None when the option is off.
 def estimator_run(
     problems: list[dict[str, Any]],
     measurement_k: float,

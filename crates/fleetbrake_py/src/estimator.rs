@@ -59,6 +59,21 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
     );
     let r = order;
     let k = diagonal.len();
+    // per transition, the braking power P_b's decay and noise (absent or None: no P_b)
+    let optional = |key: &str| -> PyResult<Option<Vec<f64>>> {
+        match d.get_item(key)? {
+            Some(v) if !v.is_none() => Ok(Some(
+                v.extract::<PyReadonlyArray1<'_, f64>>()?
+                    .as_array()
+                    .iter()
+                    .copied()
+                    .collect(),
+            )),
+            _ => Ok(None),
+        }
+    };
+    let (brake_phi, brake_q) = (optional("brake_phi")?, optional("brake_q")?);
+    let brake = brake_phi.is_some();
     // per transition, r variances of the modal coordinates (absent or empty: none)
     let q_modes = match d.get_item("q_modes")? {
         Some(v) if !v.is_none() => v
@@ -81,6 +96,8 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
         lag_b1.len() == k,
         lag_power.len() == k,
         applied.is_empty() || applied.len() == k,
+        brake_phi.as_ref().is_none_or(|v| v.len() == k),
+        brake_q.as_ref().map_or(!brake, |v| v.len() == k),
     ];
     if sizes.iter().any(|ok| !ok) {
         return Err(crate::errors::LengthMismatchError::new_err(format!(
@@ -108,12 +125,15 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
                 lag_row: lag_row[t * r..(t + 1) * r].to_vec(),
                 lag_power: lag_power[t],
                 applied: applied.get(t).copied().unwrap_or(false),
+                brake_phi: brake_phi.as_ref().map_or(1.0, |v| v[t]),
+                brake_q: brake_q.as_ref().map_or(0.0, |v| v[t]),
             }
         })
         .collect();
     Ok(Problem {
         order,
         lag: item(d, "lag")?.extract()?,
+        brake,
         t_ref_c: item(d, "t_ref_c")?.extract()?,
         transitions,
         index: Cow::Borrowed(series.index.as_slice()?),

@@ -14,6 +14,13 @@
 //!     s' = α s + ℓ·ξ + ℓ_P P + β₁ c_p·w
 //! ```
 //!
+//! With `Problem::brake` the state carries the braking's unexplained power `P_b` as its last
+//! entry: it heats the modes as `P` does (`ξ' = A ξ + γ (P + P_b) + w`, the lag's `ℓ_P` on
+//! both), `P_b' = φ_b P_b + ω_b` (`var ω_b = q_b`, `Transition::brake_phi`, `brake_q`: a
+//! random walk while the declared inputs brake, a decay without noise otherwise), and the
+//! reported power is `P + P_b`. Its covariance steps take the generic O(n²) path (`F X Fᵀ`
+//! and `Fᵀ L F` from `F x` and `Fᵀ x` row by row), not the fused passes.
+//!
 //! with `w` the modal response to the declared inputs of the step (given per step) and
 //! `π_k = (g P_declared,k)²` (W²/s, given per step; `Problem::power_noise`) the share of the
 //! power's diffusion that scales with the declared braking power: the declared input's own
@@ -84,6 +91,10 @@ pub struct Transition {
     /// Whether the cylinder is applied over the step: the quiet mode's noise is then
     /// `Switching::applied_w_per_sqrt_s`.
     pub applied: bool,
+    /// Decay of the braking's power `P_b` over the step (`Problem::brake`; 1 while braking).
+    pub brake_phi: f64,
+    /// Variance (W²) added to `P_b` over the step.
+    pub brake_q: f64,
 }
 
 /// One wagon's filtering problem.
@@ -91,6 +102,8 @@ pub struct Transition {
 pub struct Problem<'a> {
     pub order: usize,
     pub lag: bool,
+    /// Whether the state carries the braking's power `P_b` (its last entry; module docs).
+    pub brake: bool,
     pub t_ref_c: f64,
     pub transitions: Vec<Transition>,
     /// Transition of each step (N - 1). The per-step series may be borrowed (from the
@@ -236,7 +249,7 @@ pub struct Outputs {
 
 impl Problem<'_> {
     pub fn n_state(&self) -> usize {
-        self.order + 1 + usize::from(self.lag)
+        self.order + 1 + usize::from(self.lag) + usize::from(self.brake)
     }
 
     pub fn n_nodes(&self) -> usize {
@@ -300,6 +313,13 @@ impl Problem<'_> {
                     name: format!("estimator q_modes of transition {k}"),
                     value: bad,
                     reason: "must be variances (finite, >= 0)".to_string(),
+                });
+            }
+            if !(t.brake_q.is_finite() && t.brake_q >= 0.0 && t.brake_phi.is_finite()) {
+                return Err(ThermalError::InvalidParameter {
+                    name: format!("estimator brake_q / brake_phi of transition {k}"),
+                    value: t.brake_q,
+                    reason: "must be a variance (finite, >= 0) and a finite factor".to_string(),
                 });
             }
             if !(t.q_gap.is_finite() && t.q_gap >= 0.0) {
@@ -478,6 +498,8 @@ struct Dims {
     r: usize,
     n: usize,
     lag: bool,
+    /// The braking's power `P_b` at index n - 1.
+    brake: bool,
 }
 
 impl Transition {
@@ -485,7 +507,8 @@ impl Transition {
     #[inline(always)]
     fn apply<const FMA: bool>(&self, d: &Dims, x: &[f64], out: &mut [f64]) {
         let r = d.r;
-        let p = x[r];
+        // the power heating the modes: P (+ P_b)
+        let p = if d.brake { x[r] + x[d.n - 1] } else { x[r] };
         if self.diagonal {
             let pairs = self.e.iter().zip(&self.gamma);
             for ((o, &xi), (&e, &g)) in out[..r].iter_mut().zip(&x[..r]).zip(pairs) {
@@ -497,10 +520,13 @@ impl Transition {
                 *o = madd::<FMA>(g, p, dot::<FMA>(row, &x[..r]));
             }
         }
-        out[r] = self.phi * p;
+        out[r] = self.phi * x[r];
         if d.lag {
             let s = dot::<FMA>(&self.lag_row, &x[..r]);
             out[r + 1] = madd::<FMA>(self.lag_a, x[r + 1], madd::<FMA>(self.lag_power, p, s));
+        }
+        if d.brake {
+            out[d.n - 1] = self.brake_phi * x[d.n - 1];
         }
     }
 
@@ -532,6 +558,10 @@ impl Transition {
         if d.lag {
             out[r + 1] = self.lag_a * s;
         }
+        if d.brake {
+            let ib = d.n - 1;
+            out[ib] = madd::<FMA>(self.lag_power, s, madd::<FMA>(self.brake_phi, x[ib], g));
+        }
     }
 
     /// `out = F X Fᵀ` for a symmetric X (symmetric to rounding). `a`, `b`: n scratch; `big`:
@@ -551,6 +581,20 @@ impl Transition {
         let (r, n) = (d.r, d.n);
         if let Some((_, acc)) = ph.as_mut() {
             acc.fill(0.0);
+        }
+        if d.brake {
+            // generic: T = X Fᵀ (row i: F X_i, X symmetric), then row i of F T (symmetric)
+            // is F applied to column i of T
+            for (xr, tr) in x.chunks_exact(n).zip(big.chunks_exact_mut(n)) {
+                self.apply::<FMA>(d, xr, tr);
+            }
+            for i in 0..n {
+                for (j, aj) in a.iter_mut().enumerate() {
+                    *aj = big[j * n + i];
+                }
+                self.apply::<FMA>(d, a, &mut out[i * n..(i + 1) * n]);
+            }
+            return;
         }
         if !self.diagonal {
             // T = X Fᵀ row by row (F applied to each row of the symmetric X), then F T
@@ -700,6 +744,20 @@ impl Transition {
             self.apply_t::<FMA>(d, h, fth);
         }
         let corr = corr.map(|(u, c)| (u, c, &ftu[..], &fth[..]));
+        if d.brake {
+            // generic: R = L̃ F row by row, then row i of Fᵀ R = Rᵀ F (symmetric) is Fᵀ
+            // applied to column i of R
+            for k in 0..n {
+                self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
+            }
+            for i in 0..n {
+                for (j, aj) in acc.iter_mut().enumerate() {
+                    *aj = big[j * n + i];
+                }
+                self.apply_t::<FMA>(d, acc, &mut out[i * n..(i + 1) * n]);
+            }
+            return;
+        }
         if !self.diagonal {
             for k in 0..n {
                 self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
@@ -804,7 +862,10 @@ struct Steady {
     /// Filtered variance of every face node.
     node_var: Vec<f64>,
     power_var: f64,
-    /// `Σ c_mean`, `Σ c_node` (m x n), `Σ e_P`: the smoother's products with Σ.
+    /// `P`'s own variance (the manoeuvre mode's hold test; `power_var` without `P_b`).
+    hold_var: f64,
+    /// `Σ c_mean`, `Σ c_node` (m x n), `Σ e` (the reported power's): the smoother's products
+    /// with Σ.
     sig_mean: Vec<f64>,
     sig_nodes: Vec<f64>,
     /// `sig_nodes` transposed (n x m, m padded to a multiple of 4).
@@ -832,6 +893,7 @@ struct MemoNode {
     s_var: f64,
     mean_var: f64,
     power_var: f64,
+    hold_var: f64,
     /// Filtered variance of each face node, NaN until asked for.
     node_var: Vec<f64>,
     children: Vec<(Key, u32)>,
@@ -965,7 +1027,12 @@ impl<'a> Kernel<'a> {
         }
         Kernel {
             p,
-            d: Dims { r, n, lag: p.lag },
+            d: Dims {
+                r,
+                n,
+                lag: p.lag,
+                brake: p.brake,
+            },
             m: p.n_nodes(),
             var_v: noise.measurement_k * noise.measurement_k,
             sw2: [
@@ -1004,6 +1071,41 @@ impl<'a> Kernel<'a> {
     #[inline(always)]
     fn power_noise(&self, t: usize) -> f64 {
         self.p.power_noise.get(t - 1).copied().unwrap_or(0.0)
+    }
+
+    /// The reported power of a state (or of a covariance's row combination): `P (+ P_b)`.
+    #[inline(always)]
+    fn power_of(&self, x: &[f64]) -> f64 {
+        let r = self.d.r;
+        if self.d.brake {
+            x[r] + x[self.d.n - 1]
+        } else {
+            x[r]
+        }
+    }
+
+    /// `Σ e` (e: the reported power's row) into `out`.
+    #[inline(always)]
+    fn sig_power_into(&self, cov: &[f64], out: &mut [f64]) {
+        let (r, n) = (self.d.r, self.d.n);
+        out.copy_from_slice(&cov[r * n..(r + 1) * n]);
+        if self.d.brake {
+            for (o, &v) in out.iter_mut().zip(&cov[(n - 1) * n..]) {
+                *o += v;
+            }
+        }
+    }
+
+    /// The reported power's variance `eᵀ Σ e`.
+    #[inline(always)]
+    fn power_var_of(&self, cov: &[f64]) -> f64 {
+        let (r, n) = (self.d.r, self.d.n);
+        if self.d.brake {
+            let ib = n - 1;
+            cov[r * n + r] + cov[ib * n + ib] + 2.0 * cov[r * n + ib]
+        } else {
+            cov[r * n + r]
+        }
     }
 
     /// The mode at the start: the manoeuvre mode only without switching.
@@ -1047,7 +1149,7 @@ impl<'a> Kernel<'a> {
         w: &mut Work,
     ) -> f64 {
         let (r, n) = (self.d.r, self.d.n);
-        let fused = t > 0 && !self.d.lag;
+        let fused = t > 0 && !self.d.lag && !self.d.brake;
         if t > 0 {
             let tr = &self.p.transitions[self.p.index[t - 1] as usize];
             // without a lag, Σh (h on the modes) is summed while the rows are made
@@ -1060,6 +1162,9 @@ impl<'a> Kernel<'a> {
             };
             let sw2 = sw2 + self.power_noise(t);
             pred[r * n + r] = madd::<FMA>(sw2, tr.q_unit, pred[r * n + r]);
+            if self.d.brake {
+                pred[n * n - 1] += tr.brake_q;
+            }
             for (i, &q) in tr.q_modes.iter().enumerate() {
                 if q != 0.0 {
                     // q e_i e_iᵀ (and its share e_i q h_i of Σh when that was summed above)
@@ -1208,7 +1313,8 @@ impl<'a> Kernel<'a> {
             node_var.push(dot::<FMA>(self.node_row(j), &out[..r]));
         }
         let mean_var = dot::<FMA>(&self.cm, &sig_mean[..r]);
-        let sig_power = cov[r * n..(r + 1) * n].to_vec();
+        let mut sig_power = vec![0.0; n];
+        self.sig_power_into(cov, &mut sig_power);
         if !smooth {
             sig_nodes.clear();
         }
@@ -1224,7 +1330,8 @@ impl<'a> Kernel<'a> {
             s_var,
             mean_var,
             node_var,
-            power_var: cov[r * n + r],
+            power_var: self.power_var_of(cov),
+            hold_var: cov[r * n + r],
             sig_mean,
             sig_nodes,
             sig_nodes_t,
@@ -1428,11 +1535,11 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         } else {
             (0.0, 0)
         };
-        let (mean_var, node_var, power_var) = match (frozen, hit) {
+        let (mean_var, node_var, power_var, hold_var) = match (frozen, hit) {
             (Some(c), _) => {
                 last = Last::Cache(c);
                 let s = &caches[c];
-                (s.mean_var, s.node_var[j], s.power_var)
+                (s.mean_var, s.node_var[j], s.power_var, s.hold_var)
             }
             (None, Some(u)) => {
                 last = Last::Node(u);
@@ -1443,7 +1550,12 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
                     memo.nodes[u].node_var[j] = dot::<FMA>(c, &w.a[..r]);
                 }
                 let node = &memo.nodes[u];
-                (node.mean_var, node.node_var[j], node.power_var)
+                (
+                    node.mean_var,
+                    node.node_var[j],
+                    node.power_var,
+                    node.hold_var,
+                )
             }
             (None, None) => {
                 steady = None;
@@ -1461,6 +1573,7 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
                 let vars = (
                     dot::<FMA>(&k.cm, &acc_mean[..r]),
                     dot::<FMA>(k.node_row(j), &acc_node[..r]),
+                    k.power_var_of(&cov),
                     cov[r * n + r],
                 );
                 if let Some(key_now) = key {
@@ -1496,6 +1609,7 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
                         s_var,
                         mean_var: vars.0,
                         power_var: vars.2,
+                        hold_var: vars.3,
                         node_var,
                         children: Vec::new(),
                         steady,
@@ -1514,7 +1628,8 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
             // the mode of the next step
             let z = m_z.abs() / m_sd;
             manoeuvre = if manoeuvre {
-                z > sw.off_sigma || x[r].abs() > sw.hold_power_sigma * power_var.max(0.0).sqrt()
+                // P's own (the mode sets P's noise, not P_b's)
+                z > sw.off_sigma || x[r].abs() > sw.hold_power_sigma * hold_var.max(0.0).sqrt()
             } else {
                 z > sw.on_sigma
             };
@@ -1525,7 +1640,7 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
             f.mean_sd_k[t] = mean_var.max(0.0).sqrt();
             f.max_c[t] = top + p.t_ref_c;
             f.max_sd_k[t] = node_var.max(0.0).sqrt();
-            f.power_w[t] = x[r];
+            f.power_w[t] = k.power_of(&x);
             f.power_sd_w[t] = power_var.max(0.0).sqrt();
             out.innovation_k[t] = nu;
             out.innovation_var_k2[t] = s_var;
@@ -1699,6 +1814,7 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
     let mut xs_t = vec![0.0; n];
     let mut sc_mean = vec![0.0; n];
     let mut sc_node = vec![0.0; n];
+    let mut sc_power = vec![0.0; n];
     let mut q = [vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]];
     let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
     let mut back: Option<BackSteady> = None;
@@ -1720,7 +1836,7 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
             if mode != FULL {
                 let c = &caches[mode as usize];
                 mean = dot::<FMA>(&k.cm, &x[..r]) - dot::<FMA>(&c.sig_mean, &lam);
-                power = x[r] - dot::<FMA>(&c.sig_power, &lam);
+                power = k.power_of(x) - dot::<FMA>(&c.sig_power, &lam);
                 (top, j) = k.nodes_max::<FMA>(x, Some((&c.sig_nodes_t, &lam)), &mut node_values);
                 sig_mean = &c.sig_mean;
                 sig_node = &c.sig_nodes[j * n..(j + 1) * n];
@@ -1741,12 +1857,17 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                     *v = xi - *v;
                 }
                 mean = dot::<FMA>(&k.cm, &xs_t[..r]);
-                power = xs_t[r];
+                power = k.power_of(&xs_t);
                 (top, j) = k.nodes_max::<FMA>(&xs_t, None, &mut node_values);
                 k.times::<FMA>(cov, k.node_row(j), &mut sc_node);
                 sig_mean = &sc_mean;
                 sig_node = &sc_node;
-                sig_power = &cov[r * n..(r + 1) * n];
+                sig_power = if k.d.brake {
+                    k.sig_power_into(cov, &mut sc_power);
+                    &sc_power
+                } else {
+                    &cov[r * n..(r + 1) * n]
+                };
             }
             let (mean_var, node_var, power_var) = match back.as_ref().filter(|_| frozen) {
                 Some(bs) => {
@@ -1769,7 +1890,7 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                     (
                         dot::<FMA>(&k.cm, &sig_mean[..r]) - quad[0],
                         dot::<FMA>(k.node_row(j), &sig_node[..r]) - quad[1],
-                        sig_power[r] - quad[2],
+                        k.power_of(sig_power) - quad[2],
                     )
                 }
             };
@@ -1825,7 +1946,8 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                             - k.quad::<FMA>(&big_new, sn, &mut work.a),
                     );
                 }
-                let power_var = c.sig_power[r] - k.quad::<FMA>(&big_new, &c.sig_power, &mut work.a);
+                let power_var =
+                    k.power_of(&c.sig_power) - k.quad::<FMA>(&big_new, &c.sig_power, &mut work.a);
                 back = Some(BackSteady {
                     cache: mode,
                     mean_var,
@@ -1925,6 +2047,17 @@ mod tests {
             f[(r + 1) * n + r] = t.lag_power;
             f[(r + 1) * n + r + 1] = t.lag_a;
         }
+        if p.brake {
+            // P_b: heats the modes (and the lag) as P does, decays by its own factor
+            let ib = n - 1;
+            for i in 0..r {
+                f[i * n + ib] = t.gamma[i];
+            }
+            if p.lag {
+                f[(r + 1) * n + ib] = t.lag_power;
+            }
+            f[ib * n + ib] = t.brake_phi;
+        }
         f
     }
 
@@ -1972,6 +2105,8 @@ mod tests {
                 lag_row,
                 lag_power,
                 applied: false,
+                brake_phi: 1.0,
+                brake_q: 0.0,
             }
         };
         let e: Vec<f64> = lam.iter().map(|l: &f64| (-l).exp()).collect();
@@ -2019,6 +2154,7 @@ mod tests {
         let mut p = Problem {
             order: r,
             lag,
+            brake: false,
             t_ref_c: 20.0,
             transitions,
             index: Cow::Owned(index),
@@ -2140,6 +2276,9 @@ mod tests {
                 cov = matmul(&matmul(&f, &cov, n), &transpose(&f, n), n);
                 let pi = p.power_noise.get(t - 1).copied().unwrap_or(0.0);
                 cov[r * n + r] += (sw2_of(t) + pi) * p.transitions[k].q_unit;
+                if p.brake {
+                    cov[n * n - 1] += p.transitions[k].brake_q;
+                }
                 for i in 0..n {
                     for j in 0..n {
                         cov[i * n + j] += p.transitions[k].q_gap * p.gap_dir[i] * p.gap_dir[j];
@@ -2213,8 +2352,14 @@ mod tests {
                 }
                 e.max_c[t] = best + p.t_ref_c;
                 e.max_sd_k[t] = quad(&pad(&p.c_nodes[j * r..(j + 1) * r]), &ps[t]).sqrt();
-                e.power_w[t] = xs[t][r];
-                e.power_sd_w[t] = ps[t][r * n + r].sqrt();
+                // the reported power: P (+ P_b)
+                let mut ep = vec![0.0; n];
+                ep[r] = 1.0;
+                if p.brake {
+                    ep[n - 1] = 1.0;
+                }
+                e.power_w[t] = dot(&ep, &xs[t]);
+                e.power_sd_w[t] = quad(&ep, &ps[t]).sqrt();
             }
             e
         };
@@ -2426,6 +2571,106 @@ mod tests {
                 &plain.filtered.power_sd_w,
                 &exact.filtered.power_sd_w,
                 1e-3,
+            );
+        }
+    }
+
+    /// The problem with the braking's power `P_b`: a random walk over the dense transition
+    /// (the "braking" one here: steps 40-55 and 600-800 of every 1,500), decaying without
+    /// noise over the diagonal one and the gap.
+    fn brake_problem(lag: bool, n_t: usize, seed: u64) -> Problem<'static> {
+        let mut p = problem(lag, n_t, seed);
+        let n = p.n_state() + 1;
+        p.brake = true;
+        for (k, t) in p.transitions.iter_mut().enumerate() {
+            (t.brake_phi, t.brake_q) = match k {
+                1 => (1.0, 0.04),
+                0 => (0.95, 0.0),
+                _ => (0.95f64.powi(3), 0.0),
+            };
+        }
+        // the prior and the gap's direction with P_b's entry (0: no braking yet)
+        let old = n - 1;
+        let mut cov0 = vec![0.0; n * n];
+        for i in 0..old {
+            cov0[i * n..i * n + old].copy_from_slice(&p.cov0[i * old..(i + 1) * old]);
+        }
+        cov0[n * n - 1] = 0.3;
+        p.cov0 = cov0;
+        p.x0.push(0.0);
+        p.gap_dir.push(0.0);
+        p
+    }
+
+    #[test]
+    fn the_braking_power_state_is_the_textbook_filter_and_smoother() {
+        for lag in [false, true] {
+            for noise in [NOISE, SWITCHING] {
+                let p = brake_problem(lag, 400, 7);
+                let out = run(&p, noise, &settings(0.0, 64)).unwrap();
+                let manoeuvre = noise.switching.map(|_| &out.manoeuvre[..]);
+                let naive = naive_modes(&p, noise, manoeuvre);
+                assert_estimates("filtered", &out.filtered, &naive.filtered, 1e-9);
+                assert_estimates(
+                    "smoothed",
+                    out.smoothed.as_ref().unwrap(),
+                    &naive.smoothed,
+                    1e-8,
+                );
+                assert_close("innovation", &out.innovation_k, &naive.innovation, 1e-9);
+                assert!((out.log_likelihood - naive.loglik).abs() < 1e-8 * naive.loglik.abs());
+                // the state did something: without it the power differs
+                let mut plain = problem(lag, 400, 7);
+                plain.reading_c = p.reading_c.clone();
+                let without = run(&plain, noise, &settings(0.0, 64)).unwrap();
+                assert_differ(
+                    "power_w",
+                    &without.filtered.power_w,
+                    &out.filtered.power_w,
+                    1e-3,
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_braking_power_state_keeps_the_fast_paths_exact() {
+        for lag in [false, true] {
+            let mut p = brake_problem(lag, 6000, 11);
+            // forgotten at the release (τ_b = 0): its variance exactly 0 there, so the
+            // released stretches settle (a geometric decay never passes the relative test)
+            for t in &mut p.transitions {
+                if t.brake_q == 0.0 {
+                    t.brake_phi = 0.0;
+                }
+            }
+            // a reading missing every 400 s: excursions from the steady states, replayed
+            for t in (200..6000).step_by(400) {
+                p.reading_c.to_mut()[t] = f64::NAN;
+            }
+            let exact = run(&p, SWITCHING, &settings(0.0, 256)).unwrap();
+            let fast = run(&p, SWITCHING, &settings(1e-7, 256)).unwrap();
+            assert!(
+                fast.frozen_steps > 0 && fast.memo_steps > 0,
+                "{} {}",
+                fast.frozen_steps,
+                fast.memo_steps
+            );
+            assert_estimates("filtered", &fast.filtered, &exact.filtered, 1e-4);
+            let mut no_replay = settings(1e-7, 256);
+            no_replay.replay = false;
+            let computed = run(&p, SWITCHING, &no_replay).unwrap();
+            assert_estimates(
+                "filtered, replayed",
+                &fast.filtered,
+                &computed.filtered,
+                0.0,
+            );
+            assert_estimates(
+                "smoothed, replayed",
+                fast.smoothed.as_ref().unwrap(),
+                computed.smoothed.as_ref().unwrap(),
+                0.0,
             );
         }
     }

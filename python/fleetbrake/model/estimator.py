@@ -54,7 +54,10 @@ the seat's model error ``b`` as one coordinate more), the unexplained heat power
   such a step and over an unlogged standstill ``γ = 0``, ``φ = 1``, no noise, and 0 W
   reported); ``b' = φ_b b + η``, the reduced model's own error at the sensor seat
   (``seat_error_sd_k``, a Gauss-Markov process, a coordinate appended to ``ξ`` that the
-  face does not see).
+  face does not see); ``P_b``, the braking's unexplained power (``brake_power_w_per_sqrt_s``,
+  the state's last entry, heating the face as ``P`` does: a random walk over the steps with
+  declared friction heat, decaying or forgotten over the others; the reported power
+  ``P + P_b``).
 
 **Measurement.** ``y = T_seat (+ b) + v`` (or ``s + v`` with a lag, ``s`` lagging
 ``T_seat (+ b)``), ``var v = σ_v²``; a missing or faulty reading (NaN) skips the update.
@@ -357,6 +360,22 @@ class EstimatorConfig:
     synthetic fleets) is in proportion to it, so the filter is loose where, and as much as,
     the declared heat can be wrong, and tight while released (where the steady path stays).
     0: none. ``docs/estimator.md`` (session 10)."""
+    brake_power_w_per_sqrt_s: float | None = None
+    """σ_b: the braking's unexplained power as a state of its own, ``P_b`` (W into the block
+    through the friction face, the same ``γ`` as ``P``): over a step whose declared friction
+    heat is not zero (the logged pressure above the cylinder's spring and the regulator's
+    thresholds, the wheel turning; not a standstill gap, not held) it diffuses with σ_b
+    (W/√s); over any other step it decays with ``brake_power_time_constant_s`` and gets no
+    noise. A braking's input error (the logged pressure's scale or offset: heat only where
+    the declared force is not zero) is followed while it brakes and forgotten within a minute
+    of the release, instead of persisting in ``P`` (τ 1 h) into the released seconds. The
+    reported unexplained power is ``P + P_b``. None (the default): no such state.
+    ``docs/estimator.md`` (session 12)."""
+    brake_power_time_constant_s: float = 45.0
+    """τ_b of ``brake_power_w_per_sqrt_s``: how fast ``P_b`` decays once released, s; 0: it is
+    forgotten at the first step without declared heat (its variance exactly 0 there, so the
+    covariance can be steady again; with τ_b > 0 ``P_b``'s variance decays geometrically and
+    the relative steady test never passes until it underflows)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -401,6 +420,18 @@ class EstimatorConfig:
             raise ValueError(
                 f"EstimatorConfig.standstill_speed_kmh must be >= 0 and finite, got {speed!r}"
             )
+        if not (
+            math.isfinite(self.brake_power_time_constant_s)
+            and self.brake_power_time_constant_s >= 0
+        ):
+            raise ValueError("EstimatorConfig.brake_power_time_constant_s must be >= 0 and finite")
+        brake = self.brake_power_w_per_sqrt_s
+        if brake is not None:
+            if not (math.isfinite(brake) and brake > 0):
+                raise ValueError(
+                    f"EstimatorConfig.brake_power_w_per_sqrt_s must be positive and finite, "
+                    f"got {brake!r}"
+                )
 
 
 @dataclass(frozen=True)
@@ -449,8 +480,8 @@ class WagonSeries:
 class EstimatorProblem:
     """One wagon's filtering problem as arrays, independent of the noise parameters.
 
-    The state has ``n = r + 1 (+ 1)`` entries: r modes, the unexplained power ``P``, the
-    lagged reading ``s`` if ``lag``. The time grid has N samples (the logged seconds and the
+    The state has ``n = r + 1 (+ 1) (+ 1)`` entries: r modes, the unexplained power ``P``, the
+    lagged reading ``s`` if ``lag``, the braking's power ``P_b`` if ``brake``. The time grid has N samples (the logged seconds and the
     seconds filled into short gaps; ``logged`` marks the former); step n (n = 1 .. N-1) goes
     from sample n-1 to n by transition ``index[n-1]``.
 
@@ -508,6 +539,23 @@ class EstimatorProblem:
     proportion to the declared braking power
     (:attr:`EstimatorConfig.declared_power_noise_per_sqrt_s`), added to σ² (times
     ``q_unit``); such a step is never steady. None: zeros."""
+    brake_phi: FloatArray | None = None
+    """(K): the braking power ``P_b``'s factor over transition k (1 where the declared heat is
+    not zero, ``exp(-L/τ_b)`` otherwise; :attr:`EstimatorConfig.brake_power_w_per_sqrt_s`). None: the
+    state has no ``P_b``. With it, ``P_b`` is the state's last entry, heating the modes
+    through ``gamma[k]`` as ``P`` does."""
+    brake_q: FloatArray | None = None
+    """(K): the variance transition k adds to ``P_b``, W² (``σ_b² L`` braking, 0 otherwise)."""
+
+    @property
+    def brake(self) -> bool:
+        """Whether the state carries the braking's power ``P_b`` (its last entry)."""
+        return self.brake_phi is not None
+
+    @property
+    def brake_index(self) -> int | None:
+        """``P_b``'s index in the state, None without it."""
+        return self.n_state - 1 if self.brake else None
 
     def step_power_noise(self) -> FloatArray:
         """``power_noise``, zeros where not given."""
@@ -533,7 +581,7 @@ class EstimatorProblem:
 
     @property
     def n_state(self) -> int:
-        return self.order + 1 + int(self.lag)
+        return self.order + 1 + int(self.lag) + int(self.brake_phi is not None)
 
     @property
     def n_samples(self) -> int:
@@ -550,7 +598,21 @@ class EstimatorProblem:
             f[r + 1, :r] = self.lag_row[k]
             f[r + 1, r] = self.lag_power[k]
             f[r + 1, r + 1] = self.lag_a[k]
+        if self.brake_phi is not None:
+            ib = n - 1
+            f[:r, ib] = self.gamma[k]
+            f[ib, ib] = self.brake_phi[k]
+            if self.lag:
+                f[r + 1, ib] = self.lag_power[k]
         return f
+
+    def power_row(self) -> FloatArray:
+        """The reported unexplained power is ``e x``: ``P`` (+ ``P_b``)."""
+        e = np.zeros(self.n_state)
+        e[self.order] = 1.0
+        if self.brake_phi is not None:
+            e[self.n_state - 1] = 1.0
+        return e
 
     def measurement_row(self) -> FloatArray:
         """h: the reading is ``h x + T_ref``."""
@@ -679,7 +741,7 @@ class _Transitions:
     offset_var_per_s: float = 0.0
     seat_sd_k: float = 0.0
     seat_tau_s: float = 600.0
-    keys: dict[tuple[bytes, int, bool, bool, bool], int] = field(default_factory=dict)
+    keys: dict[tuple[bytes, int, bool, bool, bool, bool], int] = field(default_factory=dict)
     a: list[FloatArray] = field(default_factory=list)
     gmat: list[FloatArray | None] = field(default_factory=list)
     g: list[FloatArray] = field(default_factory=list)
@@ -691,6 +753,8 @@ class _Transitions:
     q_gap: list[float] = field(default_factory=list)
     q_modes: list[FloatArray] = field(default_factory=list)
     applied: list[bool] = field(default_factory=list)
+    braking: list[bool] = field(default_factory=list)
+    length_s: list[float] = field(default_factory=list)
 
     @property
     def seat_error(self) -> bool:
@@ -698,13 +762,22 @@ class _Transitions:
         return self.seat_sd_k > 0
 
     def get(
-        self, dh: FloatArray, steps: int, dt_s: float, gap: bool, held: bool, applied: bool
+        self,
+        dh: FloatArray,
+        steps: int,
+        dt_s: float,
+        gap: bool,
+        held: bool,
+        applied: bool,
+        braking: bool = False,
     ) -> int:
         """The transition of a step of ``steps`` samples at convection ``h_nominal + dh``;
         ``gap``: an unlogged standstill; ``held``: the unexplained power neither heats nor
         diffuses over the step (the wheel stands); ``applied``: the cylinder is applied (the
-        quiet mode's noise is ``ManoeuvreTest.applied_quiet_w_per_sqrt_s``)."""
-        key = (np.ascontiguousarray(dh).tobytes(), steps, gap, held, applied)
+        quiet mode's noise is ``ManoeuvreTest.applied_quiet_w_per_sqrt_s``); ``braking``: the
+        declared inputs heat the friction face over the step (the braking's power ``P_b``
+        diffuses instead of decaying)."""
+        key = (np.ascontiguousarray(dh).tobytes(), steps, gap, held, applied, braking)
         found = self.keys.get(key)
         if found is not None:
             return found
@@ -764,6 +837,8 @@ class _Transitions:
         self.lag.append(lag)
         self.q_modes.append(q_modes)
         self.applied.append(applied)
+        self.braking.append(braking)
+        self.length_s.append(length_s)
         return self.keys[key]
 
 
@@ -917,17 +992,31 @@ def prepare(
     )
     held = _held_steps(values["speed_kmh"], gap, config)
     applied = _applied_steps(values["p_bar"], gap | held, config)
+    # the steps whose declared friction heat is not zero (where the braking's power P_b lives)
+    braking = (
+        (step_flux > 0.0) & ~(gap | held)
+        if config.brake_power_w_per_sqrt_s is not None
+        else np.zeros(gap.size, dtype=bool)
+    )
     # one transition per distinct (convection, length, standstill gap, power held, cylinder
     # applied): integer codes per column, then one key per step (sorting floats row by row
     # is slow)
     codes = [np.unique(column, return_inverse=True) for column in dh.T]
-    key = ((np.rint(steps_of).astype(np.int64) * 2 + gap) * 2 + held) * 2 + applied
+    key = (((np.rint(steps_of).astype(np.int64) * 2 + gap) * 2 + held) * 2 + applied) * 2 + braking
     for distinct, inverse_f in codes:
         key = key * max(distinct.size, 1) + inverse_f.reshape(-1)
     _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     ids = np.array(
         [
-            table.get(dh[i], int(steps_of[i]), dt, bool(gap[i]), bool(held[i]), bool(applied[i]))
+            table.get(
+                dh[i],
+                int(steps_of[i]),
+                dt,
+                bool(gap[i]),
+                bool(held[i]),
+                bool(applied[i]),
+                bool(braking[i]),
+            )
             for i in first
         ],
         dtype=np.int64,
@@ -948,7 +1037,8 @@ def prepare(
         assert gmat is not None
         w[rows] = u[rows] @ gmat.T
     lag = lag_tau > 0
-    n_state = r + 1 + int(lag)
+    brake = config.brake_power_w_per_sqrt_s is not None
+    n_state = r + 1 + int(lag) + int(brake)
     # prior: a uniform offset of the whole block (and of the lagged reading); the seat's
     # error at its stationary distribution
     b_air = h_nom @ rom.b_faces
@@ -969,6 +1059,15 @@ def prepare(
         if gain > 0.0
         else None
     )
+    # the braking's power P_b: a random walk while braking, decaying otherwise
+    brake_phi: FloatArray | None = None
+    brake_q: FloatArray | None = None
+    if config.brake_power_w_per_sqrt_s is not None:
+        on = np.array(table.braking, dtype=bool)
+        length = np.array(table.length_s, dtype=np.float64)
+        tau_b = config.brake_power_time_constant_s
+        brake_phi = np.where(on, 1.0, np.exp(-length / tau_b) if tau_b > 0 else 0.0)
+        brake_q = np.where(on, config.brake_power_w_per_sqrt_s**2 * length, 0.0)
     return EstimatorProblem(
         wagon_id=series.wagon_id,
         order=r,
@@ -1002,6 +1101,8 @@ def prepare(
         q_modes=np.stack(table.q_modes) if table.q_modes else np.zeros((0, r)),
         applied=np.array(table.applied, dtype=bool),
         power_noise=power_noise,
+        brake_phi=brake_phi,
+        brake_q=brake_q,
     )
 
 
@@ -1083,6 +1184,9 @@ def run_numpy(
     p = problem
     r, n = p.order, p.n_state
     ip = r
+    ib = p.brake_index  # the braking's power P_b, reported with P as their sum
+    e_power = p.power_row()
+    brake_q = np.zeros(p.phi.size) if p.brake_q is None else p.brake_q
     h = p.measurement_row()
     var_v = noise.measurement_k**2
     switching = manoeuvre.kernel_args(noise, dt_s)
@@ -1172,6 +1276,8 @@ def run_numpy(
                 sw2 = sw2_applied if (applied[k] and not mode) else sw2_of[int(mode)]
                 cov_pred[ip, ip] += p.q_unit[k] * (sw2 + power_noise[t - 1])
                 cov_pred[modal, modal] += q_modes[k]
+                if ib is not None:
+                    cov_pred[ib, ib] += brake_q[k]
                 if q_gap[k] > 0:
                     cov_pred += q_gap[k] * gap_cov
             else:
@@ -1185,7 +1291,7 @@ def run_numpy(
                 cov_f = cov_pred
             mean_var = float(cm @ cov_f @ cm)
             node_var = np.einsum("ij,jk,ik->i", cn, cov_f, cn)
-            power_var = float(cov_f[ip, ip])
+            power_var = float(cov_f[ip, ip] if ib is None else e_power @ cov_f @ e_power)
             if (
                 key is not None
                 and key == prev_key
@@ -1218,7 +1324,8 @@ def run_numpy(
         if switching is not None:
             z = abs(m_z) / m_sd
             if mode:
-                hold = abs(float(x[ip])) > switching[4] * math.sqrt(max(power_var, 0.0))
+                # P's own (not P_b's): the mode sets P's noise
+                hold = abs(float(x[ip])) > switching[4] * math.sqrt(max(float(cov_f[ip, ip]), 0.0))
                 mode = z > switching[3] or hold
             else:
                 mode = z > switching[2]
@@ -1232,7 +1339,7 @@ def run_numpy(
             out["mean_sd_k"][t] = math.sqrt(max(mean_var, 0.0))
             out["max_c"][t] = nodes[j] + p.t_ref_c
             out["max_sd_k"][t] = math.sqrt(max(float(node_var[j]), 0.0))
-            out["power_w"][t] = x[ip]
+            out["power_w"][t] = x[ip] if ib is None else x[ip] + x[ib]
             out["power_sd_w"][t] = math.sqrt(max(power_var, 0.0))
             out["innovation_k"][t] = nu if measured else np.nan
             out["innovation_var_k2"][t] = s_var
@@ -1302,7 +1409,13 @@ def _smooth_numpy(
     ``λ_n-1 = Fᵀ λ̃``, ``Λ_n-1 = Fᵀ Λ̃ F``."""
     n_t, n = xs.shape
     ip = p.order
+    ib = p.brake_index
     y = p.reading_c
+
+    def power_column(cov: FloatArray) -> FloatArray:
+        """``Σ eᵀ``: the covariance with the reported power (``P`` + ``P_b``)."""
+        return cov[:, ip] if ib is None else cov[:, ip] + cov[:, ib]
+
     lam = np.zeros(n)
     big = np.zeros((n, n))
     frozen: tuple[int, FloatArray, float, FloatArray, float] | None = None
@@ -1324,13 +1437,13 @@ def _smooth_numpy(
             node_var_j = float(cn[j] @ cov @ cn[j] - snode @ big @ snode)
             node_var = np.full(cn.shape[0], np.nan)
             node_var[j] = node_var_j
-            sp = cov[:, ip]
-            power_var = float(cov[ip, ip] - sp @ big @ sp)
+            sp = power_column(cov)
+            power_var = float(sp[ip] + (0.0 if ib is None else sp[ib]) - sp @ big @ sp)
         out["smoothed_mean_c"][t] = cm @ xs_t + p.t_ref_c
         out["smoothed_mean_sd_k"][t] = math.sqrt(max(mean_var, 0.0))
         out["smoothed_max_c"][t] = nodes[j] + p.t_ref_c
         out["smoothed_max_sd_k"][t] = math.sqrt(max(float(node_var[j]), 0.0))
-        out["smoothed_power_w"][t] = xs_t[ip]
+        out["smoothed_power_w"][t] = xs_t[ip] if ib is None else xs_t[ip] + xs_t[ib]
         out["smoothed_power_sd_w"][t] = math.sqrt(max(power_var, 0.0))
         if t == 0:
             break
@@ -1352,13 +1465,13 @@ def _smooth_numpy(
             cov_c = cov_of[t]
             sc = cov_c @ cm
             sn = cn @ cov_c  # (m, n)
-            sp = cov_c[:, ip]
+            sp = power_column(cov_c)
             frozen = (
                 cache,
                 new,
                 float(cm @ cov_c @ cm - sc @ new @ sc),
                 np.einsum("ij,ij->i", sn, cn) - np.einsum("ij,jk,ik->i", sn, new, sn),
-                float(cov_c[ip, ip] - sp @ new @ sp),
+                float(sp[ip] + (0.0 if ib is None else sp[ib]) - sp @ new @ sp),
             )
         big = new
     return {**out, "smoother_frozen_steps": frozen_steps}
@@ -1424,6 +1537,8 @@ def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
         "q_modes": c(p.mode_noise().reshape(-1), dtype=np.float64),
         "applied": [bool(v) for v in p.applied_transitions()],
         "power_noise": None if p.power_noise is None else c(p.power_noise, dtype=np.float64),
+        "brake_phi": None if p.brake_phi is None else c(p.brake_phi, dtype=np.float64),
+        "brake_q": None if p.brake_q is None else c(p.brake_q, dtype=np.float64),
     }
 
 
@@ -1754,7 +1869,15 @@ def _fit_power_noise(
     tolerance: float,
     readings: int,
 ) -> NoiseFit:
-    """σ_w alone by maximum likelihood, σ_v fixed (:func:`fit_noise`)."""
+    """σ_w alone by maximum likelihood, σ_v fixed (:func:`fit_noise`).
+
+    The likelihood is taken as unimodal in ``log σ_w`` (the bounded search assumes it too):
+    the floor ``lo`` and one ``tolerance`` above it are evaluated first, and when the floor
+    is at least as likely the maximum lies within that step of it, so the floor is the
+    answer to the search's own tolerance (two filter passes instead of the search's ~17;
+    the revisions the close loop makes end there). Otherwise the bounded search over
+    ``lo`` .. ``hi``, as before, and the floor when it is as likely as the search's best
+    (the search never evaluates the bound itself)."""
     from scipy.optimize import minimize_scalar
 
     if not (math.isfinite(measurement_k) and measurement_k > 0):
@@ -1768,16 +1891,18 @@ def _fit_power_noise(
         raws = _run(problems, noise, smooth=False, config=config, engine=engine, outputs=False)
         return -float(sum(raw.log_likelihood for raw in raws))
 
-    result = minimize_scalar(
-        negative_loglik, bounds=(lo, hi), method="bounded", options={"xatol": tolerance}
-    )
-    z = float(np.clip(result.x, lo, hi))
-    # the bounded search never evaluates the bound itself: the floor when it is as likely
     floor = negative_loglik(lo)
-    if floor <= float(result.fun):
+    if floor <= negative_loglik(min(lo + tolerance, hi)):
         z, best = lo, floor
     else:
-        best = float(result.fun)
+        result = minimize_scalar(
+            negative_loglik, bounds=(lo, hi), method="bounded", options={"xatol": tolerance}
+        )
+        z = float(np.clip(result.x, lo, hi))
+        if floor <= float(result.fun):
+            z, best = lo, floor
+        else:
+            best = float(result.fun)
     noise = EstimatorNoise(measurement_k, float(np.exp(z)), config.noise.quiet_power_w_per_sqrt_s)
     at_floor = bool(z <= lo + 2 * tolerance)
     logger.info(
