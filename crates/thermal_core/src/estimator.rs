@@ -51,6 +51,10 @@
 //! `checkpoint_steps` seconds, each replayed from the filter's checkpoint, so its memory does
 //! not grow with the series; its information matrix `Λ` is frozen the same way inside a
 //! steady stretch.
+//!
+//! A dense transition (a convection other than the nominal one mixes the modes) is stepped as
+//! two blocked products on padded matrices (`DenseF`), the second only on the symmetric
+//! result's lower triangle.
 
 use std::borrow::Cow;
 
@@ -471,6 +475,145 @@ fn transpose(a: &[f64], rows: usize, cols: usize, width: usize) -> Vec<f64> {
     t
 }
 
+/// The row stride of the padded matrices of the dense products: n rounded up to eight.
+#[inline(always)]
+fn padded(n: usize) -> usize {
+    n.next_multiple_of(8)
+}
+
+/// `dst = src` by chunks of 8 (moved in registers: a call of `memcpy` per short row of the
+/// padded matrices costs more than the copy).
+#[inline(always)]
+fn copy_row(dst: &mut [f64], src: &[f64]) {
+    assert_eq!(dst.len(), src.len());
+    let mut d = dst.chunks_exact_mut(8);
+    let mut s = src.chunks_exact(8);
+    for (dc, sc) in (&mut d).zip(&mut s) {
+        let v: [f64; 8] = sc.try_into().unwrap();
+        dc.copy_from_slice(&v);
+    }
+    for (dv, &sv) in d.into_remainder().iter_mut().zip(s.remainder()) {
+        *dv = sv;
+    }
+}
+
+/// `c = l r` for padded row-major p x p matrices (p a multiple of 8, zeros outside the
+/// matrices: `l`'s first `k` columns times `r`'s first `k` rows), for the rows below `rows`
+/// (rounded up to 4); `lower`: at least the column blocks of 8 that reach the diagonal (a
+/// symmetric product's lower triangle; the rest may be left as it was). Blocks of the result
+/// are held in registers. Every element is one chain of multiply-adds over `0..k` in order,
+/// so the vectorised and the scalar code sum alike.
+#[inline(always)]
+fn gemm_padded<const FMA: bool>(
+    l: &[f64],
+    r: &[f64],
+    c: &mut [f64],
+    p: usize,
+    k: usize,
+    rows: usize,
+    lower: bool,
+) {
+    assert!(p % 8 == 0 && k <= p && rows <= p);
+    assert!(l.len() >= p * p && r.len() >= p * p && c.len() >= p * p);
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // SAFETY: FMA is only true inside functions compiled with avx2 and fma (`run_avx2`);
+        // the sizes are the ones asserted above.
+        unsafe { gemm_padded_avx2(l, r, c, p, k, rows, lower) };
+        return;
+    }
+    for i0 in (0..rows).step_by(4) {
+        let cols = if lower { (i0 / 8 + 1) * 8 } else { p };
+        for j0 in (0..cols).step_by(8) {
+            let mut s = [[0.0f64; 8]; 4];
+            for q in 0..k {
+                let rq = &r[q * p + j0..q * p + j0 + 8];
+                for (ii, si) in s.iter_mut().enumerate() {
+                    let a = l[(i0 + ii) * p + q];
+                    for (v, &b) in si.iter_mut().zip(rq) {
+                        *v = madd::<FMA>(a, b, *v);
+                    }
+                }
+            }
+            for (ii, si) in s.iter().enumerate() {
+                c[(i0 + ii) * p + j0..(i0 + ii) * p + j0 + 8].copy_from_slice(si);
+            }
+        }
+    }
+}
+
+/// `gemm_padded` with AVX2 and FMA, by blocks of 6 x 8 (and 4 x 8 where fewer than 6 rows, or
+/// 8, are left). Caller: the sizes of `gemm_padded`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn gemm_padded_avx2(
+    l: &[f64],
+    r: &[f64],
+    c: &mut [f64],
+    p: usize,
+    k: usize,
+    rows: usize,
+    lower: bool,
+) {
+    let rows = rows.next_multiple_of(4);
+    let mut i0 = 0;
+    while i0 < rows {
+        let left = rows - i0;
+        let height = if left == 4 || left == 8 { 4 } else { 6 };
+        let cols = if lower {
+            ((i0 + height - 1) / 8 + 1) * 8
+        } else {
+            p
+        };
+        for j0 in (0..cols).step_by(8) {
+            // SAFETY: i0 + height <= rows <= p, j0 + 8 <= p (p a multiple of 8), k <= p.
+            unsafe {
+                if height == 6 {
+                    block_avx2::<6>(l, r, c, p, k, i0, j0);
+                } else {
+                    block_avx2::<4>(l, r, c, p, k, i0, j0);
+                }
+            }
+        }
+        i0 += height;
+    }
+}
+
+/// Rows `i0..i0 + H`, columns `j0..j0 + 8` of `gemm_padded`'s product in 2 H registers.
+/// Caller: i0 + H <= p, j0 + 8 <= p, k <= p, the slices at least p x p.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn block_avx2<const H: usize>(
+    l: &[f64],
+    r: &[f64],
+    c: &mut [f64],
+    p: usize,
+    k: usize,
+    i0: usize,
+    j0: usize,
+) {
+    use std::arch::x86_64::*;
+    let (lp, rp, cp) = (l.as_ptr(), r.as_ptr(), c.as_mut_ptr());
+    // SAFETY: the caller's bounds.
+    unsafe {
+        let mut s = [[_mm256_setzero_pd(); 2]; H];
+        for q in 0..k {
+            let r0 = _mm256_loadu_pd(rp.add(q * p + j0));
+            let r1 = _mm256_loadu_pd(rp.add(q * p + j0 + 4));
+            for (ii, si) in s.iter_mut().enumerate() {
+                let a = _mm256_broadcast_sd(&*lp.add((i0 + ii) * p + q));
+                si[0] = _mm256_fmadd_pd(a, r0, si[0]);
+                si[1] = _mm256_fmadd_pd(a, r1, si[1]);
+            }
+        }
+        for (ii, si) in s.iter().enumerate() {
+            _mm256_storeu_pd(cp.add((i0 + ii) * p + j0), si[0]);
+            _mm256_storeu_pd(cp.add((i0 + ii) * p + j0 + 4), si[1]);
+        }
+    }
+}
+
 /// Every element changed by at most `tol √(d_i d_j)` (d: the new diagonal); stops at the
 /// first that did not.
 #[inline(always)]
@@ -564,8 +707,8 @@ impl Transition {
         }
     }
 
-    /// `out = F X Fᵀ` for a symmetric X (symmetric to rounding). `a`, `b`: n scratch; `big`:
-    /// n x n scratch.
+    /// `out = F X Fᵀ` for a symmetric X (symmetric to rounding) and a diagonal transition
+    /// (a dense one: `DenseF::predict_cov`). `a`, `b`: n scratch; `big`: n x n scratch.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn predict_cov<const FMA: bool>(
@@ -579,41 +722,9 @@ impl Transition {
         mut ph: Option<(&[f64], &mut [f64])>,
     ) {
         let (r, n) = (d.r, d.n);
+        debug_assert!(self.diagonal && !d.brake);
         if let Some((_, acc)) = ph.as_mut() {
             acc.fill(0.0);
-        }
-        if d.brake {
-            // generic: T = X Fᵀ (row i: F X_i, X symmetric), then row i of F T (symmetric)
-            // is F applied to column i of T
-            for (xr, tr) in x.chunks_exact(n).zip(big.chunks_exact_mut(n)) {
-                self.apply::<FMA>(d, xr, tr);
-            }
-            for i in 0..n {
-                for (j, aj) in a.iter_mut().enumerate() {
-                    *aj = big[j * n + i];
-                }
-                self.apply::<FMA>(d, a, &mut out[i * n..(i + 1) * n]);
-            }
-            return;
-        }
-        if !self.diagonal {
-            // T = X Fᵀ row by row (F applied to each row of the symmetric X), then F T
-            for (xr, tr) in x.chunks_exact(n).zip(big.chunks_exact_mut(n)) {
-                self.apply::<FMA>(d, xr, tr);
-            }
-            for i in 0..r {
-                let o = &mut out[i * n..(i + 1) * n];
-                o.fill(0.0);
-                for (k, &aik) in self.a[i * r..(i + 1) * r].iter().enumerate() {
-                    axpy::<FMA>(aik, &big[k * n..(k + 1) * n], o);
-                }
-                axpy::<FMA>(self.gamma[i], &big[r * n..(r + 1) * n], o);
-                if let Some((h, acc)) = ph.as_mut() {
-                    axpy::<FMA>(h[i], o, acc);
-                }
-            }
-            self.border_rows::<FMA>(d, big, out, a);
-            return;
         }
         // T = X Fᵀ: row P first (every mode row of F X Fᵀ needs it)
         let tp = &mut *a;
@@ -677,24 +788,6 @@ impl Transition {
         }
     }
 
-    /// The power's and the lag's rows of `F T` (`t`: T = X Fᵀ), for the dense path.
-    #[inline(always)]
-    fn border_rows<const FMA: bool>(&self, d: &Dims, t: &[f64], out: &mut [f64], z: &mut [f64]) {
-        let (r, n) = (d.r, d.n);
-        for j in 0..n {
-            out[r * n + j] = self.phi * t[r * n + j];
-        }
-        if d.lag {
-            z.fill(0.0);
-            for k in 0..r {
-                axpy::<FMA>(self.lag_row[k], &t[k * n..(k + 1) * n], z);
-            }
-            axpy::<FMA>(self.lag_power, &t[r * n..(r + 1) * n], z);
-            axpy::<FMA>(self.lag_a, &t[(r + 1) * n..(r + 2) * n], z);
-            out[(r + 1) * n..(r + 2) * n].copy_from_slice(z);
-        }
-    }
-
     /// Row k of `L̃ F`: `Fᵀ L_k - h_k Fᵀu + (c h_k - u_k) Fᵀh` (`corr`: u, c, Fᵀu, Fᵀh).
     #[allow(clippy::type_complexity)]
     #[inline(always)]
@@ -722,10 +815,9 @@ impl Transition {
     }
 
     /// `out = Fᵀ L̃ F` with `L̃ = L - h uᵀ - u hᵀ + c h hᵀ` (`corr` = Some((u, c))) or `L`,
-    /// for a symmetric L (symmetric to rounding). Row k of `R = L̃ F` is
-    /// `Fᵀ L_k - h_k Fᵀu + (c h_k - u_k) Fᵀh` (Fᵀ is linear), then `out = Fᵀ R`.
-    /// `scratch`: four n vectors; `big`: n x n scratch (dense transitions).
-    #[allow(clippy::too_many_arguments)]
+    /// for a symmetric L (symmetric to rounding) and a diagonal transition (a dense one:
+    /// `DenseF::back_cov`). Row k of `R = L̃ F` is `Fᵀ L_k - h_k Fᵀu + (c h_k - u_k) Fᵀh`
+    /// (Fᵀ is linear), then `out = Fᵀ R`. `scratch`: four n vectors.
     #[inline(always)]
     fn back_cov<const FMA: bool>(
         &self,
@@ -735,59 +827,16 @@ impl Transition {
         corr: Option<(&[f64], f64)>,
         out: &mut [f64],
         scratch: &mut [Vec<f64>; 4],
-        big: &mut [f64],
     ) {
         let (r, n) = (d.r, d.n);
+        debug_assert!(self.diagonal && !d.brake);
         let [ftu, fth, rs, acc] = scratch;
         if let Some((u, _)) = corr {
             self.apply_t::<FMA>(d, u, ftu);
             self.apply_t::<FMA>(d, h, fth);
         }
         let corr = corr.map(|(u, c)| (u, c, &ftu[..], &fth[..]));
-        if d.brake {
-            // generic: R = L̃ F row by row, then row i of Fᵀ R = Rᵀ F (symmetric) is Fᵀ
-            // applied to column i of R
-            for k in 0..n {
-                self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
-            }
-            for i in 0..n {
-                for (j, aj) in acc.iter_mut().enumerate() {
-                    *aj = big[j * n + i];
-                }
-                self.apply_t::<FMA>(d, acc, &mut out[i * n..(i + 1) * n]);
-            }
-            return;
-        }
-        if !self.diagonal {
-            for k in 0..n {
-                self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
-            }
-            // out = Fᵀ R: rows combined
-            for i in 0..r {
-                let o = &mut out[i * n..(i + 1) * n];
-                o.fill(0.0);
-                for k in 0..r {
-                    axpy::<FMA>(self.a[k * r + i], &big[k * n..(k + 1) * n], o);
-                }
-                if d.lag {
-                    axpy::<FMA>(self.lag_row[i], &big[(r + 1) * n..(r + 2) * n], o);
-                }
-            }
-            acc.fill(0.0);
-            for k in 0..r {
-                axpy::<FMA>(self.gamma[k], &big[k * n..(k + 1) * n], acc);
-            }
-            axpy::<FMA>(self.phi, &big[r * n..(r + 1) * n], acc);
-            if d.lag {
-                axpy::<FMA>(self.lag_power, &big[(r + 1) * n..(r + 2) * n], acc);
-                for j in 0..n {
-                    out[(r + 1) * n + j] = self.lag_a * big[(r + 1) * n + j];
-                }
-            }
-            out[r * n..(r + 1) * n].copy_from_slice(acc);
-            return;
-        }
-        // diagonal: Fᵀ has e_i (and ℓ_i) in the mode rows, γ, φ, ℓ_P in the power's
+        // Fᵀ has e_i (and ℓ_i) in the mode rows, γ, φ, ℓ_P in the power's
         self.back_row::<FMA>(d, l, h, corr, r, acc); // R_P, scaled by φ below
         if d.lag {
             self.back_row::<FMA>(d, l, h, corr, r + 1, rs);
@@ -838,6 +887,133 @@ impl Transition {
                 *oj = self.lag_a * sj;
             }
         }
+    }
+}
+
+/// A dense transition's F and Fᵀ as padded row-major matrices (`padded(n)` square, zeros
+/// outside n x n), made once per problem: its covariance steps are two blocked products
+/// (`gemm_padded`), the second only on the symmetric result's lower triangle.
+struct DenseF {
+    f: Vec<f64>,
+    ft: Vec<f64>,
+}
+
+impl DenseF {
+    /// F from `Transition::apply` on the unit vectors (its columns, exactly).
+    fn new(tr: &Transition, d: &Dims) -> Self {
+        let (n, p) = (d.n, padded(d.n));
+        let mut f = vec![0.0; p * p];
+        let mut ft = vec![0.0; p * p];
+        let mut unit = vec![0.0; n];
+        let mut col = vec![0.0; n];
+        for j in 0..n {
+            unit[j] = 1.0;
+            tr.apply::<false>(d, &unit, &mut col);
+            unit[j] = 0.0;
+            for (i, &v) in col.iter().enumerate() {
+                f[i * p + j] = v;
+                ft[j * p + i] = v;
+            }
+        }
+        DenseF { f, ft }
+    }
+
+    /// `out` (n x n) from the lower triangle of the padded `c` (`gemm_padded`'s `lower`),
+    /// mirrored: exactly symmetric. The mirror is made in `c` by tiles of 8 x 8 (each tile
+    /// below the diagonal transposed into its place above it), then the rows are copied
+    /// (and, with `ph` = Some((h, acc)), `acc = Σ_i h_i out_i` summed in the same pass).
+    #[inline(always)]
+    fn unpad_symmetric<const FMA: bool>(
+        c: &mut [f64],
+        n: usize,
+        out: &mut [f64],
+        mut ph: Option<(&[f64], &mut [f64])>,
+    ) {
+        let p = padded(n);
+        let tiles = n.div_ceil(8);
+        assert!(c.len() >= p * p && out.len() >= n * n && tiles * 8 <= p);
+        for ib in 0..tiles {
+            for jb in 0..=ib {
+                let mut t = [[0.0f64; 8]; 8];
+                for (a, ta) in t.iter_mut().enumerate() {
+                    ta.copy_from_slice(&c[(ib * 8 + a) * p + jb * 8..][..8]);
+                }
+                for b in 0..8 {
+                    let row = &mut c[(jb * 8 + b) * p + ib * 8..][..8];
+                    for (a, v) in row.iter_mut().enumerate() {
+                        // on a diagonal tile only the entries above its diagonal
+                        if ib != jb || a > b {
+                            *v = t[a][b];
+                        }
+                    }
+                }
+            }
+        }
+        if let Some((_, acc)) = ph.as_mut() {
+            acc.fill(0.0);
+        }
+        for (i, (src, dst)) in c.chunks_exact(p).zip(out.chunks_exact_mut(n)).enumerate() {
+            copy_row(dst, &src[..n]);
+            if let Some((h, acc)) = ph.as_mut().filter(|(h, _)| i < h.len()) {
+                axpy::<FMA>(h[i], &src[..n], acc);
+            }
+        }
+    }
+
+    /// `out = F X Fᵀ` for a symmetric X (`Transition::predict_cov`'s dense case), with `Σh`
+    /// (h on the modes) into `ph` when given. `pad`: three `padded(n)` square scratch
+    /// matrices, zero outside n x n.
+    #[inline(always)]
+    fn predict_cov<const FMA: bool>(
+        &self,
+        d: &Dims,
+        x: &[f64],
+        out: &mut [f64],
+        pad: &mut [Vec<f64>; 3],
+        ph: Option<(&[f64], &mut [f64])>,
+    ) {
+        let (n, p) = (d.n, padded(d.n));
+        let [xp, tp, cp] = pad;
+        for (src, dst) in x.chunks_exact(n).zip(xp.chunks_exact_mut(p)) {
+            copy_row(&mut dst[..n], src);
+        }
+        gemm_padded::<FMA>(&self.f, xp, tp, p, n, n, false); // T = F X
+        gemm_padded::<FMA>(tp, &self.ft, cp, p, n, n, true); // T Fᵀ, lower triangle
+        Self::unpad_symmetric::<FMA>(cp, n, out, ph);
+    }
+
+    /// `out = Fᵀ L̃ F` with `L̃ = L - h uᵀ - u hᵀ + c h hᵀ` (`corr` = Some((u, c))) or `L`, for
+    /// a symmetric L (`Transition::back_cov`'s dense case); row i of `L̃` is
+    /// `L_i - h_i u + (c h_i - u_i) h`. `pad` as for `predict_cov`.
+    #[inline(always)]
+    fn back_cov<const FMA: bool>(
+        &self,
+        d: &Dims,
+        l: &[f64],
+        h: &[f64],
+        corr: Option<(&[f64], f64)>,
+        out: &mut [f64],
+        pad: &mut [Vec<f64>; 3],
+    ) {
+        let (n, p) = (d.n, padded(d.n));
+        let [lp, tp, cp] = pad;
+        for (i, (src, dst)) in l.chunks_exact(n).zip(lp.chunks_exact_mut(p)).enumerate() {
+            let dst = &mut dst[..n];
+            copy_row(dst, src);
+            if let Some((u, c)) = corr {
+                let (hi, ui) = (h[i], u[i]);
+                if hi != 0.0 {
+                    axpy::<FMA>(-hi, u, dst);
+                }
+                let w = c * hi - ui;
+                if w != 0.0 {
+                    axpy::<FMA>(w, h, dst);
+                }
+            }
+        }
+        gemm_padded::<FMA>(lp, &self.f, tp, p, n, n, false); // R = L̃ F
+        gemm_padded::<FMA>(&self.ft, tp, cp, p, n, n, true); // Fᵀ R, lower triangle
+        Self::unpad_symmetric::<FMA>(cp, n, out, None);
     }
 }
 
@@ -984,6 +1160,8 @@ struct Work {
     d: Vec<f64>,
     big: Vec<f64>,
     four: [Vec<f64>; 4],
+    /// The dense products' padded matrices (`DenseF`).
+    pad: [Vec<f64>; 3],
 }
 
 impl Work {
@@ -994,6 +1172,7 @@ impl Work {
             d: vec![0.0; n],
             big: vec![0.0; n * n],
             four: [vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]],
+            pad: std::array::from_fn(|_| vec![0.0; padded(n) * padded(n)]),
         }
     }
 }
@@ -1014,6 +1193,8 @@ struct Kernel<'a> {
     /// The face nodes' rows transposed (r x m, m padded to a multiple of 4): node values as a
     /// sum of r scaled rows.
     cn_t: Vec<f64>,
+    /// Each transition's dense F (None: diagonal, stepped by its structure).
+    dense: Vec<Option<DenseF>>,
 }
 
 impl<'a> Kernel<'a> {
@@ -1025,14 +1206,20 @@ impl<'a> Kernel<'a> {
         } else {
             h[..r].copy_from_slice(&p.c_probe);
         }
+        let d = Dims {
+            r,
+            n,
+            lag: p.lag,
+            brake: p.brake,
+        };
+        let dense = p
+            .transitions
+            .iter()
+            .map(|tr| (!tr.diagonal || d.brake).then(|| DenseF::new(tr, &d)))
+            .collect();
         Kernel {
             p,
-            d: Dims {
-                r,
-                n,
-                lag: p.lag,
-                brake: p.brake,
-            },
+            d,
             m: p.n_nodes(),
             var_v: noise.measurement_k * noise.measurement_k,
             sw2: [
@@ -1052,6 +1239,7 @@ impl<'a> Kernel<'a> {
             h,
             cm: p.c_mean.clone(),
             cn_t: transpose(&p.c_nodes, p.n_nodes(), r, p.n_nodes().next_multiple_of(4)),
+            dense,
         }
     }
 
@@ -1151,10 +1339,16 @@ impl<'a> Kernel<'a> {
         let (r, n) = (self.d.r, self.d.n);
         let fused = t > 0 && !self.d.lag && !self.d.brake;
         if t > 0 {
-            let tr = &self.p.transitions[self.p.index[t - 1] as usize];
+            let idx = self.p.index[t - 1] as usize;
+            let tr = &self.p.transitions[idx];
             // without a lag, Σh (h on the modes) is summed while the rows are made
             let acc = fused.then(|| (&self.h[..r], &mut *ph));
-            tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc);
+            match &self.dense[idx] {
+                Some(df) => df.predict_cov::<FMA>(&self.d, prev, pred, &mut w.pad, acc),
+                None => {
+                    tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc)
+                }
+            }
             let sw2 = match (manoeuvre, tr.applied) {
                 (true, _) => self.sw2[1],
                 (false, true) => self.sw2[2],
@@ -1925,15 +2119,10 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
             } else {
                 None
             };
-            tr.back_cov::<FMA>(
-                &k.d,
-                &big,
-                &k.h,
-                corr,
-                &mut big_new,
-                &mut work.four,
-                &mut work.big,
-            );
+            match &k.dense[p.index[t - 1] as usize] {
+                Some(df) => df.back_cov::<FMA>(&k.d, &big, &k.h, corr, &mut big_new, &mut work.pad),
+                None => tr.back_cov::<FMA>(&k.d, &big, &k.h, corr, &mut big_new, &mut work.four),
+            }
             if mode != FULL && converged(&big_new, &big, n, k.tol_back, &mut work.d) {
                 let c = &caches[mode as usize];
                 let mean_var = dot::<FMA>(&k.cm, &c.sig_mean[..r])
@@ -2834,5 +3023,153 @@ mod tests {
             switching: None,
         };
         assert!(run(&p, bad, &settings(0.0, 8)).is_err());
+    }
+
+    /// `gemm_padded`'s element (i, j): the chain of multiply-adds over q in order, fused or
+    /// not.
+    fn chain(l: &[f64], r: &[f64], p: usize, k: usize, i: usize, j: usize, fused: bool) -> f64 {
+        (0..k).fold(0.0, |acc, q| {
+            let (a, b) = (l[i * p + q], r[q * p + j]);
+            if fused {
+                a.mul_add(b, acc)
+            } else {
+                a * b + acc
+            }
+        })
+    }
+
+    #[test]
+    fn the_blocked_products_are_the_chains_of_multiply_adds() {
+        let mut rng = Rng(11);
+        for n in [3, 8, 13, 37, 38, 39, 41] {
+            let p = padded(n);
+            let mut fill = || {
+                let mut m = vec![0.0; p * p];
+                for i in 0..n {
+                    for j in 0..n {
+                        m[i * p + j] = rng.normal();
+                    }
+                }
+                m
+            };
+            let (l, r) = (fill(), fill());
+            for lower in [false, true] {
+                let check = |c: &[f64], fused: bool, what: &str| {
+                    for i in 0..n {
+                        for j in 0..if lower { i + 1 } else { n } {
+                            let want = chain(&l, &r, p, n, i, j, fused);
+                            assert_eq!(
+                                c[i * p + j].to_bits(),
+                                want.to_bits(),
+                                "{what} n {n} ({i}, {j})"
+                            );
+                        }
+                    }
+                };
+                let mut c = vec![f64::NAN; p * p];
+                gemm_padded::<false>(&l, &r, &mut c, p, n, n, lower);
+                check(&c, false, "scalar");
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if has_avx2_fma() {
+                        let mut c = vec![f64::NAN; p * p];
+                        // SAFETY: the CPU has the features; p x p slices, k = rows = n <= p.
+                        unsafe { gemm_padded_avx2(&l, &r, &mut c, p, n, n, lower) };
+                        check(&c, true, "avx2");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_dense_covariance_steps_are_the_plain_products() {
+        // a dense transition of the refinement-1.0 model's size (37 modes), with and without
+        // the lag: F X Fᵀ and Fᵀ L̃ F against plain products, and exactly symmetric
+        let mut rng = Rng(5);
+        let r = 37;
+        for lag in [false, true] {
+            let n = r + 1 + usize::from(lag);
+            let mut normal = |len: usize, scale: f64| -> Vec<f64> {
+                (0..len).map(|_| scale * rng.normal()).collect()
+            };
+            let tr = Transition {
+                diagonal: false,
+                a: normal(r * r, 0.2),
+                e: Vec::new(),
+                gamma: normal(r, 0.01),
+                phi: 0.999,
+                q_unit: 1.0,
+                q_gap: 0.0,
+                q_modes: Vec::new(),
+                lag_a: if lag { 0.97 } else { 0.0 },
+                lag_b1: 0.0,
+                lag_row: if lag { normal(r, 0.1) } else { vec![0.0; r] },
+                lag_power: if lag { 0.001 } else { 0.0 },
+                applied: false,
+                brake_phi: 1.0,
+                brake_q: 0.0,
+            };
+            let d = Dims {
+                r,
+                n,
+                lag,
+                brake: false,
+            };
+            let mut f = vec![0.0; n * n];
+            for i in 0..r {
+                f[i * n..i * n + r].copy_from_slice(&tr.a[i * r..(i + 1) * r]);
+                f[i * n + r] = tr.gamma[i];
+            }
+            f[r * n + r] = tr.phi;
+            if lag {
+                f[(r + 1) * n..(r + 1) * n + r].copy_from_slice(&tr.lag_row);
+                f[(r + 1) * n + r] = tr.lag_power;
+                f[(r + 1) * n + r + 1] = tr.lag_a;
+            }
+            let ft = transpose(&f, n);
+            let b = normal(n * n, 1.0);
+            let x = matmul(&b, &transpose(&b, n), n); // symmetric, positive definite
+            let (h, u) = (normal(n, 1.0), normal(n, 1.0));
+            let c = 0.7;
+            let dense = DenseF::new(&tr, &d);
+            let mut pad = Work::new(n).pad;
+            let close = |got: &[f64], want: &[f64], what: &str| {
+                let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                for i in 0..n {
+                    for j in 0..n {
+                        let (g, w) = (got[i * n + j], want[i * n + j]);
+                        assert!(
+                            (g - w).abs() <= 1e-13 * scale,
+                            "{what} lag {lag} ({i}, {j}): {g} {w}"
+                        );
+                        assert_eq!(g.to_bits(), got[j * n + i].to_bits(), "{what} symmetric");
+                    }
+                }
+            };
+            let mut out = vec![0.0; n * n];
+            let mut ph = vec![0.0; n];
+            dense.predict_cov::<false>(&d, &x, &mut out, &mut pad, Some((&h[..r], &mut ph)));
+            close(&out, &matmul(&matmul(&f, &x, n), &ft, n), "F X Fᵀ");
+            for j in 0..n {
+                let want: f64 = (0..r).map(|i| h[i] * out[i * n + j]).sum();
+                assert!(
+                    (ph[j] - want).abs() <= 1e-12 * want.abs().max(1.0),
+                    "Σh lag {lag}"
+                );
+            }
+            for corr in [None, Some((&u[..], c))] {
+                let mut lt = x.clone();
+                if let Some((u, c)) = corr {
+                    for i in 0..n {
+                        for j in 0..n {
+                            lt[i * n + j] += -h[i] * u[j] - u[i] * h[j] + c * h[i] * h[j];
+                        }
+                    }
+                }
+                dense.back_cov::<false>(&d, &x, &h, corr, &mut out, &mut pad);
+                close(&out, &matmul(&matmul(&ft, &lt, n), &f, n), "Fᵀ L̃ F");
+            }
+        }
     }
 }
