@@ -722,9 +722,23 @@ impl Transition {
         mut ph: Option<(&[f64], &mut [f64])>,
     ) {
         let (r, n) = (d.r, d.n);
-        debug_assert!(self.diagonal && !d.brake);
+        debug_assert!(self.diagonal);
         if let Some((_, acc)) = ph.as_mut() {
             acc.fill(0.0);
+        }
+        if d.brake {
+            // generic, O(n²) (F is diagonal plus borders): T = X Fᵀ (row i: F X_i, X
+            // symmetric), then row i of F T (symmetric) is F applied to column i of T
+            for (xr, tr) in x.chunks_exact(n).zip(big.chunks_exact_mut(n)) {
+                self.apply::<FMA>(d, xr, tr);
+            }
+            for i in 0..n {
+                for (j, aj) in a.iter_mut().enumerate() {
+                    *aj = big[j * n + i];
+                }
+                self.apply::<FMA>(d, a, &mut out[i * n..(i + 1) * n]);
+            }
+            return; // (Σh is not summed here: the kernel does not ask for it with P_b)
         }
         // T = X Fᵀ: row P first (every mode row of F X Fᵀ needs it)
         let tp = &mut *a;
@@ -819,6 +833,7 @@ impl Transition {
     /// `DenseF::back_cov`). Row k of `R = L̃ F` is `Fᵀ L_k - h_k Fᵀu + (c h_k - u_k) Fᵀh`
     /// (Fᵀ is linear), then `out = Fᵀ R`. `scratch`: four n vectors.
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     fn back_cov<const FMA: bool>(
         &self,
         d: &Dims,
@@ -827,15 +842,30 @@ impl Transition {
         corr: Option<(&[f64], f64)>,
         out: &mut [f64],
         scratch: &mut [Vec<f64>; 4],
+        big: &mut [f64],
     ) {
         let (r, n) = (d.r, d.n);
-        debug_assert!(self.diagonal && !d.brake);
+        debug_assert!(self.diagonal);
         let [ftu, fth, rs, acc] = scratch;
         if let Some((u, _)) = corr {
             self.apply_t::<FMA>(d, u, ftu);
             self.apply_t::<FMA>(d, h, fth);
         }
         let corr = corr.map(|(u, c)| (u, c, &ftu[..], &fth[..]));
+        if d.brake {
+            // generic, O(n²): R = L̃ F row by row, then row i of Fᵀ R = Rᵀ F (symmetric) is
+            // Fᵀ applied to column i of R
+            for k in 0..n {
+                self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
+            }
+            for i in 0..n {
+                for (j, aj) in acc.iter_mut().enumerate() {
+                    *aj = big[j * n + i];
+                }
+                self.apply_t::<FMA>(d, acc, &mut out[i * n..(i + 1) * n]);
+            }
+            return;
+        }
         // Fᵀ has e_i (and ℓ_i) in the mode rows, γ, φ, ℓ_P in the power's
         self.back_row::<FMA>(d, l, h, corr, r, acc); // R_P, scaled by φ below
         if d.lag {
@@ -1215,7 +1245,7 @@ impl<'a> Kernel<'a> {
         let dense = p
             .transitions
             .iter()
-            .map(|tr| (!tr.diagonal || d.brake).then(|| DenseF::new(tr, &d)))
+            .map(|tr| (!tr.diagonal).then(|| DenseF::new(tr, &d)))
             .collect();
         Kernel {
             p,
@@ -2121,7 +2151,15 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
             };
             match &k.dense[p.index[t - 1] as usize] {
                 Some(df) => df.back_cov::<FMA>(&k.d, &big, &k.h, corr, &mut big_new, &mut work.pad),
-                None => tr.back_cov::<FMA>(&k.d, &big, &k.h, corr, &mut big_new, &mut work.four),
+                None => tr.back_cov::<FMA>(
+                    &k.d,
+                    &big,
+                    &k.h,
+                    corr,
+                    &mut big_new,
+                    &mut work.four,
+                    &mut work.big,
+                ),
             }
             if mode != FULL && converged(&big_new, &big, n, k.tol_back, &mut work.d) {
                 let c = &caches[mode as usize];
