@@ -7,6 +7,7 @@ import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 TEST_REFINEMENT = float(os.environ.get("FLEETBRAKE_TEST_REFINEMENT", "0.6"))
@@ -79,6 +80,35 @@ def full_model_for() -> Callable[..., object]:
                 refinement=FE_REFINEMENT,
             )
         return models[key]
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def computed_once(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Callable[[str, Callable[[], dict[str, np.ndarray]]], dict[str, np.ndarray]]:
+    """``computed_once(name, make)``: the arrays ``make()`` returns, computed once per test
+    session: by the first xdist worker to ask for ``name`` (a file lock per name, so two names
+    are computed in parallel) and read by the others from the session's temporary directory
+    (nothing is kept outside it, nothing is read from another session)."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "computed-once"
+    root.mkdir(parents=True, exist_ok=True)
+
+    def get(name: str, make: Callable[[], dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        path = root / f"{name}.npz"
+        with open(root / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                if not path.exists():
+                    part = root / f"{name}.part.npz"
+                    np.savez(part, **make())
+                    part.replace(path)
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+        with np.load(path) as arrays:
+            return {key: arrays[key] for key in arrays.files}
 
     return get
 
