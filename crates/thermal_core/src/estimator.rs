@@ -18,8 +18,8 @@
 //! entry: it heats the modes as `P` does (`ξ' = A ξ + γ (P + P_b) + w`, the lag's `ℓ_P` on
 //! both), `P_b' = φ_b P_b + ω_b` (`var ω_b = q_b`, `Transition::brake_phi`, `brake_q`: a
 //! random walk while the declared inputs brake, a decay without noise otherwise), and the
-//! reported power is `P + P_b`. Its covariance steps take the generic O(n²) path (`F X Fᵀ`
-//! and `Fᵀ L F` from `F x` and `Fᵀ x` row by row), not the fused passes.
+//! reported power is `P + P_b`. Its covariance steps take the fused passes of the diagonal
+//! transition with `P_b` as a second border column (`γ` on the modes, `ℓ_P` on the lag).
 //!
 //! with `w` the modal response to the declared inputs of the step (given per step) and
 //! `π_k = (g P_declared,k)²` (W²/s, given per step; `Problem::power_noise`) the share of the
@@ -726,29 +726,27 @@ impl Transition {
         if let Some((_, acc)) = ph.as_mut() {
             acc.fill(0.0);
         }
-        if d.brake {
-            // generic, O(n²) (F is diagonal plus borders): T = X Fᵀ (row i: F X_i, X
-            // symmetric), then row i of F T (symmetric) is F applied to column i of T
-            for (xr, tr) in x.chunks_exact(n).zip(big.chunks_exact_mut(n)) {
-                self.apply::<FMA>(d, xr, tr);
-            }
-            for i in 0..n {
-                for (j, aj) in a.iter_mut().enumerate() {
-                    *aj = big[j * n + i];
-                }
-                self.apply::<FMA>(d, a, &mut out[i * n..(i + 1) * n]);
-            }
-            return; // (Σh is not summed here: the kernel does not ask for it with P_b)
-        }
-        // T = X Fᵀ: row P first (every mode row of F X Fᵀ needs it)
+        let ib = n - 1;
+        // T = X Fᵀ: row P first (every mode row of F X Fᵀ needs it), with P_b its row too
+        // and the power heating the modes, T_P + T_Pb
         let tp = &mut *a;
         self.apply::<FMA>(d, &x[r * n..(r + 1) * n], tp);
         let z = &mut *b;
         z.fill(0.0);
-        let t = &mut big[..n];
+        // (`big` holds three rows with P_b, n >= 3; without it only `t` is used)
+        let (t, rest) = big.split_at_mut(n);
+        let (tb, tsum) = rest.split_at_mut(rest.len().min(n));
+        if d.brake {
+            self.apply::<FMA>(d, &x[ib * n..], tb);
+            for ((s, &pj), &bj) in tsum[..n].iter_mut().zip(tp.iter()).zip(tb.iter()) {
+                *s = pj + bj;
+            }
+        }
+        let tpow: &[f64] = if d.brake { &tsum[..n] } else { tp };
         for i in 0..r {
             let xi = &x[i * n..(i + 1) * n];
-            let xp = xi[r];
+            // the power heating the modes: X_iP (+ X_iPb)
+            let xp = if d.brake { xi[r] + xi[ib] } else { xi[r] };
             // row i of T: e ⊙ X_i + γ X_iP on the modes, φ X_iP, and the lag's entry
             for ((tj, &xj), (&ej, &gj)) in t[..r]
                 .iter_mut()
@@ -757,7 +755,10 @@ impl Transition {
             {
                 *tj = madd::<FMA>(ej, xj, gj * xp);
             }
-            t[r] = self.phi * xp;
+            t[r] = self.phi * xi[r];
+            if d.brake {
+                t[ib] = self.brake_phi * xi[ib];
+            }
             if d.lag {
                 let s = dot::<FMA>(&self.lag_row, &xi[..r]);
                 t[r + 1] = madd::<FMA>(self.lag_a, xi[r + 1], madd::<FMA>(self.lag_power, xp, s));
@@ -772,7 +773,7 @@ impl Transition {
                     for (((oj, &tj), &pj), aj) in o
                         .iter_mut()
                         .zip(t.iter())
-                        .zip(tp.iter())
+                        .zip(tpow.iter())
                         .zip(acc.iter_mut())
                     {
                         *oj = madd::<FMA>(ei, tj, gi * pj);
@@ -780,7 +781,7 @@ impl Transition {
                     }
                 }
                 None => {
-                    for ((oj, &tj), &pj) in o.iter_mut().zip(t.iter()).zip(tp.iter()) {
+                    for ((oj, &tj), &pj) in o.iter_mut().zip(t.iter()).zip(tpow.iter()) {
                         *oj = madd::<FMA>(ei, tj, gi * pj);
                     }
                 }
@@ -790,14 +791,20 @@ impl Transition {
             *oj = self.phi * pj;
         }
         if d.lag {
-            // row s: Σ_k ℓ_k T_k + ℓ_P T_P + a T_s, with T_s = F X_s
+            // row s: Σ_k ℓ_k T_k + ℓ_P (T_P + T_Pb) + a T_s, with T_s = F X_s
             self.apply::<FMA>(d, &x[(r + 1) * n..(r + 2) * n], t);
             for ((oj, &tj), (&pj, &zj)) in out[(r + 1) * n..(r + 2) * n]
                 .iter_mut()
                 .zip(t.iter())
-                .zip(tp.iter().zip(z.iter()))
+                .zip(tpow.iter().zip(z.iter()))
             {
                 *oj = madd::<FMA>(self.lag_a, tj, madd::<FMA>(self.lag_power, pj, zj));
+            }
+        }
+        if d.brake {
+            // row P_b: φ_b T_Pb
+            for (oj, &bj) in out[ib * n..].iter_mut().zip(tb.iter()) {
+                *oj = self.brake_phi * bj;
             }
         }
     }
@@ -852,21 +859,10 @@ impl Transition {
             self.apply_t::<FMA>(d, h, fth);
         }
         let corr = corr.map(|(u, c)| (u, c, &ftu[..], &fth[..]));
-        if d.brake {
-            // generic, O(n²): R = L̃ F row by row, then row i of Fᵀ R = Rᵀ F (symmetric) is
-            // Fᵀ applied to column i of R
-            for k in 0..n {
-                self.back_row::<FMA>(d, l, h, corr, k, &mut big[k * n..(k + 1) * n]);
-            }
-            for i in 0..n {
-                for (j, aj) in acc.iter_mut().enumerate() {
-                    *aj = big[j * n + i];
-                }
-                self.apply_t::<FMA>(d, acc, &mut out[i * n..(i + 1) * n]);
-            }
-            return;
-        }
-        // Fᵀ has e_i (and ℓ_i) in the mode rows, γ, φ, ℓ_P in the power's
+        // Fᵀ has e_i (and ℓ_i) in the mode rows, γ, φ, ℓ_P in the power's (and γ, φ_b, ℓ_P
+        // in P_b's: its row gathers the same γ_i R_i in an accumulator of its own)
+        let ib = n - 1;
+        let accb = &mut big[..n];
         self.back_row::<FMA>(d, l, h, corr, r, acc); // R_P, scaled by φ below
         if d.lag {
             self.back_row::<FMA>(d, l, h, corr, r + 1, rs);
@@ -874,6 +870,13 @@ impl Transition {
         acc.iter_mut().for_each(|v| *v *= self.phi);
         if d.lag {
             axpy::<FMA>(self.lag_power, rs, acc);
+        }
+        if d.brake {
+            self.back_row::<FMA>(d, l, h, corr, ib, accb); // R_Pb, scaled by φ_b
+            accb.iter_mut().for_each(|v| *v *= self.brake_phi);
+            if d.lag {
+                axpy::<FMA>(self.lag_power, rs, accb);
+            }
         }
         for i in 0..r {
             let o = &mut out[i * n..(i + 1) * n];
@@ -903,9 +906,19 @@ impl Transition {
                 let v = self.lag_a * ls;
                 o[r + 1] = madd::<FMA>(a1, ftu[r + 1], madd::<FMA>(a2, fth[r + 1], v));
             }
-            for (aj, oj) in acc.iter_mut().zip(o.iter_mut()) {
-                *aj = madd::<FMA>(gi, *oj, *aj);
-                *oj *= ei;
+            if d.brake {
+                let v = madd::<FMA>(self.lag_power, ls, madd::<FMA>(self.brake_phi, li[ib], gl));
+                o[ib] = madd::<FMA>(a1, ftu[ib], madd::<FMA>(a2, fth[ib], v));
+                for ((aj, bj), oj) in acc.iter_mut().zip(accb.iter_mut()).zip(o.iter_mut()) {
+                    *aj = madd::<FMA>(gi, *oj, *aj);
+                    *bj = madd::<FMA>(gi, *oj, *bj);
+                    *oj *= ei;
+                }
+            } else {
+                for (aj, oj) in acc.iter_mut().zip(o.iter_mut()) {
+                    *aj = madd::<FMA>(gi, *oj, *aj);
+                    *oj *= ei;
+                }
             }
             if d.lag {
                 axpy::<FMA>(self.lag_row[i], rs, o);
@@ -916,6 +929,9 @@ impl Transition {
             for (oj, &sj) in out[(r + 1) * n..(r + 2) * n].iter_mut().zip(rs.iter()) {
                 *oj = self.lag_a * sj;
             }
+        }
+        if d.brake {
+            out[ib * n..].copy_from_slice(accb);
         }
     }
 }
@@ -1160,10 +1176,16 @@ impl Memo {
             .map(|&(_, u)| u as usize)
     }
 
+    /// Whether a child of `last` would be recorded: `last` is recorded and the memory is not
+    /// spent.
+    fn can_record(&self, last: Last) -> bool {
+        self.nodes.len() < self.cap && !matches!(last, Last::Buf)
+    }
+
     /// Record `node` as the child of `last` for `key`; None when `last` is not recorded or
     /// the memory is spent.
     fn record(&mut self, last: Last, key: Key, node: MemoNode) -> Option<usize> {
-        if self.nodes.len() >= self.cap || matches!(last, Last::Buf) {
+        if !self.can_record(last) {
             return None;
         }
         let id = self.nodes.len();
@@ -1367,7 +1389,7 @@ impl<'a> Kernel<'a> {
         w: &mut Work,
     ) -> f64 {
         let (r, n) = (self.d.r, self.d.n);
-        let fused = t > 0 && !self.d.lag && !self.d.brake;
+        let fused = t > 0 && !self.d.lag;
         if t > 0 {
             let idx = self.p.index[t - 1] as usize;
             let tr = &self.p.transitions[idx];
@@ -1823,24 +1845,30 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
                             caches.len() - 1
                         }));
                     }
-                    let mut node_var = vec![f64::NAN; k.m];
-                    if settings.outputs {
-                        node_var[j] = vars.1;
-                    }
-                    let node = MemoNode {
-                        cov: cov.clone(),
-                        gain: gain.clone(),
-                        s_var,
-                        mean_var: vars.0,
-                        power_var: vars.2,
-                        hold_var: vars.3,
-                        node_var,
-                        children: Vec::new(),
-                        steady,
-                    };
-                    last = match memo.record(last, key_now, node) {
-                        Some(u) => Last::Node(u),
-                        None => Last::Buf,
+                    // a node only where it can be recorded (the copies cost as much as
+                    // a fused step's pass)
+                    last = if memo.can_record(last) {
+                        let mut node_var = vec![f64::NAN; k.m];
+                        if settings.outputs {
+                            node_var[j] = vars.1;
+                        }
+                        let node = MemoNode {
+                            cov: cov.clone(),
+                            gain: gain.clone(),
+                            s_var,
+                            mean_var: vars.0,
+                            power_var: vars.2,
+                            hold_var: vars.3,
+                            node_var,
+                            children: Vec::new(),
+                            steady,
+                        };
+                        match memo.record(last, key_now, node) {
+                            Some(u) => Last::Node(u),
+                            None => Last::Buf,
+                        }
+                    } else {
+                        Last::Buf
                     };
                 } else {
                     last = Last::Buf;
@@ -3206,6 +3234,95 @@ mod tests {
                     }
                 }
                 dense.back_cov::<false>(&d, &x, &h, corr, &mut out, &mut pad);
+                close(&out, &matmul(&matmul(&ft, &lt, n), &f, n), "Fᵀ L̃ F");
+            }
+        }
+    }
+
+    /// The fused passes of a diagonal transition with the braking's power `P_b` (a second
+    /// border column) are the plain products `F X Fᵀ`, `Fᵀ L̃ F` and `Σh`.
+    #[test]
+    fn the_fused_steps_with_the_braking_power_are_the_plain_products() {
+        let mut rng = Rng(23);
+        let mut normal =
+            |len: usize, sd: f64| -> Vec<f64> { (0..len).map(|_| sd * rng.normal()).collect() };
+        let r = 5;
+        for lag in [false, true] {
+            let n = r + 2 + usize::from(lag);
+            let tr = Transition {
+                diagonal: true,
+                a: Vec::new(),
+                e: normal(r, 0.5),
+                gamma: normal(r, 0.01),
+                phi: 0.999,
+                q_unit: 1.0,
+                q_gap: 0.0,
+                q_modes: Vec::new(),
+                lag_a: if lag { 0.97 } else { 0.0 },
+                lag_b1: 0.0,
+                lag_row: if lag { normal(r, 0.1) } else { vec![0.0; r] },
+                lag_power: if lag { 0.001 } else { 0.0 },
+                applied: false,
+                brake_phi: 0.9,
+                brake_q: 0.0,
+            };
+            let d = Dims {
+                r,
+                n,
+                lag,
+                brake: true,
+            };
+            let mut f = vec![0.0; n * n];
+            for i in 0..n {
+                let mut unit = vec![0.0; n];
+                unit[i] = 1.0;
+                let mut col = vec![0.0; n];
+                tr.apply::<false>(&d, &unit, &mut col);
+                for j in 0..n {
+                    f[j * n + i] = col[j];
+                }
+            }
+            assert_eq!(f[n - 1], tr.gamma[0], "P_b heats the modes");
+            let ft = transpose(&f, n);
+            let b = normal(n * n, 1.0);
+            let x = matmul(&b, &transpose(&b, n), n);
+            let mut h = normal(n, 1.0);
+            h[r..].fill(0.0); // the reading on the modes (the fused Σh is summed without a lag)
+            let u = normal(n, 1.0);
+            let close = |got: &[f64], want: &[f64], what: &str| {
+                let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                for (k, (g, w)) in got.iter().zip(want).enumerate() {
+                    assert!(
+                        (g - w).abs() <= 1e-13 * scale,
+                        "{what} lag {lag} ({}, {}): {g} {w}",
+                        k / n,
+                        k % n
+                    );
+                }
+            };
+            let (mut a, mut bb, mut big) = (vec![0.0; n], vec![0.0; n], vec![0.0; n * n]);
+            let mut out = vec![0.0; n * n];
+            let mut ph = vec![0.0; n];
+            let acc = (!lag).then(|| (&h[..r], &mut ph[..]));
+            tr.predict_cov::<false>(&d, &x, &mut out, &mut a, &mut bb, &mut big, acc);
+            close(&out, &matmul(&matmul(&f, &x, n), &ft, n), "F X Fᵀ");
+            if !lag {
+                for j in 0..n {
+                    let want: f64 = (0..r).map(|i| h[i] * out[i * n + j]).sum();
+                    assert!((ph[j] - want).abs() <= 1e-12 * want.abs().max(1.0), "Σh");
+                }
+            }
+            let mut scratch = Work::new(n).four;
+            for corr in [None, Some((&u[..], 0.7))] {
+                let mut lt = x.clone();
+                if let Some((u, c)) = corr {
+                    for i in 0..n {
+                        for j in 0..n {
+                            lt[i * n + j] += -h[i] * u[j] - u[i] * h[j] + c * h[i] * h[j];
+                        }
+                    }
+                }
+                tr.back_cov::<false>(&d, &x, &h, corr, &mut out, &mut scratch, &mut big);
                 close(&out, &matmul(&matmul(&ft, &lt, n), &f, n), "Fᵀ L̃ F");
             }
         }
