@@ -262,3 +262,67 @@ def test_the_speed_noise_is_read_from_the_logged_speed_and_its_bias_taken_out(
                 atol=1e-12,
             )
         assert data.spans[0].speed_kmh is not debiased[wagon_id].spans[0].speed_kmh  # a copy
+
+
+WALL_CLOCK_COLUMNS = {"created_utc", "detected_utc", "updated_utc", "simulated_utc", "applied_utc"}
+"""Columns that say when a row was written, not what it holds."""
+
+
+def stored_tables(db: Path) -> dict[str, pl.DataFrame]:
+    """Every table of a warehouse, less the wall-clock columns, in a fixed row order."""
+    import duckdb
+
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        out = {}
+        tables = con.sql(
+            "SELECT table_name FROM information_schema.tables WHERE table_type = 'BASE TABLE'"
+        ).fetchall()
+        for (table,) in tables:
+            frame = con.sql(f"SELECT * FROM {table}").pl()
+            frame = frame.drop([c for c in frame.columns if c in WALL_CLOCK_COLUMNS])
+            out[table] = frame.sort(frame.columns, nulls_last=True)
+        return out
+    finally:
+        con.close()
+
+
+@pytest.mark.usefixtures("rom_env")
+def test_the_interval_terms_beside_the_reflag_refit_change_nothing(
+    fleet: Fleet, tmp_path: Path
+) -> None:
+    """On the local engine, the interval terms computed while the revision is re-flagged
+    and refitted (``overlap``, the default) give the report and every stored value of the
+    close loop that computes them after the refit (``overlap=False``), every number to 1e-12
+    (only the seconds spent differ); the terms computed ahead were the ones used."""
+    import dataclasses
+
+    config = CloseLoopConfig(
+        HOLDOUT,
+        simulation=fleet.simulation,
+        candidates=("convection_speed", "sensor_lag", "ambient_offset"),
+    )
+    reports, tables = {}, {}
+    for overlap in (False, True):
+        db = tmp_path / f"overlap-{overlap}.duckdb"
+        shutil.copy(fleet.db, db)
+        reports[overlap] = run_close_loop(
+            db,
+            HOLDOUT,
+            tmp_path / f"overlap-{overlap}.json",
+            config=dataclasses.replace(config, overlap=overlap),
+            engine="local",
+            workers=2,
+        )
+        tables[overlap] = stored_tables(db)
+    after, before = reports[True], reports[False]
+    assert before["new_revision"] is not None, before.get("evidence")
+    methods = before["interval_methods"]
+    assert "input" in methods and "numerical" in methods, methods.keys()
+    assert "terms_wait_s" in after["cost"]["seconds"]
+    assert "terms_wait_s" not in before["cost"]["seconds"]
+    assert report_differences(before, after) == []
+    assert tables[True].keys() == tables[False].keys()
+    assert tables[True]["estimator_noise"].height == 1
+    for name, frame in tables[False].items():
+        assert frame.equals(tables[True][name]), name

@@ -221,6 +221,106 @@ def test_the_revisions_sigma_w_is_fitted_on_the_engine_as_in_the_parent(
     assert len(json.loads(found["inline"].fit_wagons)) >= 2  # wagons fitted apart
 
 
+def _full_search(
+    problems: Any, config: Any, measurement_k: float, lo: float, hi: float, tolerance: float
+) -> tuple[float, float, int]:
+    """The reference: the bounded scalar search over ``lo`` .. ``hi`` and then the floor
+    (``_fit_power_noise`` until session 12): log σ_w, the negative log likelihood, passes."""
+    import numpy as np
+    from scipy.optimize import minimize_scalar
+
+    from fleetbrake.model import estimator as m
+
+    passes = 0
+
+    def f(z: float) -> float:
+        nonlocal passes
+        passes += 1
+        noise = m.EstimatorNoise(measurement_k, float(np.exp(np.clip(z, lo, hi))), None)
+        raws = m._run(problems, noise, smooth=False, config=config, engine=None, outputs=False)
+        return -float(sum(raw.log_likelihood for raw in raws))
+
+    result = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": tolerance})
+    floor = f(lo)
+    if floor <= float(result.fun):
+        return lo, floor, passes
+    return float(np.clip(result.x, lo, hi)), float(result.fun), passes
+
+
+@pytest.mark.parametrize("misfit", [False, True])
+def test_sigma_w_at_its_floor_takes_two_passes_and_the_full_searchs_answer(
+    fleet: Fleet, rom_cache_dir: Path, misfit: bool
+) -> None:
+    """``fit_wagon_noise``'s σ_w: when the floor is at least as likely as a step of the
+    tolerance above it, two filter passes (the bounded search took 18, five fit wagons 90 a
+    revision) and the floor, which the full search finds too (to its tolerance, ``at_floor``
+    the same); a revision that misfits (its friction heat halved) needs more than the floor, and
+    gets the full search's answer bit for bit."""
+    import math
+
+    import numpy as np
+
+    from fleetbrake.model import estimator as m
+    from fleetbrake.model.effects import EffectSet, HeatPartitionEffusivity
+    from fleetbrake.simulation.predictions import Revision, revision
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        with open_warehouse(fleet.db, read_only=True) as wh:
+            base = revision(wh, "declared")
+            events = wh.con.sql("SELECT wagon_id, start_utc FROM events").pl()
+            wagon_id = min(w for w in events["wagon_id"] if w in fleet.registry.wagons)
+            samples = e.chunk_table(wh, "q_simulation_chunk_samples", [wagon_id])
+        effects = EffectSet((HeatPartitionEffusivity(contact_factor=0.5),) if misfit else ())
+        rev = Revision("r", effects, base.solver, base.refinement)
+        days = tuple(sorted({s.date() for w, s in events.iter_rows() if w == wagon_id}))
+        config = dataclasses.replace(fleet.config, noise_fit_s=3_600.0)
+        task = e.NoiseFitTask(
+            fleet.registry.wagons[wagon_id],
+            e.sample_parts(samples, [wagon_id])[wagon_id],
+            days,
+            rev,
+            config,
+        )
+        seen: dict[str, Any] = {}
+        passes = [0]
+        run, fit_noise = m._run, m.fit_noise
+
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            passes[0] += 1
+            return run(*args, **kwargs)
+
+        def kept(problems: Any, **kwargs: Any) -> Any:
+            seen.update(problems=problems, **kwargs)
+            return fit_noise(problems, **kwargs)
+
+        mp.setattr(m, "_run", counted)
+        mp.setattr(e, "fit_noise", kept)
+        found = e.fit_wagon_noise(task)
+        mp.undo()
+    assert found is not None
+    fit = found.fit
+    lo = math.log(config.min_power_noise_w_per_sqrt_s)
+    hi = math.log(1.0e4)
+    z, nll, full_passes = _full_search(
+        seen["problems"], seen["config"], seen["measurement_k"], lo, hi, 0.005
+    )
+    assert fit.evaluations == passes[0]
+    z_found = math.log(fit.noise.power_w_per_sqrt_s)
+    if not misfit:
+        assert fit.power_noise_at_floor and z == lo, (z_found, z)
+        assert passes[0] == 2 and full_passes == 18
+        assert fit.noise.power_w_per_sqrt_s == math.exp(lo)
+        assert fit.log_likelihood == -nll
+    else:
+        assert not fit.power_noise_at_floor and z > lo + 0.01, (z_found, z)
+        assert passes[0] == full_passes + 1  # the step above the floor, then the search
+        assert z_found == z and fit.log_likelihood == -nll
+    assert abs(z_found - z) <= 0.005
+    assert fit.power_noise_at_floor == (z <= lo + 2 * 0.005)
+    assert np.isfinite(fit.log_likelihood)
+
+
 def test_a_state_dependent_revisions_filtered_passes_are_the_smoothed_ones_without_smoothing(
     fleet: Fleet, rom_cache_dir: Path
 ) -> None:

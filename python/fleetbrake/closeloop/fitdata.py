@@ -47,6 +47,7 @@ import dataclasses
 import itertools
 import math
 import pickle
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -86,10 +87,12 @@ __all__ = [
 ]
 
 _KERNEL_CALLS = [0]
+_KERNEL_CALLS_LOCK = threading.Lock()
 
 
 def _count(calls: int) -> None:
-    _KERNEL_CALLS[0] += calls
+    with _KERNEL_CALLS_LOCK:  # the close loop may evaluate on two threads at once
+        _KERNEL_CALLS[0] += calls
 
 
 def kernel_calls() -> int:

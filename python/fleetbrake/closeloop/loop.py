@@ -62,7 +62,8 @@ it, and report the error before and after (contract: ``shared/spec/interface.md`
    with its parent's solver: before and after compare one model form), every
    event is re-simulated with it, the flags are judged again with it (the baseline's flags
    take a fleet-wide misfit for weak brakes or failing sensors) and the effect is refitted on
-   the events usable then, and the JSON report (and a Markdown report with plots
+   the events usable then (the intervals' numerical and input terms computed meanwhile,
+   ``CloseLoopConfig.overlap``), and the JSON report (and a Markdown report with plots
    beside it) gives the RMSE before and after on the fit and holdout events, computed from
    ``v_predictions`` exactly as an analyst would.
 """
@@ -75,8 +76,12 @@ import json
 import logging
 import math
 import tempfile
+import threading
 import time
+import weakref
 from collections.abc import Callable, Collection, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as wait_for
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -245,6 +250,14 @@ class CloseLoopConfig:
     input_step_tolerance: float = 0.05
     """The input term's steps stop when a step is at most this share of the
     shift in every parameter (:func:`input_shift`)."""
+    overlap: bool = True
+    """With an engine of worker processes: the interval terms (numerical and input), which
+    depend only on the chosen fit and its fit events, have their data built while the
+    revision is made and re-flagged and are computed while the chosen effect is refitted
+    (the numerical term's coarse fits on the workers, the input term's evaluations and the
+    refit in this process), and computed again after it only when the refit moved the
+    answer (``refit_moved``): the same report and stored values as one after another
+    (False); figures in docs/benchmarks.md, session 12."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""
@@ -633,18 +646,34 @@ def _screen_events(fit: pl.DataFrame, count: int) -> pl.DataFrame:
     return ranked.head(count).drop("_rank").sort("wagon_id", "start_utc")
 
 
+@dataclass(frozen=True)
+class _Key:
+    """A task's place in its batch, named as the task is (an engine's error names it)."""
+
+    index: int
+    name: str
+
+    def __str__(self) -> str:
+        return self.name
+
+
 class _Workers:
     """Where a run's fits go: the engine (the inline one when none), and the data it is
     handed. Work that runs in this process (no engine, or a single task: an engine is not
     worth one) gets the data objects; the local engine's workers read each data set once
     from a file this run writes (:func:`fitdata.store`, only when tasks go to them), Ray gets
-    them with the task."""
+    them with the task. Safe to use from two threads at once (the interval terms beside the
+    re-flag refit: ``CloseLoopConfig.overlap``)."""
 
     def __init__(self, engine: Engine | None) -> None:
         self.engine = engine
         self.files = isinstance(engine, LocalEngine)
         self._dir: tempfile.TemporaryDirectory[str] | None = None
         self._refs: dict[int, FitData | str] = {}
+        self._lock = threading.Lock()
+        self._stored = 0
+        self.ahead: _TermsAhead | None = None
+        """The interval terms started ahead (``CloseLoopConfig.overlap``), until used."""
         self.remote = engine is not None and not isinstance(engine, InlineEngine)
         """Whether tasks run in other processes (their kernel calls counted from their
         results)."""
@@ -657,28 +686,44 @@ class _Workers:
         engine the file it is stored in (written once per data set)."""
         if not self.files or isinstance(data, str):
             return data
-        if id(data) not in self._refs:
-            if self._dir is None:
-                self._dir = tempfile.TemporaryDirectory(prefix="fleetbrake-closeloop-")
-            path = Path(self._dir.name) / f"fitdata-{len(self._refs)}.pickle"
-            self._refs[id(data)] = str(fitdata.store(data, path))
-        return self._refs[id(data)]
+        with self._lock:  # one file per data set (its id forgotten when it is freed)
+            if id(data) not in self._refs:
+                if self._dir is None:
+                    self._dir = tempfile.TemporaryDirectory(prefix="fleetbrake-closeloop-")
+                path = Path(self._dir.name) / f"fitdata-{self._stored}.pickle"
+                self._stored += 1
+                self._refs[id(data)] = str(fitdata.store(data, path))
+                weakref.finalize(data, self._refs.pop, id(data), None)
+            return self._refs[id(data)]
 
     def _inline(self, items: list[Any]) -> bool:
         return self.engine is None or len(items) <= 1
 
     def _map(self, fn: Any, items: list[Any]) -> list[Any]:
+        """``fn`` of each item, in the items' order; on an engine taken as they finish (a
+        long fit at the head of the queue does not hold back the next submissions)."""
         if self._inline(items):
             return [fn(item) for item in items]
-        return list(self.engine.map(fn, items))  # type: ignore[union-attr]
+        out: list[Any] = [None] * len(items)
+        keyed = [(_Key(i, str(item)), item) for i, item in enumerate(items)]
+        for key, result in self.engine.map_unordered(fn, keyed):  # type: ignore[union-attr]
+            out[key.index] = result
+        return out
+
+    def shipped(self, tasks: list[FitTask]) -> list[FitTask]:
+        """``tasks`` as the engine is handed them: with the local engine's workers, their
+        data written now (:meth:`ref`)."""
+        if self._inline(tasks):
+            return tasks
+        return [dataclasses.replace(t, data=self.ref(t.data)) for t in tasks]
 
     def fit(self, tasks: list[FitTask]) -> list[FitResult]:
-        if not self._inline(tasks):
-            tasks = [dataclasses.replace(t, data=self.ref(t.data)) for t in tasks]
+        tasks = self.shipped(tasks)
         results: list[FitResult] = self._map(fit_task, tasks)
-        if self.remote and len(tasks) > 1:
-            self.kernel_calls += sum(r.kernel_calls for r in results)
-        self.fits += len(results)
+        with self._lock:
+            if self.remote and len(tasks) > 1:
+                self.kernel_calls += sum(r.kernel_calls for r in results)
+            self.fits += len(results)
         return results
 
     def evaluate(self, data: FitData, effect_sets: Sequence[EffectSet]) -> list[np.ndarray]:
@@ -687,10 +732,14 @@ class _Workers:
             tasks = [dataclasses.replace(t, data=self.ref(data)) for t in tasks]
         out = self._map(eval_task, tasks)
         if self.remote and len(effect_sets) > 1:
-            self.kernel_calls += sum(calls for _, calls in out)
+            with self._lock:
+                self.kernel_calls += sum(calls for _, calls in out)
         return [residuals[0] for residuals, _ in out]
 
     def close(self) -> None:
+        if self.ahead is not None:  # an error before they were used: not waited for
+            self.ahead.drop(wait=False)
+            self.ahead = None
         if self._dir is not None:
             self._dir.cleanup()
             self._dir = None
@@ -1259,15 +1308,65 @@ def _close_loop(
     _record_revision(wh, name, base, best)
     new_rev = Revision(name, best.effects, base.solver, base.refinement)
     event_ids = all_events["event_id"].to_list()
+
+    def terms(
+        chosen: Candidate,
+        events: pl.DataFrame,
+        wagons_loaded: Mapping[str, WagonData],
+        started: _TermsAhead | None,
+    ) -> tuple[Numerical | None, InputTerm | None]:
+        """The interval terms of ``chosen`` fitted on ``events``: those ``started`` ahead
+        when they were started for the same (else they are waited for and dropped)."""
+        if started is not None:
+            workers.ahead = None
+            if started.same(chosen, events, wagons_loaded):
+                clock = time.perf_counter()
+                numerical, inputs = started.result()
+                timing["terms_wait_s"] = time.perf_counter() - clock
+                return numerical, inputs
+            started.drop()
+        return (
+            _numerical_phase(chosen, events, wagons_loaded, base, present, config, workers, task),
+            _input_phase(chosen, events, wagons_loaded, base, present, config, workers),
+        )
+
+    # the interval terms depend on the chosen fit and its events only: their data built
+    # while the revision is made and re-flagged (this process is mostly idle then: the
+    # workers estimate and judge), their work done while it is refitted (the refit in this
+    # process, the coarse fits on the workers), used when the refit leaves the answer as it was
+    ahead = None
+    flags_judged = threading.Event()
+    if config.overlap and workers.remote:
+        chosen, snapshot, ready = best, dict(loaded), flags_judged.wait
+        ahead = workers.ahead = _TermsAhead(
+            chosen,
+            best_events,
+            snapshot,
+            lambda: _numerical_phase(
+                chosen, best_events, snapshot, base, present, config, workers, task, ready
+            ),
+            lambda: _input_phase(
+                chosen, best_events, snapshot, base, present, config, workers, ready
+            ),
+        )
     t = time.perf_counter()
-    _make_revision(wh, wagons, new_rev, sim, event_ids, fit, engine)
+    try:
+        _make_revision(wh, wagons, new_rev, sim, event_ids, fit, engine)
+    except BaseException:
+        flags_judged.set()
+        raise
     timing["revision_s"] = time.perf_counter() - t
+    if not config.reflag:
+        flags_judged.set()
     if config.reflag:
         # the flags were judged with the baseline, which lacks the effect: a fleet-wide misfit
         # looks like weak brakes or failing sensors. Judge them again with the new revision,
         # and refit on the events that are usable now.
         t = time.perf_counter()
-        _reflag(wh, wagons, new_rev, sim, engine)
+        try:
+            _reflag(wh, wagons, new_rev, sim, engine)
+        finally:  # the terms' work may start (the workers are the flags' until now)
+            flags_judged.set()
         fit, holdout, _ = _event_sets(wh, base.name, config, unknown_heat)
         timing["reflag_s"] = time.perf_counter() - t
         changed = set(fit["event_id"].to_list()) ^ set(fit_ids)
@@ -1327,53 +1426,7 @@ def _close_loop(
             "effects": [e.to_dict() for e in added],
         }
     )
-    numerical = None
-    if config.numerical_grid_ratios and best.fitted is not None and best.fitted.x.size:
-        # the chosen effects through coarser meshes, on the same fit events, from the chosen
-        # parameters: the numerical term of the reported intervals
-        t = time.perf_counter()
-        added_now = [e for e in best.effects if type(e) not in present]
-        coarse_bases = [
-            dataclasses.replace(base, refinement=base.refinement / ratio)
-            for ratio in config.numerical_grid_ratios
-        ]
-        coarse_fits = workers.fit(
-            [
-                task(
-                    FitData.build(loaded, best_events, sim, coarse_base),
-                    [type(e) for e in added_now],
-                    added_now,
-                    max(4, config.max_nfev // 2),
-                )
-                for coarse_base in coarse_bases
-            ]
-        )
-        numerical = _numerical_term(best.fitted, coarse_fits, base, config)
-        timing["numerical_s"] = time.perf_counter() - t
-    inputs = None
-    speed_noise = fitdata.speed_noise_kmh(loaded) if config.speed_input_term else math.nan
-    if best.fitted is not None and best.fitted.x.size and speed_noise > 0.0:
-        # the chosen parameters' residual with the speed's magnitude bias taken out, on the
-        # same fit events, and the parameters' response to it by the fit's Jacobian: the
-        # input term of the reported intervals
-        t = time.perf_counter()
-        added_now = [e for e in best.effects if type(e) not in present]
-        debiased_data = FitData.build(
-            fitdata.with_speed_debiased(loaded, speed_noise), best_events, sim, base
-        )
-        fitted_now, classes_now = best.fitted, [type(e) for e in added_now]
-        lower, upper = parameter_bounds(classes_now)
-        shift, steps = input_shift(
-            fitted_now,
-            lambda x: workers.evaluate(
-                debiased_data, [effects_at(fitted_now.effects, classes_now, x)]
-            )[0],
-            lower,
-            upper,
-            config.input_step_tolerance,
-        )
-        inputs = _input_term(fitted_now, shift, speed_noise, steps)
-        timing["input_s"] = time.perf_counter() - t
+    numerical, inputs = terms(best, best_events, loaded, ahead)
     _add_verdict(
         report,
         _verdict(best, best_data, base_kept, noise_k, current),
@@ -1387,6 +1440,137 @@ def _close_loop(
         )
     _add_all_events(wh, report, sets_all, base.name, name)
     return report
+
+
+def _numerical_phase(
+    best: Candidate,
+    events: pl.DataFrame,
+    loaded: Mapping[str, WagonData],
+    base: Revision,
+    present: set[type[Effect]],
+    config: CloseLoopConfig,
+    workers: _Workers,
+    task: Callable[..., FitTask],
+    ready: Callable[[], object] | None = None,
+) -> Numerical | None:
+    """The chosen effects through coarser meshes, on the same fit events (``events``), from
+    the chosen parameters: the numerical term of the reported intervals (None when not asked
+    for or nothing was fitted). The coarse fits run on the engine's workers, once ``ready()``
+    returns (their data built and written for the workers before)."""
+    if not (config.numerical_grid_ratios and best.fitted is not None and best.fitted.x.size):
+        return None
+    t = time.perf_counter()
+    added_now = [e for e in best.effects if type(e) not in present]
+    coarse_bases = [
+        dataclasses.replace(base, refinement=base.refinement / ratio)
+        for ratio in config.numerical_grid_ratios
+    ]
+    tasks = workers.shipped(
+        [
+            task(
+                FitData.build(loaded, events, config.simulation, coarse_base),
+                [type(e) for e in added_now],
+                added_now,
+                max(4, config.max_nfev // 2),
+            )
+            for coarse_base in coarse_bases
+        ]
+    )
+    waited = _wait(ready)
+    coarse_fits = workers.fit(tasks)
+    numerical = _numerical_term(best.fitted, coarse_fits, base, config)
+    workers.timing["numerical_s"] = time.perf_counter() - t - waited
+    return numerical
+
+
+def _input_phase(
+    best: Candidate,
+    events: pl.DataFrame,
+    loaded: Mapping[str, WagonData],
+    base: Revision,
+    present: set[type[Effect]],
+    config: CloseLoopConfig,
+    workers: _Workers,
+    ready: Callable[[], object] | None = None,
+) -> InputTerm | None:
+    """The chosen parameters' residual with the speed's magnitude bias taken out, on the same
+    fit events (``events``), and the parameters' response to it by the fit's Jacobian: the
+    input term of the reported intervals (None when not asked for, nothing was fitted or the
+    speed has no noise). Its evaluations run in this process, one after another, once
+    ``ready()`` returns (its data built before)."""
+    speed_noise = fitdata.speed_noise_kmh(loaded) if config.speed_input_term else math.nan
+    if not (best.fitted is not None and best.fitted.x.size and speed_noise > 0.0):
+        return None
+    t = time.perf_counter()
+    added_now = [e for e in best.effects if type(e) not in present]
+    debiased_data = FitData.build(
+        fitdata.with_speed_debiased(loaded, speed_noise), events, config.simulation, base
+    )
+    fitted_now, classes_now = best.fitted, [type(e) for e in added_now]
+    lower, upper = parameter_bounds(classes_now)
+
+    def residual_at(x: np.ndarray) -> np.ndarray:
+        return workers.evaluate(debiased_data, [effects_at(fitted_now.effects, classes_now, x)])[0]
+
+    waited = _wait(ready)
+    shift, steps = input_shift(fitted_now, residual_at, lower, upper, config.input_step_tolerance)
+    inputs = _input_term(fitted_now, shift, speed_noise, steps)
+    workers.timing["input_s"] = time.perf_counter() - t - waited
+    return inputs
+
+
+def _wait(ready: Callable[[], object] | None) -> float:
+    """Seconds spent in ``ready()`` (none when None)."""
+    if ready is None:
+        return 0.0
+    t = time.perf_counter()
+    ready()
+    return time.perf_counter() - t
+
+
+class _TermsAhead:
+    """The interval terms of a chosen fit (``chosen`` on ``events``, the wagons ``loaded``),
+    on two threads of this process (``CloseLoopConfig.overlap``): their data built while the
+    revision is made and re-flagged, their work done while it is refitted (the numerical
+    term's thread hands its coarse fits to the engine's workers, the input term's evaluates
+    here). Neither touches the warehouse (the
+    parent stays its single writer) nor data the refit evaluates."""
+
+    def __init__(
+        self,
+        chosen: Candidate,
+        events: pl.DataFrame,
+        loaded: Mapping[str, WagonData],
+        numerical: Callable[[], Numerical | None],
+        inputs: Callable[[], InputTerm | None],
+    ) -> None:
+        self.chosen, self.events, self.loaded = chosen, events, loaded
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="closeloop-terms")
+        self._numerical: Future[Numerical | None] = self._pool.submit(numerical)
+        self._inputs: Future[InputTerm | None] = self._pool.submit(inputs)
+
+    def same(
+        self, chosen: Candidate, events: pl.DataFrame, loaded: Mapping[str, WagonData]
+    ) -> bool:
+        """Whether these terms are the ones of ``chosen`` on ``events`` (the refit moved
+        nothing and loaded no other wagon)."""
+        return (
+            chosen is self.chosen and events is self.events and loaded.keys() == self.loaded.keys()
+        )
+
+    def result(self) -> tuple[Numerical | None, InputTerm | None]:
+        """Both terms (an error in either raised here, as the sequential run would)."""
+        try:
+            return self._numerical.result(), self._inputs.result()
+        finally:
+            self._pool.shutdown(wait=True)
+
+    def drop(self, wait: bool = True) -> None:
+        """Not used: waited for (``wait``; their errors dropped) or left to end."""
+        if wait:
+            futures: list[Future[Any]] = [self._numerical, self._inputs]
+            wait_for(futures)
+        self._pool.shutdown(wait=wait, cancel_futures=True)
 
 
 def _outliers(

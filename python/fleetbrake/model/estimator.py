@@ -1798,7 +1798,8 @@ def fit_noise(
     the bounds, to ``tolerance`` in the logarithms (0.5 %). Starts from ``config.noise``.
 
     ``measurement_k`` given: σ_v is that (e.g. the wagon's own, :func:`measurement_noise`) and
-    only σ_w is fitted, by a bounded scalar search on ``log σ_w`` (about 15 filter passes)."""
+    only σ_w is fitted, by a bounded scalar search on ``log σ_w`` (about 15 filter passes; 2
+    when the floor is the likeliest, :func:`_fit_power_noise`)."""
     from scipy.optimize import minimize
 
     readings = int(sum(np.isfinite(p.reading_c).sum() for p in problems))
