@@ -421,3 +421,40 @@ def test_a_reader_sees_what_was_committed_while_the_writer_holds_a_transaction(
             assert source.con.execute("SELECT count(*) FROM t").fetchall() == [(10,)]
         with reader(wh) as source:
             assert source.con.execute("SELECT count(*) FROM t").fetchall() == [(20,)]
+
+
+def test_the_stage_estimates_with_the_configured_quiet_noise_and_keys_on_it() -> None:
+    """The stage's noise when none is given is the wagon's σ_v and the revision's σ_w with
+    the rest of ``config.estimator.noise`` (σ_q): a σ_q set there is used, not the class's
+    default, and the stored estimates' key changes with it (a warehouse is estimated again)."""
+    import numpy as np
+
+    from fleetbrake.fleet.registry import WagonConfig
+    from fleetbrake.model.estimator import EstimatorConfig, EstimatorNoise, WagonSeries
+    from fleetbrake.simulation.predictions import Revision
+
+    rng = np.random.default_rng(3)
+    time_s = np.arange(600.0)
+    series = WagonSeries.of(
+        time_s=time_s,
+        p_bar=np.zeros(600),
+        speed_kmh=np.zeros(600),
+        ambient_c=np.full(600, 10.0),
+        reading_c=20.0 + rng.normal(0.0, 0.1, 600),
+        wagon_id="SGG-0001",
+    )
+    default = e.EstimationConfig()
+    quiet = e.EstimationConfig(
+        estimator=EstimatorConfig(noise=EstimatorNoise(quiet_power_w_per_sqrt_s=0.05))
+    )
+    found = {c: e.wagon_noise(series, c, 7.0) for c in (default, quiet)}
+    assert found[default].quiet_power_w_per_sqrt_s == EstimatorNoise().quiet_power_w_per_sqrt_s
+    assert found[quiet].quiet_power_w_per_sqrt_s == 0.05
+    for noise in found.values():  # σ_v the wagon's, σ_w the revision's, whatever σ_q
+        assert noise.measurement_k == found[default].measurement_k
+        assert 0.08 < noise.measurement_k < 0.12
+        assert noise.power_w_per_sqrt_s == 7.0
+    wagon, rev = WagonConfig("SGG-0001"), Revision("declared")
+    keys = {c: e._model_key(wagon, rev, c, 7.0) for c in (default, quiet)}
+    assert keys[default] != keys[quiet]
+    assert keys[default] == e._model_key(wagon, rev, e.EstimationConfig(), 7.0)

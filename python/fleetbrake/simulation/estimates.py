@@ -378,8 +378,8 @@ def _model_key(wagon: WagonConfig, rev: Revision, config: EstimationConfig, powe
             "power_noise_w_per_sqrt_s": power,
             "given_noise": None if config.noise is None else dataclasses.asdict(config.noise),
             # the stage's noise when none is given: σ_v and σ_w are the wagon's and the
-            # revision's, the rest (σ_q, the fallbacks) the class's defaults
-            "default_noise": dataclasses.asdict(EstimatorNoise()),
+            # revision's, the rest (σ_q, the fallbacks) the estimator config's
+            "default_noise": dataclasses.asdict(config.estimator.noise),
             "min_measurement_noise_k": config.min_measurement_noise_k,
             "frozen": [config.frozen_min_s, config.frozen_resolution_k, config.frozen_noise_k],
             "speed_median_samples": config.chain.speed_median_samples,
@@ -615,11 +615,14 @@ def wagon_noise(
     """The noise a wagon is estimated with: ``config.noise`` when given; else σ_v from the
     wagon's own readings (:func:`~fleetbrake.model.estimator.measurement_noise`, at least
     ``min_measurement_noise_k``; the estimator's default with fewer than 10 second
-    differences) and the revision's σ_w. A function of the wagon's data alone."""
+    differences) and the revision's σ_w, the rest (σ_q, the manoeuvre test's) ``config.
+    estimator.noise``'s. A function of the wagon's data alone."""
     if config.noise is not None:
         return config.noise
     sigma_v = reading_noise_k(series.time_s, series.reading_c, config)
-    return EstimatorNoise(sigma_v, power_noise_w_per_sqrt_s)
+    return dataclasses.replace(
+        config.estimator.noise, measurement_k=sigma_v, power_w_per_sqrt_s=power_noise_w_per_sqrt_s
+    )
 
 
 def reading_noise_k(
