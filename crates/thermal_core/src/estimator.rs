@@ -2289,31 +2289,56 @@ mod tests {
     }
 
     fn dense_f(p: &Problem<'_>, k: usize) -> Vec<f64> {
-        let (r, n) = (p.order, p.n_state());
-        let t = &p.transitions[k];
+        let d = Dims {
+            r: p.order,
+            n: p.n_state(),
+            lag: p.lag,
+            brake: p.brake,
+        };
+        f_matrix(&p.transitions[k], &d)
+    }
+
+    /// F of a transition written out from its parts (`a` r x r, γ, φ, the lag's row and
+    /// P_b's column), independently of `Transition::apply`.
+    fn f_matrix(t: &Transition, d: &Dims) -> Vec<f64> {
+        let (r, n) = (d.r, d.n);
         let mut f = vec![0.0; n * n];
         for i in 0..r {
             f[i * n..i * n + r].copy_from_slice(&t.a[i * r..(i + 1) * r]);
             f[i * n + r] = t.gamma[i];
         }
         f[r * n + r] = t.phi;
-        if p.lag {
+        if d.lag {
             f[(r + 1) * n..(r + 1) * n + r].copy_from_slice(&t.lag_row);
             f[(r + 1) * n + r] = t.lag_power;
             f[(r + 1) * n + r + 1] = t.lag_a;
         }
-        if p.brake {
+        if d.brake {
             // P_b: heats the modes (and the lag) as P does, decays by its own factor
             let ib = n - 1;
             for i in 0..r {
                 f[i * n + ib] = t.gamma[i];
             }
-            if p.lag {
+            if d.lag {
                 f[(r + 1) * n + ib] = t.lag_power;
             }
             f[ib * n + ib] = t.brake_phi;
         }
         f
+    }
+
+    /// `L̃ = L - h uᵀ - u hᵀ + c h hᵀ` (`corr` = Some((u, c))) or `L`: the smoother's
+    /// information before the transition, as the covariance steps' `back_cov` take it.
+    fn l_tilde(l: &[f64], h: &[f64], corr: Option<(&[f64], f64)>, n: usize) -> Vec<f64> {
+        let mut lt = l.to_vec();
+        if let Some((u, c)) = corr {
+            for i in 0..n {
+                for j in 0..n {
+                    lt[i * n + j] += -h[i] * u[j] - u[i] * h[j] + c * h[i] * h[j];
+                }
+            }
+        }
+        lt
     }
 
     /// A small problem: three modes, a diagonal, a dense and a gap-like transition, readings
@@ -3182,17 +3207,7 @@ mod tests {
                 lag,
                 brake: false,
             };
-            let mut f = vec![0.0; n * n];
-            for i in 0..r {
-                f[i * n..i * n + r].copy_from_slice(&tr.a[i * r..(i + 1) * r]);
-                f[i * n + r] = tr.gamma[i];
-            }
-            f[r * n + r] = tr.phi;
-            if lag {
-                f[(r + 1) * n..(r + 1) * n + r].copy_from_slice(&tr.lag_row);
-                f[(r + 1) * n + r] = tr.lag_power;
-                f[(r + 1) * n + r + 1] = tr.lag_a;
-            }
+            let f = f_matrix(&tr, &d);
             let ft = transpose(&f, n);
             let b = normal(n * n, 1.0);
             let x = matmul(&b, &transpose(&b, n), n); // symmetric, positive definite
@@ -3225,14 +3240,7 @@ mod tests {
                 );
             }
             for corr in [None, Some((&u[..], c))] {
-                let mut lt = x.clone();
-                if let Some((u, c)) = corr {
-                    for i in 0..n {
-                        for j in 0..n {
-                            lt[i * n + j] += -h[i] * u[j] - u[i] * h[j] + c * h[i] * h[j];
-                        }
-                    }
-                }
+                let lt = l_tilde(&x, &h, corr, n);
                 dense.back_cov::<false>(&d, &x, &h, corr, &mut out, &mut pad);
                 close(&out, &matmul(&matmul(&ft, &lt, n), &f, n), "Fᵀ L̃ F");
             }
@@ -3314,14 +3322,7 @@ mod tests {
             }
             let mut scratch = Work::new(n).four;
             for corr in [None, Some((&u[..], 0.7))] {
-                let mut lt = x.clone();
-                if let Some((u, c)) = corr {
-                    for i in 0..n {
-                        for j in 0..n {
-                            lt[i * n + j] += -h[i] * u[j] - u[i] * h[j] + c * h[i] * h[j];
-                        }
-                    }
-                }
+                let lt = l_tilde(&x, &h, corr, n);
                 tr.back_cov::<false>(&d, &x, &h, corr, &mut out, &mut scratch, &mut big);
                 close(&out, &matmul(&matmul(&ft, &lt, n), &f, n), "Fᵀ L̃ F");
             }
