@@ -454,12 +454,130 @@ fn dot4<const FMA: bool>(x: &[f64], a: &[f64], b: &[f64], c: &[f64], d: &[f64]) 
     out
 }
 
-/// `y1 += a1 x`, `y2 += a2 x` in one pass over `x`.
+/// `out += Σ_i (σ a_i) rows_i` (σ = ±1; and `out2 += Σ_{i < b.len()} b_i rows_i` with `b`) over the first
+/// `out.len()` entries of the rows `rows[i stride ..]`, i in order: each entry is the chain of
+/// multiply-adds of `axpy` (`axpy2`) row after row, to the bit. With FMA the entries are held
+/// in AVX2 registers by blocks of 16 columns while the rows stream past (an `axpy` per row
+/// loads and stores the whole output again).
 #[inline(always)]
-fn axpy2<const FMA: bool>(a1: f64, a2: f64, x: &[f64], y1: &mut [f64], y2: &mut [f64]) {
-    for ((v1, v2), &xi) in y1.iter_mut().zip(y2.iter_mut()).zip(x) {
-        *v1 = madd::<FMA>(a1, xi, *v1);
-        *v2 = madd::<FMA>(a2, xi, *v2);
+fn gemv_rows<const FMA: bool>(
+    a: &[f64],
+    sign: f64,
+    b: Option<&[f64]>,
+    rows: &[f64],
+    stride: usize,
+    out: &mut [f64],
+    out2: Option<&mut [f64]>,
+) {
+    let w = out.len();
+    let nb = b.map_or(0, <[f64]>::len);
+    assert!(nb <= a.len() && w <= stride);
+    assert!(a.is_empty() || rows.len() >= (a.len() - 1) * stride + w);
+    if let Some(o2) = out2.as_ref() {
+        assert!(o2.len() == w);
+    }
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // SAFETY: FMA is only true inside functions compiled with avx2 and fma (`run_avx2`);
+        // the lengths are the ones asserted above.
+        unsafe { gemv_rows_avx2(a, sign, b.unwrap_or(&[]), rows, stride, out, out2) };
+        return;
+    }
+    let mut out2 = out2;
+    for (i, &ai) in a.iter().enumerate() {
+        let row = &rows[i * stride..i * stride + w];
+        axpy::<FMA>(sign * ai, row, out);
+        if let (Some(bv), Some(o2)) = (b.filter(|_| i < nb), out2.as_mut()) {
+            axpy::<FMA>(bv[i], row, o2);
+        }
+    }
+}
+
+/// `gemv_rows` with AVX2 and FMA. Caller: the lengths `gemv_rows` asserts.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn gemv_rows_avx2(
+    a: &[f64],
+    sign: f64,
+    b: &[f64],
+    rows: &[f64],
+    stride: usize,
+    out: &mut [f64],
+    out2: Option<&mut [f64]>,
+) {
+    use std::arch::x86_64::*;
+    let w = out.len();
+    let (nb, rp) = (if out2.is_some() { b.len() } else { 0 }, rows.as_ptr());
+    let op = out.as_mut_ptr();
+    let o2p = out2.map_or(std::ptr::null_mut(), <[f64]>::as_mut_ptr);
+    // SAFETY: every load reads row i < a.len() at columns below w <= stride (the caller's
+    // lengths), every store writes below w; `o2p` is only used when nb > 0 (out2 given).
+    unsafe {
+        let mut j0 = 0;
+        while j0 + 16 <= w {
+            let mut s: [__m256d; 4] = std::array::from_fn(|q| _mm256_loadu_pd(op.add(j0 + 4 * q)));
+            if nb > 0 {
+                let mut s2: [__m256d; 4] =
+                    std::array::from_fn(|q| _mm256_loadu_pd(o2p.add(j0 + 4 * q)));
+                for i in 0..nb {
+                    let (ai, bi) = (_mm256_set1_pd(sign * a[i]), _mm256_set1_pd(b[i]));
+                    let row = rp.add(i * stride + j0);
+                    for q in 0..4 {
+                        let x = _mm256_loadu_pd(row.add(4 * q));
+                        s[q] = _mm256_fmadd_pd(ai, x, s[q]);
+                        s2[q] = _mm256_fmadd_pd(bi, x, s2[q]);
+                    }
+                }
+                for (q, v) in s2.iter().enumerate() {
+                    _mm256_storeu_pd(o2p.add(j0 + 4 * q), *v);
+                }
+            }
+            for (i, &av) in a.iter().enumerate().skip(nb) {
+                let ai = _mm256_set1_pd(sign * av);
+                let row = rp.add(i * stride + j0);
+                for (q, sq) in s.iter_mut().enumerate() {
+                    *sq = _mm256_fmadd_pd(ai, _mm256_loadu_pd(row.add(4 * q)), *sq);
+                }
+            }
+            for (q, v) in s.iter().enumerate() {
+                _mm256_storeu_pd(op.add(j0 + 4 * q), *v);
+            }
+            j0 += 16;
+        }
+        while j0 + 4 <= w {
+            let mut s = _mm256_loadu_pd(op.add(j0));
+            let mut s2 = if nb > 0 {
+                _mm256_loadu_pd(o2p.add(j0))
+            } else {
+                s
+            };
+            for (i, &av) in a.iter().enumerate() {
+                let x = _mm256_loadu_pd(rp.add(i * stride + j0));
+                s = _mm256_fmadd_pd(_mm256_set1_pd(sign * av), x, s);
+                if i < nb {
+                    s2 = _mm256_fmadd_pd(_mm256_set1_pd(b[i]), x, s2);
+                }
+            }
+            _mm256_storeu_pd(op.add(j0), s);
+            if nb > 0 {
+                _mm256_storeu_pd(o2p.add(j0), s2);
+            }
+            j0 += 4;
+        }
+        for j in j0..w {
+            let (mut s, mut s2) = (*op.add(j), if nb > 0 { *o2p.add(j) } else { 0.0 });
+            for (i, &av) in a.iter().enumerate() {
+                let x = *rp.add(i * stride + j);
+                s = (sign * av).mul_add(x, s);
+                if i < nb {
+                    s2 = b[i].mul_add(x, s2);
+                }
+            }
+            *op.add(j) = s;
+            if nb > 0 {
+                *o2p.add(j) = s2;
+            }
+        }
     }
 }
 
@@ -720,6 +838,7 @@ impl Transition {
         b: &mut [f64],
         big: &mut [f64],
         mut ph: Option<(&[f64], &mut [f64])>,
+        gap: Option<&[f64]>,
     ) {
         let (r, n) = (d.r, d.n);
         debug_assert!(self.diagonal);
@@ -767,8 +886,24 @@ impl Transition {
             // row i of F T: e_i T_i + γ_i T_P (and its share of Σh, in the same pass)
             let (ei, gi) = (self.e[i], self.gamma[i]);
             let o = &mut out[i * n..(i + 1) * n];
-            match ph.as_mut() {
-                Some((h, acc)) => {
+            // `gap`: the mode rows' share of `q_gap u uᵀ` (the caller's pass, done here)
+            let gap = gap.filter(|u| u[i] != 0.0).map(|u| (self.q_gap * u[i], u));
+            match (ph.as_mut(), gap) {
+                (Some((h, acc)), Some((c, u))) => {
+                    let hi = h[i];
+                    for ((((oj, &tj), &pj), aj), &uj) in o
+                        .iter_mut()
+                        .zip(t.iter())
+                        .zip(tpow.iter())
+                        .zip(acc.iter_mut())
+                        .zip(u)
+                    {
+                        let v = madd::<FMA>(ei, tj, gi * pj);
+                        *aj = madd::<FMA>(hi, v, *aj);
+                        *oj = madd::<FMA>(c, uj, v);
+                    }
+                }
+                (Some((h, acc)), None) => {
                     let hi = h[i];
                     for (((oj, &tj), &pj), aj) in o
                         .iter_mut()
@@ -780,7 +915,14 @@ impl Transition {
                         *aj = madd::<FMA>(hi, *oj, *aj);
                     }
                 }
-                None => {
+                (None, Some((c, u))) => {
+                    for (((oj, &tj), &pj), &uj) in
+                        o.iter_mut().zip(t.iter()).zip(tpow.iter()).zip(u)
+                    {
+                        *oj = madd::<FMA>(c, uj, madd::<FMA>(ei, tj, gi * pj));
+                    }
+                }
+                (None, None) => {
                     for ((oj, &tj), &pj) in o.iter_mut().zip(t.iter()).zip(tpow.iter()) {
                         *oj = madd::<FMA>(ei, tj, gi * pj);
                     }
@@ -1247,6 +1389,8 @@ struct Kernel<'a> {
     cn_t: Vec<f64>,
     /// Each transition's dense F (None: diagonal, stepped by its structure).
     dense: Vec<Option<DenseF>>,
+    /// Whether each transition adds noise to a mode (`q_modes` not all zero).
+    mode_noise: Vec<bool>,
 }
 
 impl<'a> Kernel<'a> {
@@ -1292,6 +1436,11 @@ impl<'a> Kernel<'a> {
             cm: p.c_mean.clone(),
             cn_t: transpose(&p.c_nodes, p.n_nodes(), r, p.n_nodes().next_multiple_of(4)),
             dense,
+            mode_noise: p
+                .transitions
+                .iter()
+                .map(|tr| tr.q_modes.iter().any(|&q| q != 0.0))
+                .collect(),
         }
     }
 
@@ -1395,11 +1544,21 @@ impl<'a> Kernel<'a> {
             let tr = &self.p.transitions[idx];
             // without a lag, Σh (h on the modes) is summed while the rows are made
             let acc = fused.then(|| (&self.h[..r], &mut *ph));
+            // the mode rows' share of `q_gap u uᵀ` is added in the diagonal step's pass (the
+            // same operations) where no mode noise comes between
+            let gap_fused = self.dense[idx].is_none() && tr.q_gap > 0.0 && !self.mode_noise[idx];
             match &self.dense[idx] {
                 Some(df) => df.predict_cov::<FMA>(&self.d, prev, pred, &mut w.pad, acc),
-                None => {
-                    tr.predict_cov::<FMA>(&self.d, prev, pred, &mut w.a, &mut w.b, &mut w.big, acc)
-                }
+                None => tr.predict_cov::<FMA>(
+                    &self.d,
+                    prev,
+                    pred,
+                    &mut w.a,
+                    &mut w.b,
+                    &mut w.big,
+                    acc,
+                    gap_fused.then_some(&self.p.gap_dir[..]),
+                ),
             }
             let sw2 = match (manoeuvre, tr.applied) {
                 (true, _) => self.sw2[1],
@@ -1423,7 +1582,8 @@ impl<'a> Kernel<'a> {
             if tr.q_gap > 0.0 {
                 // q_gap u uᵀ (and its share u (u·h) of Σh when that was summed above)
                 let u = &self.p.gap_dir;
-                for (row, &ui) in pred.chunks_exact_mut(n).zip(u) {
+                let done = if gap_fused { r } else { 0 };
+                for (row, &ui) in pred.chunks_exact_mut(n).zip(u).skip(done) {
                     if ui != 0.0 {
                         axpy::<FMA>(tr.q_gap * ui, u, row);
                     }
@@ -1500,13 +1660,9 @@ impl<'a> Kernel<'a> {
     ) -> (f64, usize) {
         let (r, m) = (self.d.r, self.m.next_multiple_of(4));
         v.fill(0.0);
-        for (row, &xi) in self.cn_t.chunks_exact(m).zip(&x[..r]) {
-            axpy::<FMA>(xi, row, v);
-        }
+        gemv_rows::<FMA>(&x[..r], 1.0, None, &self.cn_t, m, &mut v[..m], None);
         if let Some((s_t, lam)) = minus {
-            for (row, &li) in s_t.chunks_exact(m).zip(lam) {
-                axpy::<FMA>(-li, row, v);
-            }
+            gemv_rows::<FMA>(lam, -1.0, None, s_t, m, &mut v[..m], None);
         }
         let mut best = (f64::NEG_INFINITY, 0usize);
         for (j, &vj) in v[..self.m].iter().enumerate() {
@@ -1528,9 +1684,7 @@ impl<'a> Kernel<'a> {
     fn times<const FMA: bool>(&self, m: &[f64], c: &[f64], out: &mut [f64]) {
         let n = self.d.n;
         out.fill(0.0);
-        for (row, &ci) in m.chunks_exact(n).zip(c) {
-            axpy::<FMA>(ci, row, out);
-        }
+        gemv_rows::<FMA>(&c[..c.len().min(n)], 1.0, None, m, n, &mut out[..n], None);
     }
 
     /// `sᵀ M s` for a symmetric M (`tmp`: n scratch).
@@ -2098,13 +2252,15 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                 // one pass: Σλ and Σ c_mean
                 xs_t.fill(0.0);
                 sc_mean.fill(0.0);
-                for (row_i, row) in cov.chunks_exact(n).enumerate() {
-                    if row_i < r {
-                        axpy2::<FMA>(lam[row_i], k.cm[row_i], row, &mut xs_t, &mut sc_mean);
-                    } else {
-                        axpy::<FMA>(lam[row_i], row, &mut xs_t);
-                    }
-                }
+                gemv_rows::<FMA>(
+                    &lam,
+                    1.0,
+                    Some(&k.cm[..r]),
+                    cov,
+                    n,
+                    &mut xs_t,
+                    Some(&mut sc_mean),
+                );
                 for (v, xi) in xs_t.iter_mut().zip(x) {
                     *v = xi - *v;
                 }
@@ -3174,6 +3330,69 @@ mod tests {
     }
 
     #[test]
+    fn the_register_held_row_sums_are_the_axpy_chains() {
+        // `gemv_rows` (both codes) against `axpy` row after row, to the bit: every width
+        // (blocks of 16, of 4, the tail), a second output over the first rows or none, ±1
+        let mut rng = Rng(12);
+        for (rows, width, stride, nb) in [
+            (37, 24, 24, 0),
+            (39, 39, 39, 37),
+            (39, 39, 39, 0),
+            (5, 3, 7, 2),
+            (38, 38, 40, 38),
+            (1, 17, 17, 1),
+            (0, 9, 9, 0),
+        ] {
+            let m: Vec<f64> = (0..rows * stride).map(|_| rng.normal()).collect();
+            let a: Vec<f64> = (0..rows).map(|_| rng.normal()).collect();
+            let b: Vec<f64> = (0..nb).map(|_| rng.normal()).collect();
+            let start: Vec<f64> = (0..width).map(|_| rng.normal()).collect();
+            for sign in [1.0, -1.0] {
+                let (mut w1, mut w2) = (start.clone(), start.clone());
+                for i in 0..rows {
+                    let row = &m[i * stride..i * stride + width];
+                    axpy::<true>(sign * a[i], row, &mut w1);
+                    if i < nb {
+                        axpy::<true>(b[i], row, &mut w2);
+                    }
+                }
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                let check = |fma: bool| {
+                    let (mut o1, mut o2) = (start.clone(), start.clone());
+                    let second = (nb > 0).then_some(&b[..]);
+                    let out2 = (nb > 0).then_some(&mut o2[..]);
+                    if fma {
+                        #[cfg(target_arch = "x86_64")]
+                        {
+                            // SAFETY: the CPU has the features; the lengths are gemv_rows'.
+                            unsafe { gemv_rows_avx2(&a, sign, &b, &m, stride, &mut o1, out2) };
+                        }
+                    } else {
+                        gemv_rows::<false>(&a, sign, second, &m, stride, &mut o1, out2);
+                    }
+                    let what = format!("fma {fma} rows {rows} width {width} nb {nb} sign {sign}");
+                    if fma {
+                        assert_eq!(bits(&o1), bits(&w1), "{what}");
+                        if nb > 0 {
+                            assert_eq!(bits(&o2), bits(&w2), "{what}: second");
+                        }
+                    } else {
+                        // the scalar code is the unfused chain: within rounding of the fused
+                        for (x, y) in o1.iter().zip(&w1) {
+                            assert!((x - y).abs() <= 1e-12 * (1.0 + y.abs()), "{what}");
+                        }
+                    }
+                };
+                check(false);
+                #[cfg(target_arch = "x86_64")]
+                if has_avx2_fma() {
+                    check(true);
+                }
+            }
+        }
+    }
+
+    #[test]
     fn the_dense_covariance_steps_are_the_plain_products() {
         // a dense transition of the refinement-1.0 model's size (37 modes), with and without
         // the lag: F X Fᵀ and Fᵀ L̃ F against plain products, and exactly symmetric
@@ -3312,12 +3531,39 @@ mod tests {
             let mut out = vec![0.0; n * n];
             let mut ph = vec![0.0; n];
             let acc = (!lag).then(|| (&h[..r], &mut ph[..]));
-            tr.predict_cov::<false>(&d, &x, &mut out, &mut a, &mut bb, &mut big, acc);
-            close(&out, &matmul(&matmul(&f, &x, n), &ft, n), "F X Fᵀ");
+            tr.predict_cov::<false>(&d, &x, &mut out, &mut a, &mut bb, &mut big, acc, None);
+            let fxf = matmul(&matmul(&f, &x, n), &ft, n);
+            close(&out, &fxf, "F X Fᵀ");
             if !lag {
                 for j in 0..n {
                     let want: f64 = (0..r).map(|i| h[i] * out[i * n + j]).sum();
                     assert!((ph[j] - want).abs() <= 1e-12 * want.abs().max(1.0), "Σh");
+                }
+            }
+            // with the mode rows' share of q_gap u uᵀ in the same pass (Σh without it: the
+            // caller adds its share)
+            let with_gap = Transition {
+                q_gap: 0.3,
+                ..tr.clone()
+            };
+            let mut ph_gap = vec![0.0; n];
+            let acc = (!lag).then(|| (&h[..r], &mut ph_gap[..]));
+            let (o, uu) = (&mut out, Some(&u[..]));
+            with_gap.predict_cov::<false>(&d, &x, o, &mut a, &mut bb, &mut big, acc, uu);
+            let mut want = fxf.clone();
+            for i in 0..r {
+                for j in 0..n {
+                    want[i * n + j] += 0.3 * u[i] * u[j];
+                }
+            }
+            close(&out, &want, "F X Fᵀ + the mode rows of q_gap u uᵀ");
+            if !lag {
+                for j in 0..n {
+                    let want: f64 = (0..r).map(|i| h[i] * fxf[i * n + j]).sum();
+                    assert!(
+                        (ph_gap[j] - want).abs() <= 1e-12 * want.abs().max(1.0),
+                        "Σh, gap"
+                    );
                 }
             }
             let mut scratch = Work::new(n).four;
