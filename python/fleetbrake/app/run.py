@@ -80,7 +80,8 @@ class RunReport:
     """The estimation stage (the virtual sensor, ``v_contact_estimates``)."""
     stage_s: dict[str, float] = field(default_factory=dict)
     """Wall-clock seconds of each stage: ``ingest`` (reading and parsing the files, as the
-    writer waits for them), ``write`` (the ingestion's transactions), ``events``,
+    writer waits for them), ``write`` (the time the ingestion waited for its transactions,
+    which run on a writer thread beside the parsing, and its checkpoint), ``events``,
     ``simulate``, ``estimate`` (the virtual sensor), ``flags``; disjoint."""
     engine: str = ""
     """The engine the stages ran on (``LocalEngine(workers=2)``)."""

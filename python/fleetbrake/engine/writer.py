@@ -4,8 +4,9 @@ A stage's parent process is the warehouse's one writer; it also reads the next p
 and keeps the engine's workers fed. With its transactions on a thread of their own (DuckDB
 releases the GIL while it inserts), its reads, its workers and its inserts overlap instead of
 adding up (``docs/benchmarks.md``). Used by the simulation and the estimate
-(:func:`fleetbrake.simulation.store.chunk_pipeline`) and the event detection
-(:func:`fleetbrake.ingest.events.update_events`); knows nothing of the warehouse: ``write``
+(:func:`fleetbrake.simulation.store.chunk_pipeline`), the event detection
+(:func:`fleetbrake.ingest.events.update_events`) and the ingestion's batches of files
+(``fleetbrake.ingest.files``); knows nothing of the warehouse: ``write``
 is the stage's.
 """
 

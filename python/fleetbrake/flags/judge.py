@@ -55,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
+import pyarrow.compute as pc  # type: ignore[import-untyped]
 
 from fleetbrake.errors import FleetbrakeError
 from fleetbrake.flags.brakes import find_dragging, find_weak
@@ -494,7 +495,8 @@ class _FlagHead:
 @dataclass(frozen=True)
 class FlagChunk:
     """Several wagons' partitions of the flags read together, one Arrow table per table with
-    a ``wagon_id`` column (``q_*_chunk_*.sql``, in stored order): :func:`chunk_tasks` cuts
+    a ``wagon_id`` column, or for the four large ones ``wagon_ix`` (``q_*_chunk_*.sql``, in
+    stored order; :func:`_named`): :func:`chunk_tasks` cuts
     it into the wagons' :class:`FlagTask` (the same tables :func:`flag_task` reads), which
     :func:`judge_chunk` judges one by one. Picklable: an engine ships it to a worker."""
 
@@ -524,16 +526,14 @@ def flag_chunk(
     """The chunk's partitions, read from the warehouse with one query per table (by the
     parent: workers never open it); the timelines, segments and predictions of the wagons
     whose timeline is current, the estimates of those whose stored estimates are too."""
-    ids = [h.wagon_id for h in heads]
-    current = [h.wagon_id for h in heads if h.data_key is not None]
-    estimated = [h.wagon_id for h in heads if h.data_key is not None and h.estimated]
+    ids, current, estimated = _read_wagons(heads)
     timed = {"revision": revision_name}
     return FlagChunk(
         heads=tuple(heads),
         revision=revision_name,
         config=config,
         rev=rev,
-        samples=chunk_table(wh, "q_simulation_chunk_samples", ids),
+        samples=chunk_table(wh, "q_flags_chunk_samples", ids),
         events=chunk_table(wh, "q_simulation_chunk_events", ids),
         segments=chunk_table(wh, "q_simulation_chunk_timeline_segments", current, **timed),
         timeline=chunk_table(wh, "q_flags_chunk_timeline", current, **timed),
@@ -544,18 +544,42 @@ def flag_chunk(
     )
 
 
+def _read_wagons(heads: Sequence[_FlagHead]) -> tuple[list[str], list[str], list[str]]:
+    """The wagons whose rows :func:`flag_chunk` reads: every wagon's samples and events, the
+    timelines, segments and predictions of those whose timeline is current, the estimates
+    of those whose stored estimates are too (the lists the chunk queries' ``wagon_ix``
+    counts in)."""
+    ids = [h.wagon_id for h in heads]
+    current = [h.wagon_id for h in heads if h.data_key is not None]
+    estimated = [h.wagon_id for h in heads if h.data_key is not None and h.estimated]
+    return ids, current, estimated
+
+
+def _named(table: pa.Table, wagon_ids: Sequence[str]) -> pa.Table:
+    """A chunk table read with ``wagon_ix`` (its wagon's 1-based position in ``wagon_ids``,
+    ``q_flags_chunk_*.sql``) with the wagon's name as ``wagon_id`` instead, first, as the
+    per-wagon cut (:func:`~fleetbrake.simulation.store.wagon_parts`) reads it. The writer
+    reads and ships the 4-byte position instead of the name (a third of its processor time
+    reading the chunk, and a sixth of the bytes shipped: ``docs/benchmarks.md``); the
+    worker makes the names here, for a millisecond a chunk."""
+    names = pc.take(pa.array(list(wagon_ids), pa.string()), pc.subtract(table["wagon_ix"], 1))
+    return table.drop_columns(["wagon_ix"]).add_column(0, "wagon_id", names)
+
+
 def chunk_tasks(chunk: FlagChunk) -> list[FlagTask]:
     """The chunk cut into its wagons' tasks: each wagon's rows sorted as the per-wagon
     queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`), so each task is the
     one :func:`flag_task` reads (a test compares them)."""
-    ids = [h.wagon_id for h in chunk.heads]
-    samples = sample_parts(chunk.samples, ids)
+    ids, simulated, estimated = _read_wagons(chunk.heads)
+    samples = sample_parts(_named(chunk.samples, ids), ids)
     events = wagon_parts(chunk.events, ids, ["start_utc"])
     segments = wagon_parts(chunk.segments, ids, ["start_utc"])
-    timeline = wagon_parts(chunk.timeline, ids, ["time_utc"])
-    predictions = wagon_parts(chunk.predictions, ids, ["event_id", "time_utc"])
+    timeline = wagon_parts(_named(chunk.timeline, simulated), ids, ["time_utc"])
+    predictions = wagon_parts(_named(chunk.predictions, simulated), ids, ["event_id", "time_utc"])
     estimates = (
-        wagon_parts(chunk.estimates, ids, ["time_utc"]) if chunk.estimates is not None else {}
+        wagon_parts(_named(chunk.estimates, estimated), ids, ["time_utc"])
+        if chunk.estimates is not None
+        else {}
     )
     tasks = []
     for head in chunk.heads:

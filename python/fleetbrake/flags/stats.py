@@ -318,6 +318,28 @@ def _times(column: pl.Series) -> _Times | list[dt.datetime]:
     return column.to_list()
 
 
+def _by_event_and_time(predictions: pl.DataFrame) -> bool:
+    """Whether ``predictions`` is already sorted by ``event_id``, then ``time_utc`` (no nulls
+    in either): its stable sort on them would change nothing, and is not computed."""
+    ids, times = predictions["event_id"], predictions["time_utc"]
+    if ids.has_nulls() or times.has_nulls() or not ids.is_sorted():
+        return False
+    later = (times >= times.shift(1)) | (ids != ids.shift(1))
+    return bool(later.slice(1).all())
+
+
+def _runs_of(ids: pl.Series) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Starts and stops of the runs of equal values of ``ids`` (a string column; a null
+    equals a null, as numpy's ``!=`` on the column's objects had it)."""
+    if ids.len() == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    changes = ids.slice(1).ne_missing(ids.slice(0, ids.len() - 1)).to_numpy()
+    cut = np.flatnonzero(changes) + 1
+    starts = np.concatenate([[0], cut]).astype(np.int64)
+    stops = np.concatenate([cut, [ids.len()]]).astype(np.int64)
+    return starts, stops
+
+
 def event_stats(
     predictions: pl.DataFrame,
     events: pl.DataFrame,
@@ -334,12 +356,14 @@ def event_stats(
     out: list[EventStat] = []
     if predictions.height == 0:
         return out
-    # the wagon's windows as columns, sorted by event and time once; each event a slice
-    # (one polars query for every column: each call costs about as much as its arithmetic)
+    # the wagon's windows as columns, sorted by event and time once (not again when they
+    # come sorted: the stage's reads hand them so); each event a slice (one polars query for
+    # every column: each call costs about as much as its arithmetic)
+    windows = predictions.lazy()
+    if not _by_event_and_time(predictions):
+        windows = windows.sort(["event_id", "time_utc"], maintain_order=True)
     rows = (
-        predictions.lazy()
-        .sort(["event_id", "time_utc"], maintain_order=True)
-        .select(
+        windows.select(
             "event_id",
             "time_utc",
             pl.col("measured_sensor_c").cast(pl.Float64).fill_null(np.nan),
@@ -348,10 +372,9 @@ def event_stats(
             pl.col("brake_pressure_bar").cast(pl.Float64).fill_null(0.0),
             pl.col("speed_kmh").cast(pl.Float64).fill_null(0.0),
             (pl.col("phase") == "heating").fill_null(False).alias("heating"),
-        )
-        .collect(engine="in-memory")  # the engine of the eager calls it replaces
+        ).collect(engine="in-memory")  # the engine of the eager calls it replaces
     )
-    ids = rows["event_id"].to_numpy()
+    ids = rows["event_id"]
     times = _times(rows["time_utc"])
     m_all = rows["measured_sensor_c"].to_numpy()
     p_all = rows["predicted_sensor_c"].to_numpy()
@@ -359,10 +382,11 @@ def event_stats(
     pressure_all = rows["brake_pressure_bar"].to_numpy()
     speed_all = rows["speed_kmh"].to_numpy()
     heating_all = rows["heating"].to_numpy()
-    cut = np.flatnonzero(ids[1:] != ids[:-1]) + 1
-    starts = np.concatenate([[0], cut])
-    stops = np.concatenate([cut, [ids.size]])
-    by_event = {str(ids[a]): (int(a), int(b)) for a, b in zip(starts, stops, strict=True)}
+    starts, stops = _runs_of(ids)
+    by_event = {
+        str(event_id): (int(a), int(b))
+        for event_id, a, b in zip(ids.gather(starts).to_list(), starts, stops, strict=True)
+    }
     lead = dt.timedelta(seconds=config.settle_s)
     for row in events.sort("start_utc").iter_rows(named=True):
         where = by_event.get(row["event_id"])

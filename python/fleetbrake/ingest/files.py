@@ -49,7 +49,8 @@ Speed: the new files are cut into partitions (a wagon directory's files, at most
 decompresses and parses: in worker processes (:class:`~fleetbrake.engine.LocalEngine`), or
 in this process on ``workers`` threads (the default inline engine; zlib, hashlib and polars
 release the GIL). This process alone writes, one partition at a time in path order, so the
-file ids and every table are the same with any engine. A few partitions (the engine's
+file ids and every table are the same with any engine; its transactions run on a thread of
+their own, in order, while the next partitions are parsed. A few partitions (the engine's
 ``in_flight``) and one batch are held in memory, and DuckDB's buffer pool is bounded
 (``memory_limit``), so memory does not grow with the fleet.
 """
@@ -85,6 +86,7 @@ from rich.progress import (
 )
 
 from fleetbrake.engine import Engine, InlineEngine
+from fleetbrake.engine.writer import WriteBehind
 from fleetbrake.errors import FleetbrakeError
 from fleetbrake.fleet.logfile import (
     BLOCK_TEMP_VALID_C,
@@ -258,7 +260,10 @@ class IngestReport:
     registry_problems: list[str] = field(default_factory=list)
     seconds: float = 0.0
     write_s: float = 0.0
-    """Of ``seconds``, those spent writing to the warehouse (the transactions, the checkpoint)."""
+    """Of ``seconds``, those spent waiting for the warehouse's writes: the transactions run on
+    a thread of their own while the next files are read and parsed (:class:`_Batch`), so
+    this is what they did not overlap (a transaction still running when the next batch is
+    full, the last one), and the checkpoint."""
     events: EventUpdate | None = None
     """What the event detection that followed changed (None if it did not run)."""
 
@@ -899,21 +904,42 @@ def _file_row(prepared: _Prepared, file_id: int) -> dict[str, object]:
     }
 
 
+@dataclass(frozen=True)
+class _Held:
+    """A batch handed to the writer thread (:meth:`_Batch.flush`): its files' rows, samples,
+    dirty ranges, the file ids they replace and the ledger refreshes."""
+
+    files: list[dict[str, object]]
+    samples: list[pl.DataFrame]
+    dirty: list[dict[str, object]]
+    replaced: list[int]
+    refreshed: list[dict[str, object]]
+
+
 class _Batch:
     """Partitions of files written together, in one transaction, once they hold
     ``batch_rows`` rows (or ``batch_files`` files).
 
     A partition, and so a file, is never split: a file's ``files`` row, its samples and its
     dirty time range (and the removal of what its path held before) are in the same
-    transaction, with the other files of its partition and batch. Few large inserts are much faster in DuckDB than many small ones (full row
-    groups are written straight to the database file, in parallel).
+    transaction, with the other files of its partition and batch. Few large inserts are much
+    faster in DuckDB than many small ones (full row groups are written straight to the
+    database file, in parallel).
+
+    The transactions run on a thread of their own (:class:`~fleetbrake.engine.writer.WriteBehind`),
+    one at a time and in order, while the caller gathers the next batch and keeps the
+    engine's workers fed (the writer blocked in an insert left them idle: ``write`` was a
+    third of the ingestion's seconds, ``docs/benchmarks.md``). The caller must not use the
+    warehouse's connection until the block ends (the ingestion's loop does not).
     """
 
     def __init__(self, wh: Warehouse, config: IngestConfig) -> None:
         self._wh = wh
         self._config = config
         self.write_s = 0.0
-        """Seconds spent writing (the transactions), of the whole ingestion."""
+        """Seconds the caller waited for its writes (a batch's transaction not yet done when
+        the next is handed over, the last one), of the whole ingestion."""
+        self._writer: WriteBehind[_Held] = WriteBehind(self._write)
         self._clear()
 
     def _clear(self) -> None:
@@ -982,18 +1008,26 @@ class _Batch:
             self.flush()
 
     def flush(self) -> None:
-        """Write the queued files in one transaction."""
+        """Hand the queued files to the writer thread, to be written in one transaction
+        (after the batch before it, which this waits for)."""
         if not self._files and not self._refreshed:
             return
+        held = _Held(self._files, self._samples, self._dirty, self._replaced, self._refreshed)
+        self._clear()
         began = time.perf_counter()
+        self._writer.submit(held)
+        self.write_s += time.perf_counter() - began
+
+    def _write(self, held: _Held) -> None:
+        """One batch's transaction (on the writer thread)."""
         con = self._wh.con
-        files = pl.DataFrame(self._files, schema=_FILES_SCHEMA, orient="row")
-        dirty = pl.DataFrame(self._dirty, schema=_DIRTY_SCHEMA, orient="row")
-        refreshed = pl.DataFrame(self._refreshed, schema=_REFRESH_SCHEMA, orient="row")
-        samples = pl.concat(self._samples) if self._samples else None
+        files = pl.DataFrame(held.files, schema=_FILES_SCHEMA, orient="row")
+        dirty = pl.DataFrame(held.dirty, schema=_DIRTY_SCHEMA, orient="row")
+        refreshed = pl.DataFrame(held.refreshed, schema=_REFRESH_SCHEMA, orient="row")
+        samples = pl.concat(held.samples) if held.samples else None
         with self._wh.transaction():
-            if self._replaced:
-                ids = {"ids": self._replaced}
+            if held.replaced:
+                ids = {"ids": held.replaced}
                 con.execute(sql("q_ingest_delete_samples"), ids)
                 con.execute(sql("q_ingest_delete_files"), ids)
             if files.height:
@@ -1004,15 +1038,21 @@ class _Batch:
                 _insert(con, "dirty_batch", dirty, sql("q_insert_event_dirty"))
             if refreshed.height:
                 _insert(con, "refresh_batch", refreshed, sql("q_ingest_refresh_files"))
-        self._clear()
-        self.write_s += time.perf_counter() - began
 
     def __enter__(self) -> _Batch:
         return self
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
-        if exc_type is None:
-            self.flush()
+        """Write what is queued and wait for it (an error: only the batch being written
+        ends, nothing more is written)."""
+        try:
+            if exc_type is None:
+                self.flush()
+                began = time.perf_counter()
+                self._writer.wait()
+                self.write_s += time.perf_counter() - began
+        finally:
+            self._writer.__exit__(exc_type, *rest)
 
 
 def _insert(con: duckdb.DuckDBPyConnection, name: str, frame: pl.DataFrame, statement: str) -> None:

@@ -1,9 +1,10 @@
 -- Several wagons' virtual-sensor estimates of revision $revision (a chunk), as
 -- q_flags_estimates.sql reads one wagon's (the same columns: a test compares them), with
--- wagon_id; the reader splits them by wagon and sorts each by time_utc.
+-- wagon_ix (the wagon's 1-based position in $wagon_ids: q_flags_chunk_samples.sql says why
+-- not its name); the reader splits them by wagon and sorts each by time_utc.
 -- Parameters: $wagon_ids (a list), $revision.
 SELECT
-    wagon_id,
+    CAST(list_position($wagon_ids, wagon_id) AS INTEGER) AS wagon_ix,
     time_utc,
     coalesce(smoothed_contact_mean_c, contact_mean_c)                AS contact_mean_c,
     coalesce(smoothed_contact_mean_lo_c, contact_mean_lo_c)          AS contact_mean_lo_c,

@@ -1,0 +1,19 @@
+-- The samples of several wagons at once (a chunk of the flags' partitions), as
+-- q_simulation_chunk_samples.sql reads them but for the wagon: wagon_ix, its 1-based position
+-- in $wagon_ids, instead of its name (4 bytes a row instead of the name's string: the
+-- strings cost the writer about a third of reading the chunk, and their bytes crossed to
+-- the worker; the worker puts the names back, fleetbrake.flags.judge.chunk_tasks). In stored
+-- order: the reader splits them by wagon and sorts each by time_utc, file_id.
+-- Parameters: $wagon_ids (a list).
+SELECT
+    CAST(list_position($wagon_ids, wagon_id) AS INTEGER) AS wagon_ix,
+    CAST(file_id AS BIGINT)            AS file_id,
+    CAST(time_utc AS TIMESTAMP)        AS time_utc,
+    CAST(speed_kmh AS DOUBLE)          AS speed_kmh,
+    CAST(brake_pressure_bar AS DOUBLE) AS brake_pressure_bar,
+    CAST(block_temp_c AS DOUBLE)       AS block_temp_c,
+    CAST(block_temp_fault AS BOOLEAN)  AS block_temp_fault,
+    CAST(block_temp_raw_c AS DOUBLE)   AS block_temp_raw_c,
+    CAST(ambient_temp_c AS DOUBLE)     AS ambient_temp_c
+FROM samples
+WHERE list_contains($wagon_ids, wagon_id);
