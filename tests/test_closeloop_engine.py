@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import datetime as dt
 import shutil
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,6 +139,44 @@ def test_fit_data_predicts_what_predict_wagon_predicts(fleet: Fleet) -> None:
             )
     # one kernel call per span per evaluation (more for the fixed point)
     assert fitdata.kernel_calls() - calls >= len(EFFECT_SETS) * len(data.wagons)
+
+
+@pytest.mark.usefixtures("rom_env")
+def test_fit_data_on_threads_predicts_bit_for_bit_what_one_thread_does(
+    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Inside ``fitdata.parallel(2)`` an evaluation runs its spans on two threads (the chain
+    kernel releases the GIL): the same predictions, bit for bit, as one thread, a
+    state-dependent effect's warm-started fixed points included (each span's effect sets in
+    order on one thread), and the kernel calls counted alike."""
+    base, fit, loaded = fit_events(fleet)
+    serial = FitData.build(loaded, fit, fleet.simulation, base)
+    threaded = FitData.build(loaded, fit, fleet.simulation, base)
+    assert sum(len(w.spans) for w in threaded.wagons) >= 2
+    fade = [EffectSet((FrictionTemperature(fade_per_k=f),)) for f in (1.5e-3, 1.6e-3)]
+    sets = [*EFFECT_SETS, *fade]
+    calls = fitdata.kernel_calls()
+    expected = serial.predict_many(sets) + serial.predict_many(fade)
+    serial_calls = fitdata.kernel_calls() - calls
+    threads: set[str] = set()
+    run_span = FitData._run_span
+
+    def recorded(self: FitData, *args: Any) -> Any:
+        threads.add(threading.current_thread().name)
+        return run_span(self, *args)
+
+    monkeypatch.setattr(FitData, "_run_span", recorded)
+    calls = fitdata.kernel_calls()
+    with fitdata.parallel(2):
+        got = threaded.predict_many(sets) + threaded.predict_many(fade)
+    assert fitdata.kernel_calls() - calls == serial_calls
+    assert len(threads) == 2 and threading.current_thread().name not in threads
+    for a, b in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # outside it, one thread again
+    threads.clear()
+    threaded.predict(EFFECT_SETS[1])
+    assert threads == {threading.current_thread().name}
 
 
 @pytest.fixture

@@ -38,17 +38,22 @@ with ``predict_wagon`` itself, wagon by wagon, and read at the same seconds.
 
 A :class:`FitData` pickles without its models (a worker makes them, or reads them from the
 reduced-model cache, once per process): an engine's workers get the data once each
-(:func:`store` / :func:`stored`).
+(:func:`store` / :func:`stored`). Inside :func:`parallel` an evaluation runs its spans on
+threads of this process (the kernel releases the GIL; a span's effect sets in order on one
+thread: the same results bit for bit): the close loop's own process evaluates so while the
+engine's workers are idle (a single fit, the interval terms).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import math
 import pickle
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -80,6 +85,7 @@ from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 __all__ = [
     "FitData",
     "kernel_calls",
+    "parallel",
     "speed_noise_kmh",
     "store",
     "stored",
@@ -99,6 +105,43 @@ def kernel_calls() -> int:
     """Chain-kernel calls this process has made for fit data (spans simulated, those of
     ``predict_wagon`` where the kernel path cannot run included)."""
     return _KERNEL_CALLS[0]
+
+
+_POOL: list[ThreadPoolExecutor | None] = [None]
+"""The threads this process's evaluations split their spans across (None: one after
+another; :func:`parallel`)."""
+
+
+@contextlib.contextmanager
+def parallel(threads: int) -> Iterator[None]:
+    """Within it, each :meth:`FitData.predict_many` of this process runs its spans on
+    ``threads`` threads (the chain kernel releases the GIL; a span's effect sets stay in order
+    on one thread, so the results are those of one thread, bit for bit). For the process
+    that drives a close loop while the engine's workers are idle (a single fit, the interval
+    terms' evaluations); a worker evaluates on its one thread. ``threads <= 1``: no change."""
+    if threads <= 1 or _POOL[0] is not None:
+        yield
+        return
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="fitdata")
+    _POOL[0] = pool
+    try:
+        yield
+    finally:
+        _POOL[0] = None
+        pool.shutdown(wait=True)
+
+
+def _run_all(units: Sequence[Callable[[], None]]) -> None:
+    """Run ``units`` (independent, each writing its own part of the output) on the threads
+    of :func:`parallel`, or one after another outside it; the first error raised."""
+    pool = _POOL[0]
+    if pool is None or len(units) < 2:
+        for unit in units:
+            unit()
+        return
+    futures = [pool.submit(unit) for unit in units]
+    for future in futures:
+        future.result()
 
 
 FIXED_POINT_TOL_K = 1.0e-4
@@ -543,21 +586,54 @@ class FitData:
         return [self.measured_c - p for p in self.predict_many(effect_sets)]
 
     def predict_many(self, effect_sets: Sequence[EffectSet]) -> list[FloatArray]:
+        """The predictions of each effect set (:meth:`predict`). Each span (each wagon the
+        kernel path cannot run) is a unit of its own, run over the effect sets in order; the
+        units on the threads of :func:`parallel` when inside it, the longest chains first."""
         out = [np.full(self.seconds, np.nan) for _ in effect_sets]
         self.evaluations += len(effect_sets)
+        units: list[tuple[int, Callable[[], None]]] = []
         for w in self.wagons:
             model = _model(w.wagon, self.base.solver, self.base.refinement)
-            for i, effects in enumerate(effect_sets):
-                target = out[i][w.start : w.stop]
-                if w.batched and isinstance(model, ReducedModel):
-                    at = 0
-                    for span in w.spans:
-                        values = self._run_span(span, model, effects)
-                        target[at : at + values.size] = values
-                        at += values.size
-                else:
-                    target[:] = self._reference(w, model, effects)
+            if w.batched and isinstance(model, ReducedModel):
+                at = w.start
+                for span in w.spans:
+                    size = int(span.select.size)
+                    units.append(
+                        (
+                            int(span.gather.size),
+                            self._span_unit(span, model, effect_sets, out, at, at + size),
+                        )
+                    )
+                    at += size
+            else:
+                units.append((w.stop - w.start, self._reference_unit(w, model, effect_sets, out)))
+        units.sort(key=lambda unit: -unit[0])
+        _run_all([unit for _, unit in units])
         return out
+
+    def _span_unit(
+        self,
+        span: _Span,
+        model: ReducedModel,
+        effect_sets: Sequence[EffectSet],
+        out: list[FloatArray],
+        start: int,
+        stop: int,
+    ) -> Callable[[], None]:
+        def run() -> None:
+            for i, effects in enumerate(effect_sets):
+                out[i][start:stop] = self._run_span(span, model, effects)
+
+        return run
+
+    def _reference_unit(
+        self, w: _Wagon, model: Model, effect_sets: Sequence[EffectSet], out: list[FloatArray]
+    ) -> Callable[[], None]:
+        def run() -> None:
+            for i, effects in enumerate(effect_sets):
+                out[i][w.start : w.stop] = self._reference(w, model, effects)
+
+        return run
 
     def _run_span(self, span: _Span, model: ReducedModel, effects: EffectSet) -> FloatArray:
         """The span's chain with ``effects``, in one kernel call; the predictions at its

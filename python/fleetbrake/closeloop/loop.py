@@ -936,8 +936,13 @@ def close_loop(
     clock = time.perf_counter()
     calls = fitdata.kernel_calls()
     workers = _Workers(engine)
+    # the evaluations made in this process (a single fit, the outliers, the holdout, the
+    # input term) split their spans across as many threads as the engine has workers, which
+    # are idle then (but for the coarse fits beside the re-flag refit); the same results
+    threads = engine.workers if isinstance(engine, LocalEngine) else 1
     try:
-        report = _close_loop(wh, config, engine, workers)
+        with fitdata.parallel(threads):
+            report = _close_loop(wh, config, engine, workers)
     finally:
         workers.close()
     _judge_on_report(wh, report, config)
