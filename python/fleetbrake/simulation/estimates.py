@@ -717,7 +717,11 @@ def fit_wagon_noise(task: NoiseFitTask) -> WagonNoiseFit | None:
     contact = None
     if rev.effects.state_dependent:  # the fade evaluated on a first estimate's contact
         # (its filtered contact: the passes of estimate_contact unsmoothed, 2.4 times cheaper)
-        start = EstimatorNoise(sigma_v, config.power_noise_w_per_sqrt_s)
+        start = dataclasses.replace(
+            config.estimator.noise,
+            measurement_k=sigma_v,
+            power_w_per_sqrt_s=config.power_noise_w_per_sqrt_s,
+        )
         first = _estimate(wagon, series, rev, config, start, smooth=False)
         contact = None if first is None else first.contact_mean_c
     problem = prepare(
