@@ -180,7 +180,8 @@ NOT_MET_RMSE = (
     "gave 0.108 / 0.0397 K against 0.0389; docs/estimator.md, sessions 8-11. The braking's "
     "power as a state (brake_power_w_per_sqrt_s 0.3, tau_b 0, sigma_q 0.03, sigma_o 1.5, lead "
     "120 s, off 1 sigma) meets it on seeds 3, 4 and 5 (0.0283 against 0.0294 K on seed 3) "
-    "but runs at 0.40x the defaults' speed: an option, docs/estimator.md, session 12"
+    "but runs at 0.40x the defaults' speed: an option, measured whole in docs/estimator.md, "
+    "session 13 (the accurate setting)"
 )
 NOT_MET_BAND = (
     "issue 14's band bar (90-99 %) is not met by the defaults on fleets written at the "
@@ -190,7 +191,8 @@ NOT_MET_BAND = (
     "against the 0.2 writer's mesh error (sigma_q 0.3 W/s^0.5, sigma_o 3 mK/s^0.5, median "
     "half-width 0.20 K) is too loose for a world the reduced model follows within 0.01 K at "
     "the seat; docs/estimator.md, session 11 (second). The session-12 option (the braking's "
-    "power as a state) gives 0.989 / 0.988 over normal operation, but at 0.40x the speed"
+    "power as a state) gives 0.989 / 0.988 over normal operation, but at 0.40x the speed "
+    "(docs/estimator.md, session 13: the accurate setting)"
 )
 
 
