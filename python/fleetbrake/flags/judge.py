@@ -55,7 +55,6 @@ from dataclasses import dataclass
 import numpy as np
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
-import pyarrow.compute as pc  # type: ignore[import-untyped]
 
 from fleetbrake.errors import FleetbrakeError
 from fleetbrake.flags.brakes import find_dragging, find_weak
@@ -100,6 +99,7 @@ from fleetbrake.simulation.store import (
     StoredTimeline,
     chunk_table,
     data_keys,
+    named,
     sample_parts,
     sample_rows,
     simulated_wagons,
@@ -496,7 +496,7 @@ class _FlagHead:
 class FlagChunk:
     """Several wagons' partitions of the flags read together, one Arrow table per table with
     a ``wagon_id`` column, or for the four large ones ``wagon_ix`` (``q_*_chunk_*.sql``, in
-    stored order; :func:`_named`): :func:`chunk_tasks` cuts
+    stored order; :func:`~fleetbrake.simulation.store.named`): :func:`chunk_tasks` cuts
     it into the wagons' :class:`FlagTask` (the same tables :func:`flag_task` reads), which
     :func:`judge_chunk` judges one by one. Picklable: an engine ships it to a worker."""
 
@@ -533,7 +533,7 @@ def flag_chunk(
         revision=revision_name,
         config=config,
         rev=rev,
-        samples=chunk_table(wh, "q_flags_chunk_samples", ids),
+        samples=chunk_table(wh, "q_simulation_chunk_samples", ids),
         events=chunk_table(wh, "q_simulation_chunk_events", ids),
         segments=chunk_table(wh, "q_simulation_chunk_timeline_segments", current, **timed),
         timeline=chunk_table(wh, "q_flags_chunk_timeline", current, **timed),
@@ -555,29 +555,18 @@ def _read_wagons(heads: Sequence[_FlagHead]) -> tuple[list[str], list[str], list
     return ids, current, estimated
 
 
-def _named(table: pa.Table, wagon_ids: Sequence[str]) -> pa.Table:
-    """A chunk table read with ``wagon_ix`` (its wagon's 1-based position in ``wagon_ids``,
-    ``q_flags_chunk_*.sql``) with the wagon's name as ``wagon_id`` instead, first, as the
-    per-wagon cut (:func:`~fleetbrake.simulation.store.wagon_parts`) reads it. The writer
-    reads and ships the 4-byte position instead of the name (a third of its processor time
-    reading the chunk, and a sixth of the bytes shipped: ``docs/benchmarks.md``); the
-    worker makes the names here, for a millisecond a chunk."""
-    names = pc.take(pa.array(list(wagon_ids), pa.string()), pc.subtract(table["wagon_ix"], 1))
-    return table.drop_columns(["wagon_ix"]).add_column(0, "wagon_id", names)
-
-
 def chunk_tasks(chunk: FlagChunk) -> list[FlagTask]:
     """The chunk cut into its wagons' tasks: each wagon's rows sorted as the per-wagon
     queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`), so each task is the
     one :func:`flag_task` reads (a test compares them)."""
     ids, simulated, estimated = _read_wagons(chunk.heads)
-    samples = sample_parts(_named(chunk.samples, ids), ids)
+    samples = sample_parts(chunk.samples, ids)
     events = wagon_parts(chunk.events, ids, ["start_utc"])
     segments = wagon_parts(chunk.segments, ids, ["start_utc"])
-    timeline = wagon_parts(_named(chunk.timeline, simulated), ids, ["time_utc"])
-    predictions = wagon_parts(_named(chunk.predictions, simulated), ids, ["event_id", "time_utc"])
+    timeline = wagon_parts(named(chunk.timeline, simulated), ids, ["time_utc"])
+    predictions = wagon_parts(named(chunk.predictions, simulated), ids, ["event_id", "time_utc"])
     estimates = (
-        wagon_parts(_named(chunk.estimates, estimated), ids, ["time_utc"])
+        wagon_parts(named(chunk.estimates, estimated), ids, ["time_utc"])
         if chunk.estimates is not None
         else {}
     )

@@ -550,7 +550,7 @@ def estimate_wagon(task: EstimateTask) -> EstimateResult:
 @dataclass(frozen=True)
 class EstimateChunk:
     """Several wagons' partitions of the estimation stage read together: the chunk's samples
-    as one Arrow table with ``wagon_id`` and ``file_id`` (``q_simulation_chunk_samples.sql``,
+    as one Arrow table with ``wagon_ix`` and ``file_id`` (``q_simulation_chunk_samples.sql``,
     in stored order), and each wagon's entry and keys. :func:`chunk_tasks` cuts it into the
     wagons' :class:`EstimateTask` (the tables :func:`estimate_task` reads: a test compares
     them), which :func:`estimate_chunk` estimates one by one. Picklable."""

@@ -43,6 +43,7 @@ __all__ = [
     "data_keys",
     "forget_wagon",
     "load_timeline",
+    "named",
     "replace_wagon",
     "replace_wagons",
     "sample_parts",
@@ -213,7 +214,7 @@ def chunk_name(wagon_ids: Sequence[str]) -> str:
 
 def chunk_table(wh: Warehouse, name: str, wagon_ids: Sequence[str], **params: str) -> pa.Table:
     """The rows of ``wagon_ids`` that the chunk query ``name`` (``q_*_chunk_*.sql``, with a
-    ``wagon_id`` column) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
+    ``wagon_id`` column, or ``wagon_ix``: :func:`named`) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
     values: dict[str, object] = {"wagon_ids": list(wagon_ids), **params}
     return wh.con.sql(sql(name), params=values).to_arrow_table()
 
@@ -257,11 +258,24 @@ def wagon_parts(
     return parts
 
 
+def named(table: pa.Table, wagon_ids: Sequence[str]) -> pa.Table:
+    """A chunk table read with ``wagon_ix`` (its wagon's 1-based position in ``wagon_ids``,
+    the list the query was given: ``q_simulation_chunk_samples.sql``, the flags' large chunk
+    queries) with the wagon's name as ``wagon_id`` instead, first, as :func:`wagon_parts`
+    cuts it. The parent reads and ships the 4-byte position instead of the name (a third of
+    its processor time reading the chunk, and a sixth of the bytes shipped:
+    ``docs/benchmarks.md``, session 13); the worker makes the names here, for a millisecond
+    a chunk."""
+    names = pc.take(pa.array(list(wagon_ids), pa.string()), pc.subtract(table["wagon_ix"], 1))
+    return table.drop_columns(["wagon_ix"]).add_column(0, "wagon_id", names)
+
+
 def sample_parts(table: pa.Table, wagon_ids: Sequence[str]) -> dict[str, pa.Table]:
-    """Each wagon's samples of a chunk read by ``q_simulation_chunk_samples.sql``, in the order
-    of the per-wagon query (time, then file) and without ``file_id``: :func:`wagon_parts` as
-    every stage that reads samples by chunks cuts them."""
-    return wagon_parts(table, wagon_ids, ["time_utc", "file_id"], ["file_id"])
+    """Each wagon's samples of a chunk read by ``q_simulation_chunk_samples.sql`` for
+    ``wagon_ids`` (with ``wagon_ix``: :func:`named`), in the order of the per-wagon query
+    (time, then file) and without ``file_id``: :func:`wagon_parts` as every stage that reads
+    samples by chunks cuts them."""
+    return wagon_parts(named(table, wagon_ids), wagon_ids, ["time_utc", "file_id"], ["file_id"])
 
 
 def _increasing(column: pa.ChunkedArray) -> bool:

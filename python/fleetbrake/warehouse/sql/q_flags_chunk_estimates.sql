@@ -1,6 +1,6 @@
 -- Several wagons' virtual-sensor estimates of revision $revision (a chunk), as
 -- q_flags_estimates.sql reads one wagon's (the same columns: a test compares them), with
--- wagon_ix (the wagon's 1-based position in $wagon_ids: q_flags_chunk_samples.sql says why
+-- wagon_ix (the wagon's 1-based position in $wagon_ids: q_simulation_chunk_samples.sql says why
 -- not its name); the reader splits them by wagon and sorts each by time_utc.
 -- Parameters: $wagon_ids (a list), $revision.
 SELECT

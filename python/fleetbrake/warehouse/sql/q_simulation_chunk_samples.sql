@@ -1,11 +1,14 @@
 -- The samples of several wagons at once (a chunk of partitions), as
--- q_simulation_wagon_samples.sql reads one wagon's, with wagon_id and file_id and in stored
+-- q_simulation_wagon_samples.sql reads one wagon's, with file_id and, for the wagon, wagon_ix:
+-- its 1-based position in $wagon_ids, not its name (4 bytes a row instead of the name's
+-- string: the strings cost the writer about a third of reading a chunk, and their bytes
+-- crossed to the worker; fleetbrake.simulation.store.named puts the names back). In stored
 -- order: the reader splits them by wagon and sorts each by time_utc, file_id
--- (fleetbrake.simulation.store.wagon_part). One query for a chunk reads each stored row group
--- once, where one query per wagon decompressed the row groups it shares with its neighbours
--- again for each. Parameters: $wagon_ids (a list).
+-- (fleetbrake.simulation.store.sample_parts). One query for a chunk reads each stored row
+-- group once, where one query per wagon decompressed the row groups it shares with its
+-- neighbours again for each. Parameters: $wagon_ids (a list).
 SELECT
-    CAST(wagon_id AS VARCHAR)          AS wagon_id,
+    CAST(list_position($wagon_ids, wagon_id) AS INTEGER) AS wagon_ix,
     CAST(file_id AS BIGINT)            AS file_id,
     CAST(time_utc AS TIMESTAMP)        AS time_utc,
     CAST(speed_kmh AS DOUBLE)          AS speed_kmh,
