@@ -191,6 +191,11 @@ built extension is not hashed: a run uses the one built from these sources."""
 WRITER_SOURCES_EXCLUDED: frozenset[str] = frozenset({"estimator.rs"})
 """Files that do not write a fleet: the Kalman filter's kernel and its bindings (the
 pipeline's estimator, not the generator's)."""
+FULL_WRITER_EXCLUDED: frozenset[str] = frozenset({"rom.rs"})
+"""Files that do not write a fleet of the full model (``solver="full"``, every acceptance
+fleet): the reduced model's Rust and its bindings (``_ext.rom_*``), which the full model's
+writer never calls (``test_the_full_writer_calls_no_reduced_model_rust`` writes a fleet with
+them made to raise). A fleet of the reduced model (``solver="rom"``) hashes them."""
 WRITER_FUNCTIONS: tuple[Callable[..., Any], ...] = (
     candidate_laws,
     draw_case_effect,
@@ -200,9 +205,13 @@ WRITER_FUNCTIONS: tuple[Callable[..., Any], ...] = (
 """This module's writing part: its source is part of the writer's version."""
 
 
-def writer_source_files(sources: Sequence[str] = WRITER_SOURCES, root: Path = REPO) -> list[Path]:
-    """The files of ``sources`` (a directory: its ``.py`` and ``.rs`` files at any depth),
-    sorted; a source that does not exist is an error."""
+def writer_source_files(
+    sources: Sequence[str] = WRITER_SOURCES,
+    root: Path = REPO,
+    excluded: frozenset[str] = WRITER_SOURCES_EXCLUDED,
+) -> list[Path]:
+    """The files of ``sources`` (a directory: its ``.py`` and ``.rs`` files at any depth, but
+    those named in ``excluded``), sorted; a source that does not exist is an error."""
     files: list[Path] = []
     for name in sources:
         path = root / name
@@ -212,9 +221,7 @@ def writer_source_files(sources: Sequence[str] = WRITER_SOURCES, root: Path = RE
             files += [
                 f
                 for f in path.rglob("*")
-                if f.suffix in {".py", ".rs"}
-                and f.is_file()
-                and f.name not in WRITER_SOURCES_EXCLUDED
+                if f.suffix in {".py", ".rs"} and f.is_file() and f.name not in excluded
             ]
         else:
             raise FileNotFoundError(f"{path}: a writer source that does not exist")
@@ -231,7 +238,8 @@ def writer_version(
     ``refinement``, the ``config`` (seed, drawn effect and its parameters, everything else),
     the source of this module's writing part (``WRITER_FUNCTIONS``) and the content of every
     writer source file (:func:`writer_source_files`, by its path under ``root``). Any change
-    to one of them gives another version, so a changed writer never reuses a stale fleet."""
+    to one of them gives another version, so a changed writer never reuses a stale fleet.
+    A fleet of the full model leaves out ``FULL_WRITER_EXCLUDED`` (it never runs them)."""
     digest = hashlib.sha256()
 
     def put(label: str, data: bytes) -> None:
@@ -242,7 +250,10 @@ def writer_version(
     put("config", json.dumps(config.to_dict(), sort_keys=True, default=str).encode())
     for function in WRITER_FUNCTIONS:
         put(function.__name__, inspect.getsource(function).encode())
-    for path in writer_source_files(sources, root):
+    excluded = WRITER_SOURCES_EXCLUDED
+    if config.solver == "full":
+        excluded |= FULL_WRITER_EXCLUDED
+    for path in writer_source_files(sources, root, excluded):
         put(path.relative_to(root).as_posix(), path.read_bytes())
     return digest.hexdigest()
 

@@ -25,6 +25,7 @@ from typing import Any
 import pytest
 
 import acceptance_fleets as af
+from fleetbrake import _ext
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.rom import FullModelRunner
 from fleetbrake.synth.config import draw_effect
@@ -56,6 +57,7 @@ def sources(tmp_path: Path) -> Iterator[tuple[Path, list[str]]]:
     (root / "pkg").mkdir(parents=True)
     (root / "pkg" / "a.py").write_text("A = 1\n")
     (root / "pkg" / "estimator.rs").write_text("// not the writer\n")
+    (root / "pkg" / "rom.rs").write_text("// not the full model's writer\n")
     (root / "b.rs").write_text("fn b() {}\n")
     yield root, ["pkg", "b.rs"]
 
@@ -94,6 +96,12 @@ def test_the_writer_version_changes_with_each_of_its_inputs(
     # the estimator does not write fleets: its source is not part of the version
     (root / "pkg" / "estimator.rs").write_text("// changed\n")
     assert af.writer_version(config, 0.6, names, root) == changed["a new source file"]
+    # the reduced model's Rust does not write a fleet of the full model, but one of its own
+    reduced = dataclasses.replace(config, solver="rom")
+    before = af.writer_version(reduced, 0.6, names, root)
+    (root / "pkg" / "rom.rs").write_text("// changed\n")
+    assert af.writer_version(config, 0.6, names, root) == changed["a new source file"]
+    assert af.writer_version(reduced, 0.6, names, root) != before
     # every acceptance case has its own version, and the repository's sources all exist
     real = {c.name: af.writer_version(af.synth_config(c)) for c in af.CASES}
     assert len(set(real.values())) == len(af.CASES)
@@ -212,3 +220,28 @@ def test_the_writer_sources_cover_every_module_that_runs_while_writing(
     assert ran_here, "the profile saw no fleetbrake module"
     hashed = {p.resolve() for p in af.writer_source_files()}
     assert sorted(map(str, ran_here - hashed)) == []
+
+
+def _reduced_model_rust_raises(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Every binding of the reduced model's Rust (``_ext.rom_*``) made to raise; their names."""
+    names = sorted(n for n in dir(_ext) if n.startswith("rom_"))
+
+    def forbidden(*_args: object, **_kwargs: object) -> object:
+        raise AssertionError("the reduced model's Rust was called")
+
+    for name in names:
+        monkeypatch.setattr(_ext, name, forbidden)
+    return names
+
+
+def test_the_full_writer_calls_no_reduced_model_rust(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Why ``FULL_WRITER_EXCLUDED`` (``rom.rs``) may be left out of a full-model fleet's
+    version: with every ``_ext.rom_*`` raising, the full model writes its fleet, while a fleet
+    of the reduced model cannot be written (the stubs are where the writer would call them)."""
+    assert _reduced_model_rust_raises(monkeypatch)
+    truth = generate_fleet(tmp_path / "full", tiny_config(), rom=tiny_writer)
+    assert truth.wagons and truth.files and truth.rom["solver"] == "full"
+    with pytest.raises(AssertionError, match="reduced model's Rust was called"):
+        generate_fleet(tmp_path / "rom", dataclasses.replace(tiny_config(), solver="rom"))
