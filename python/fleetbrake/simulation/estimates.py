@@ -454,51 +454,67 @@ def _frame(table: pa.Table) -> pl.DataFrame:
     return frame
 
 
+_ROWS_SCHEMA = pa.schema(
+    [
+        (
+            name,
+            pa.float64()
+            if kind == pl.Float64()
+            else pa.timestamp("us")
+            if kind == pl.Datetime("us")
+            else pa.large_string(),
+        )
+        for name, kind in ESTIMATE_SCHEMA.items()
+    ]
+)
+"""The Arrow schema of :attr:`EstimateResult.rows`: :data:`ESTIMATE_SCHEMA`'s columns, the
+strings large (as polars hands them over, and as they were until session 13)."""
+
+
 def _rows(
     wagon_id: str, revision: str, t0: dt.datetime | None, est: ContactEstimate | None
-) -> pl.DataFrame:
+) -> pa.Table:
+    """The wagon's rows of ``contact_estimates`` as Arrow, built from the estimate's arrays
+    (a NaN is stored as null; a column not smoothed is null throughout)."""
     if est is None or t0 is None or est.time_s.size == 0:
-        return pl.DataFrame(schema=ESTIMATE_SCHEMA)
+        return _ROWS_SCHEMA.empty_table()
+    n = est.time_s.size
     times = np.datetime64(t0, "us") + (np.rint(est.time_s).astype(np.int64) * 1_000_000).astype(
         "timedelta64[us]"
     )
-
-    def smoothed(values: np.ndarray | None) -> np.ndarray:
-        return np.full(est.time_s.size, np.nan) if values is None else values
-
-    columns: dict[str, np.ndarray] = {
-        "time_utc": times,
+    columns: dict[str, np.ndarray | None] = {
         "contact_mean_c": est.contact_mean_c,
         "contact_mean_lo_c": est.contact_mean_lo_c,
         "contact_mean_hi_c": est.contact_mean_hi_c,
         "contact_max_c": est.contact_max_c,
         "contact_max_hi_c": est.contact_max_hi_c,
-        "smoothed_contact_mean_c": smoothed(est.smoothed_contact_mean_c),
-        "smoothed_contact_mean_lo_c": smoothed(est.smoothed_contact_mean_lo_c),
-        "smoothed_contact_mean_hi_c": smoothed(est.smoothed_contact_mean_hi_c),
+        "smoothed_contact_mean_c": est.smoothed_contact_mean_c,
+        "smoothed_contact_mean_lo_c": est.smoothed_contact_mean_lo_c,
+        "smoothed_contact_mean_hi_c": est.smoothed_contact_mean_hi_c,
         "unexplained_power_w": est.unexplained_power_w,
         "unexplained_power_lo_w": est.unexplained_power_lo_w,
         "unexplained_power_hi_w": est.unexplained_power_hi_w,
         "innovation_k": est.innovation_k,
         "innovation_sd_k": np.sqrt(est.innovation_var_k2),
-        "smoothed_contact_max_c": smoothed(est.smoothed_contact_max_c),
-        "smoothed_contact_max_hi_c": smoothed(est.smoothed_contact_max_hi_c),
-        "smoothed_unexplained_power_w": smoothed(est.smoothed_unexplained_power_w),
-        "smoothed_unexplained_power_lo_w": smoothed(est.smoothed_unexplained_power_lo_w),
-        "smoothed_unexplained_power_hi_w": smoothed(est.smoothed_unexplained_power_hi_w),
+        "smoothed_contact_max_c": est.smoothed_contact_max_c,
+        "smoothed_contact_max_hi_c": est.smoothed_contact_max_hi_c,
+        "smoothed_unexplained_power_w": est.smoothed_unexplained_power_w,
+        "smoothed_unexplained_power_lo_w": est.smoothed_unexplained_power_lo_w,
+        "smoothed_unexplained_power_hi_w": est.smoothed_unexplained_power_hi_w,
     }
-    frame = pl.DataFrame(
-        {
-            name: pl.Series(name, values, dtype=ESTIMATE_SCHEMA[name])
-            for name, values in columns.items()
-        }
-    )
-    floats = [name for name, kind in ESTIMATE_SCHEMA.items() if kind == pl.Float64()]
-    return frame.with_columns(
-        pl.lit(wagon_id, dtype=pl.String).alias("wagon_id"),
-        pl.lit(revision, dtype=pl.String).alias("model_revision"),
-        *(pl.col(name).fill_nan(None) for name in floats),
-    ).select(list(ESTIMATE_SCHEMA))
+
+    def floats(values: np.ndarray | None) -> pa.Array:
+        if values is None:
+            return pa.nulls(n, pa.float64())
+        return pa.array(values, pa.float64(), from_pandas=True)  # NaN: null
+
+    arrays = {
+        "wagon_id": pa.repeat(pa.scalar(wagon_id, pa.large_string()), n),
+        "time_utc": pa.array(times, pa.timestamp("us")),
+        "model_revision": pa.repeat(pa.scalar(revision, pa.large_string()), n),
+        **{name: floats(values) for name, values in columns.items()},
+    }
+    return pa.table([arrays[name] for name in _ROWS_SCHEMA.names], schema=_ROWS_SCHEMA)
 
 
 def _estimate(
@@ -535,13 +551,12 @@ def estimate_wagon(task: EstimateTask) -> EstimateResult:
     )
     noise = wagon_noise(series, task.config, task.power_noise_w_per_sqrt_s)
     est = _estimate(wagon, series, task.rev, task.config, noise)
-    rows = _rows(wagon.wagon_id, task.rev.name, t0, est)
     return EstimateResult(
         wagon_id=wagon.wagon_id,
         revision=task.rev.name,
         data_key=task.data_key,
         model_key=task.model_key,
-        rows=rows.to_arrow(),
+        rows=_rows(wagon.wagon_id, task.rev.name, t0, est),
         frozen_fraction=0.0 if est is None else est.frozen_fraction,
         noise=None if est is None else noise,
     )
