@@ -149,6 +149,7 @@ def test_run_prints_a_json_summary_of_what_it_stored(fleet: Fleet) -> None:
     assert summary["events_simulated"] == simulated
     assert summary["prediction_rows"] == predictions
     assert summary["flags"] == flags
+    assert summary["wagons_judged"] > 0
     assert set(summary["stage_s"]) == {
         "ingest",
         "write",
@@ -168,6 +169,9 @@ def test_a_second_run_adds_nothing(fleet: Fleet, cli: CliRunner) -> None:
     assert summary["files"]["ingested"] == summary["files"]["quarantined"] == 0
     assert summary["rows"] == summary["events_simulated"] == summary["prediction_rows"] == 0
     assert summary["events"] == _last_json(fleet.first_run)["events"]
+    # no wagon judged again, and the fleet's flags still reported
+    assert summary["wagons_judged"] == 0
+    assert summary["flags"] == _last_json(fleet.first_run)["flags"]
 
 
 # --------------------------------------------------------------------------------------------

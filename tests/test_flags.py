@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import itertools
+import os
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -141,6 +142,39 @@ def test_load_flag_config_reads_the_keys_a_file_sets(tmp_path: Path) -> None:
     empty = tmp_path / "empty.toml"
     empty.write_text("", encoding="utf-8")
     assert load_flag_config(empty) == FlagConfig()
+
+
+def test_config_key_is_its_content_alone(tmp_path: Path) -> None:
+    """``FlagConfig.key()`` (stored with each wagon's flags in ``flagged_wagons``) is the
+    same for the same thresholds however they were given, another for any other threshold,
+    and stable across processes (a hash of the names and values, not Python's ``hash``)."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "flags.toml"
+    path.write_text("contact_limit_c = 400\n", encoding="utf-8")  # the default, as an integer
+    key = FlagConfig().key()
+    assert len(key) == 64 and load_flag_config(path).key() == key
+    assert FlagConfig(contact_limit_c=400).key() == key
+    changed = {
+        FlagConfig(contact_limit_c=380.0).key(),
+        FlagConfig(frozen_min_s=121).key(),
+        FlagConfig(estimator=False).key(),
+        FlagConfig().scaled(1.0).key(),
+    }
+    assert key not in changed and len(changed) == 4
+    other_process = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from fleetbrake.flags import FlagConfig; print(FlagConfig().key())",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONHASHSEED": "12345"},
+    )
+    assert other_process.stdout.strip() == key
 
 
 @pytest.mark.parametrize(

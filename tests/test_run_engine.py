@@ -1,10 +1,12 @@
 """``fleetbrake run`` through the local engine's worker processes gives the tables of a run
-in one process; a second run adds nothing; a late file changes only its wagon."""
+in one process; a second run adds nothing; a late file changes only its wagon; the flags of
+a run are judged only for the wagons whose flags are out of date."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -43,7 +45,14 @@ def fleet(
         yield root
 
 
-def _run(fleet: Path, db: Path, engine: object, refinement: float, cache: Path) -> object:
+def _run(
+    fleet: Path,
+    db: Path,
+    engine: object,
+    refinement: float,
+    cache: Path,
+    flag_config_path: Path | None = None,
+) -> Any:
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FLEETBRAKE_CACHE_DIR", str(cache))
         return run_fleet(
@@ -52,7 +61,37 @@ def _run(fleet: Path, db: Path, engine: object, refinement: float, cache: Path) 
             simulation=SimulationConfig(refinement=refinement),
             progress=False,
             engine=engine,  # type: ignore[arg-type]
+            flag_config_path=flag_config_path,
         )
+
+
+def _flag_tables(db: Path) -> dict[str, list[tuple[object, ...]]]:
+    """Every column of ``flags`` and ``flagged_wagons``, sorted: when each wagon was judged
+    and each flag detected included."""
+    import duckdb
+
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return {
+            table: sorted(con.execute(f"SELECT * FROM {table}").fetchall(), key=repr)
+            for table in ("flags", "flagged_wagons")
+        }
+    finally:
+        con.close()
+
+
+def _flags(db: Path) -> list[tuple[object, ...]]:
+    """The flags as judged (``detected_utc`` left out: when, not what)."""
+    import duckdb
+
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return con.execute(
+            "SELECT flag_id, wagon_id, event_id, kind, severity, start_utc, end_utc, evidence "
+            "FROM flags ORDER BY flag_id"
+        ).fetchall()
+    finally:
+        con.close()
 
 
 def test_local_engine_run_equals_inline_run_and_a_second_run_adds_nothing(
@@ -88,13 +127,21 @@ def test_a_late_file_through_the_local_engine_changes_only_its_wagon(
     db = tmp_path / "fleet.duckdb"
     wagon = late.parent.name
     with LocalEngine(2) as engine:
-        _run(copy, db, engine, rom_refinement, rom_cache_dir)
+        first = _run(copy, db, engine, rom_refinement, rom_cache_dir)
         before = snapshot(db, ignore=("updated_utc",))
+        judged_before = _flag_tables(db)
         held.rename(late)
         report = _run(copy, db, engine, rom_refinement, rom_cache_dir)
-    assert [r.path for r in report.ingest.results] == [  # type: ignore[attr-defined]
-        late.relative_to(copy).as_posix()
-    ]
+        fresh_db = tmp_path / "fresh.duckdb"
+        _run(copy, fresh_db, engine, rom_refinement, rom_cache_dir)
+    assert [r.path for r in report.ingest.results] == [late.relative_to(copy).as_posix()]
+    # the late file's wagon alone judged again; the others' flags and judgements untouched
+    # (when they were judged included), and the flags those of a fresh run over all files
+    assert len(first.flags.wagons) > 1 and report.flags.wagons == [wagon]
+    judged_after = _flag_tables(db)
+    for other in sorted(set(first.flags.wagons) - {wagon}):
+        assert _flag_tables_of(judged_after, other) == _flag_tables_of(judged_before, other)
+    assert _flags(db) == _flags(fresh_db) and _flags(db)
     after = snapshot(db, ignore=("updated_utc",))
     con = duckdb.connect(str(db), read_only=True)
     try:
@@ -212,3 +259,68 @@ def test_large_arrow_tables_cross_to_the_workers_as_mapped_files_and_leave_nothi
     assert [t.equals(u) for t, u in zip(back, [table, small, table], strict=True)] == [True] * 3
     assert not Path(directory).exists()
     assert local._ship_dir is None  # pickled as usual again
+
+
+def test_a_whole_run_judges_only_the_wagons_whose_flags_are_out_of_date(
+    fleet: Path, tmp_path: Path, rom_refinement: float, rom_cache_dir: Path
+) -> None:
+    """A whole ``run`` judges the flags of the wagons whose flags are out of date, the
+    others' rows stay as they are: a second run judges none and leaves ``flags`` and
+    ``flagged_wagons`` identical; a wagon whose flags were removed is judged again alone;
+    other thresholds judge every wagon (once); a warehouse from before the configuration was
+    recorded has every wagon judged once."""
+    import duckdb
+
+    db = tmp_path / "fleet.duckdb"
+
+    def run(flag_config_path: Path | None = None) -> list[str]:
+        report = _run(fleet, db, engine, rom_refinement, rom_cache_dir, flag_config_path)
+        return list(report.flags.wagons)
+
+    def execute(statement: str, values: dict[str, object] | None = None) -> None:
+        con = duckdb.connect(str(db))
+        try:
+            con.execute(statement, values or {})
+        finally:
+            con.close()
+
+    with InlineEngine() as engine:
+        every = run()
+        assert len(every) == 3
+        judged = _flag_tables(db)
+        assert judged["flags"] and len(judged["flagged_wagons"]) == 3
+        assert run() == []  # nothing new: nothing judged, nothing rewritten
+        assert _flag_tables(db) == judged
+
+        flagged = str(judged["flags"][0][1])
+        execute("DELETE FROM flags WHERE wagon_id = $w", {"w": flagged})
+        assert run() == [flagged]  # its flags removed: judged again, alone
+        assert _flags(db) == [tuple(r[:8]) for r in judged["flags"]]
+        for other in sorted(set(every) - {flagged}):
+            assert _flag_tables_of(_flag_tables(db), other) == _flag_tables_of(judged, other)
+        assert run() == []
+
+        # a warehouse from before the flag configuration was recorded: judged once
+        execute(
+            "ALTER TABLE flagged_wagons DROP COLUMN config_key; "
+            "ALTER TABLE flagged_wagons DROP COLUMN flag_count"
+        )
+        assert run() == every
+        assert run() == []
+
+        thresholds = tmp_path / "flags.toml"
+        thresholds.write_text("contact_limit_c = 150.0\n", encoding="utf-8")
+        assert run(thresholds) == every  # other thresholds: every wagon judged
+        assert run(thresholds) == []
+        assert run() == every  # and back
+    assert _flags(db) == [tuple(r[:8]) for r in judged["flags"]]
+
+
+def _flag_tables_of(
+    tables: dict[str, list[tuple[object, ...]]], wagon: str
+) -> dict[str, list[tuple[object, ...]]]:
+    """``tables`` (:func:`_flag_tables`) cut to one wagon's rows."""
+    return {
+        "flags": [r for r in tables["flags"] if r[1] == wagon],
+        "flagged_wagons": [r for r in tables["flagged_wagons"] if r[0] == wagon],
+    }

@@ -24,7 +24,7 @@ from fleetbrake.simulation.predictions import (
 )
 
 if TYPE_CHECKING:
-    from fleetbrake.flags import FlagConfig, FlagReport
+    from fleetbrake.flags import Flag, FlagConfig, FlagReport
     from fleetbrake.fleet.registry import Registry
     from fleetbrake.ingest.files import IngestReport
     from fleetbrake.warehouse.connection import Warehouse
@@ -76,6 +76,10 @@ class RunReport:
     simulation: SimulationReport
     revision: str
     flags: FlagReport | None = None
+    """The flags stage: the wagons it judged and their flags."""
+    fleet_flags: list[Flag] | None = None
+    """After a whole run, every flag the fleet has (those judged now and those that stood:
+    a second run judges no wagon but still has them); None for a unit of ``watch``."""
     estimation: EstimationReport | None = None
     """The estimation stage (the virtual sensor, ``v_contact_estimates``)."""
     stage_s: dict[str, float] = field(default_factory=dict)
@@ -145,8 +149,11 @@ def run_fleet(
 
     ``files``: ingest only these paths (relative to ``fleet_dir``, as ``v_files.path``)
     instead of scanning ``logs/`` (a unit of ``fleetbrake watch``); the later stages are
-    the same as without it, but for the flags, which judge only the wagons the unit changed
-    (:func:`_unit_wagons`) instead of every wagon.
+    the same as without it.
+
+    The flags judge only the wagons whose flags are out of date (:func:`_wagons_to_judge`,
+    the same rule for a whole run and a unit of ``watch``): a second run over the same
+    directory judges none, a late file its wagon alone.
     """
     from fleetbrake.flags import FlagConfig, load_flag_config
     from fleetbrake.ingest.files import load_fleet_registry
@@ -181,24 +188,28 @@ def run_fleet(
     raise AssertionError("unreachable")  # ExitStack may swallow exceptions, for mypy
 
 
-def _unit_wagons(
+def _wagons_to_judge(
     wh: Warehouse,
     revision_name: str,
+    flag_config: FlagConfig,
     ingest: IngestReport,
     sim: SimulationReport,
     estimated: EstimationReport,
 ) -> list[str]:
-    """The wagons a unit of files must judge: those of its ingested files, those the
-    simulation and the estimation recomputed, and any whose flags are older than their data,
-    timeline or estimates (:func:`fleetbrake.flags.judge.stale_wagons`: a unit stopped
-    before its flags). A wagon's flags depend only on its own data and the revision, so the
-    others' stored flags stand (``fleetbrake watch``'s units judge these alone; a whole
-    ``run`` judges every wagon, with the flag thresholds it is given)."""
+    """The wagons whose flags a run (a whole ``run`` or a unit of ``fleetbrake watch``) must
+    judge: those of its ingested files, those the simulation and the estimation recomputed,
+    and any whose stored flags are out of date otherwise
+    (:func:`fleetbrake.flags.judge.stale_wagons`: never judged, judged before their data,
+    timeline or estimates were last written (a run stopped before its flags), with another
+    revision or other thresholds than ``flag_config``, or their flags removed since). A
+    wagon's flags depend only on its own data, its registry entry (a changed one
+    re-simulates the wagon; a removed one is not seen: ``docs/flags.md``), the revision and
+    the thresholds: no detector compares wagons, so the others' stored flags stand."""
     from fleetbrake.flags.judge import stale_wagons
 
     wagons = {r.wagon_id for r in ingest.ingested if r.wagon_id is not None}
     wagons |= set(sim.wagons_simulated) | set(estimated.wagons_estimated)
-    return sorted(wagons | set(stale_wagons(wh, revision_name)))
+    return sorted(wagons | set(stale_wagons(wh, revision_name, flag_config)))
 
 
 def _stages(
@@ -218,6 +229,7 @@ def _stages(
     import duckdb
 
     from fleetbrake.flags import raise_flags
+    from fleetbrake.flags.judge import stored_flags
     from fleetbrake.ingest.events import update_events
     from fleetbrake.ingest.files import ingest_fleet
     from fleetbrake.warehouse.connection import WarehouseError
@@ -253,9 +265,7 @@ def _stages(
                 rev.name,
                 flag_config,
                 engine=engine,
-                wagons=(
-                    None if files is None else _unit_wagons(wh, rev.name, ingest, sim, estimated)
-                ),
+                wagons=_wagons_to_judge(wh, rev.name, flag_config, ingest, sim, estimated),
             )
     except duckdb.Error as error:
         raise WarehouseError(f"{db_path}: {error}") from error
@@ -264,6 +274,7 @@ def _stages(
         simulation=sim,
         revision=rev.name,
         flags=flags,
+        fleet_flags=stored_flags(wh) if files is None else None,
         estimation=estimated,
         stage_s=dict(stage_s),
         engine=repr(engine),

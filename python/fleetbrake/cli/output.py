@@ -6,7 +6,11 @@
     {"command": "run", "revision": "declared",
      "files": {"seen": 12, "ingested": 10, "quarantined": 2}, "rows": 61785,
      "events": 35, "events_simulated": 35, "prediction_rows": 24500,
-     "flags": {"sensor_fault": 2, "weak_brake": 1}, "stage_s": {"ingest": 0.8, ...}}
+     "flags": {"sensor_fault": 2, "weak_brake": 1}, "wagons_judged": 3,
+     "stage_s": {"ingest": 0.8, ...}}
+
+``flags`` counts the fleet's flags after a whole run (a second run judges no wagon,
+``wagons_judged`` 0, and still counts them), a unit of ``watch``'s own wagons' flags.
 
 ``close-loop``'s summary::
 
@@ -40,7 +44,15 @@ def echo_json(summary: Mapping[str, Any]) -> None:
 
 
 def _flags(report: RunReport) -> list[Flag]:
+    """The flags a run reports: after a whole run the fleet's (judged now or standing), after
+    a unit of ``watch`` the flags of the wagons it judged."""
+    if report.fleet_flags is not None:
+        return list(report.fleet_flags)
     return list(report.flags.flags) if report.flags is not None else []
+
+
+def _judged(report: RunReport) -> int:
+    return len(report.flags.wagons) if report.flags is not None else 0
 
 
 def run_summary(report: RunReport) -> dict[str, Any]:
@@ -60,6 +72,7 @@ def run_summary(report: RunReport) -> dict[str, Any]:
         "events_simulated": sim.events_simulated,
         "prediction_rows": sim.prediction_rows,
         "flags": dict(sorted(by_kind.items())),
+        "wagons_judged": _judged(report),
         "stage_s": {stage: round(seconds, 3) for stage, seconds in report.stage_s.items()},
     }
 
@@ -76,7 +89,7 @@ def print_run(report: RunReport) -> None:
     flags = _flags(report)
     by_kind = Counter(flag.kind for flag in flags)
     counts = ", ".join(f"{n} {kind}" for kind, n in sorted(by_kind.items())) or "none"
-    typer.echo(f"flags: {counts}")
+    typer.echo(f"flags: {counts} ({_judged(report)} wagons judged by this run)")
     for flag in flags:
         typer.echo(f"  [{flag.severity}] {flag.kind} {flag.wagon_id}: {flag.evidence}")
 

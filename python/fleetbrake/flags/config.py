@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import hashlib
+import json
 import math
 import tomllib
 from dataclasses import dataclass
@@ -274,6 +276,15 @@ class FlagConfig:
         for f in dataclasses.fields(self):
             if f.type == "float":
                 object.__setattr__(self, f.name, float(getattr(self, f.name)))
+
+    def key(self) -> str:
+        """A stable hash (sha256, hex) of every threshold's name and value: equal for equal
+        configurations (a number given as an integer or a real alike), whatever the file or
+        call they came from. ``flagged_wagons.config_key`` records it with each wagon's
+        flags, so a run with other thresholds judges every wagon again
+        (:func:`fleetbrake.flags.judge.stale_wagons`)."""
+        content = json.dumps(dataclasses.asdict(self), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(content.encode("utf-8")).hexdigest()
 
     def scaled(self, residual_spread_k: float | None) -> FlagConfig:
         """These thresholds with those in kelvin that a model error could reach raised to

@@ -39,7 +39,8 @@ recomputed per wagon (a partition: the parent reads a chunk of wagons as Arrow, 
 per table, :func:`flag_chunk`; :func:`judge_chunk`, pure and picklable, cuts it into the
 wagons' tasks and :func:`judge_task` judges each alone, on an engine's workers with
 ``engine=``) and the wagons' rows of ``flags`` replaced in one transaction, with when they
-were judged (``flagged_wagons``: :func:`stale_wagons`);
+were judged, with which revision and thresholds (``flagged_wagons``: :func:`stale_wagons`,
+the wagons whose flags are out of date, which ``fleetbrake run`` judges);
 ``flag_id`` is ``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>`` (``-2``, ... if taken), so the
 same data give the same ids, and a flag found again keeps its ``detected_utc``.
 """
@@ -51,6 +52,7 @@ import logging
 import statistics
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import polars as pl
@@ -110,6 +112,9 @@ from fleetbrake.simulation.store import (
 )
 from fleetbrake.warehouse.connection import Warehouse, sql
 
+if TYPE_CHECKING:
+    import duckdb
+
 __all__ = [
     "FLAG_CHUNK_ROWS",
     "FlagChunk",
@@ -124,6 +129,7 @@ __all__ = [
     "judge_wagon",
     "raise_flags",
     "stale_wagons",
+    "stored_flags",
 ]
 
 logger = logging.getLogger(__name__)
@@ -636,6 +642,8 @@ def raise_flags(
     else:
         wanted = sorted(set(wagons))
     report = FlagReport(wagons=wanted)
+    if not wanted:  # nothing to judge: nothing read, nothing stored
+        return report
     keys = data_keys(wh)
     done = simulated_wagons(wh, revision_name)
     current_estimates = _current_estimates(wh, revision_name)
@@ -675,7 +683,7 @@ def raise_flags(
             spreads.append(outcome.residual_spread_k)
     if spreads:  # for the report only: each wagon was judged with its own
         report.residual_spread_k = float(statistics.median(spreads))
-    _store(wh, report.wagons, new, revision_name)
+    _store(wh, report.wagons, new, revision_name, config.key())
     report.flags = new
     logger.info("flags of %d wagons judged: %d flags", len(report.wagons), len(new))
     return report
@@ -747,62 +755,107 @@ _FLAG_SCHEMA = pl.Schema(
 )
 
 
-def stale_wagons(wh: Warehouse, revision_name: str) -> list[str]:
-    """The wagons with samples whose flags were never judged with ``revision_name``, or were
-    judged before a file of theirs was ingested or their timeline or estimates of the
-    revision were written (``q_flags_stale_wagons.sql``; ``flagged_wagons`` records each
-    judgement): what a unit of files must judge besides its own wagons, so that a unit that
-    stopped between its simulation and its flags leaves nothing stale behind."""
-    rows = wh.con.execute(sql("q_flags_stale_wagons"), {"revision": revision_name}).fetchall()
+def stale_wagons(wh: Warehouse, revision_name: str, config: FlagConfig) -> list[str]:
+    """The wagons with samples whose stored flags are out of date for ``revision_name`` and
+    ``config`` (``q_flags_stale_wagons.sql``; ``flagged_wagons`` records each judgement):
+    never judged with the revision, judged before a file of theirs was ingested or their
+    timeline or estimates of the revision were written, judged with other thresholds
+    (:meth:`FlagConfig.key`; or before the key was recorded), or whose rows of ``flags``
+    are not the ones their judgement stored. What a run must judge besides the wagons its
+    stages changed, so that a run that stopped between its simulation and its flags leaves
+    nothing stale behind (``fleetbrake.app.run``)."""
+    rows = wh.con.execute(
+        sql("q_flags_stale_wagons"), {"revision": revision_name, "config_key": config.key()}
+    ).fetchall()
     return [str(r[0]) for r in rows]
 
 
-def _store(wh: Warehouse, wagons: Sequence[str], flags: Sequence[Flag], revision_name: str) -> None:
+def stored_flags(wh: Warehouse) -> list[Flag]:
+    """Every flag stored (``q_flags_all.sql``), by wagon, start and kind: the fleet's flags
+    after a whole ``run``, those it judged and those that stood."""
+    rows = wh.con.execute(sql("q_flags_all")).fetchall()
+    return [
+        Flag(
+            flag_id=str(flag_id),
+            wagon_id=str(wagon_id),
+            event_id=None if event_id is None else str(event_id),
+            kind=str(kind),
+            severity=str(severity),
+            start_utc=start_utc,
+            end_utc=end_utc,
+            evidence=str(evidence),
+        )
+        for flag_id, wagon_id, event_id, kind, severity, start_utc, end_utc, evidence in rows
+    ]
+
+
+def _store(
+    wh: Warehouse,
+    wagons: Sequence[str],
+    flags: Sequence[Flag],
+    revision_name: str,
+    config_key: str,
+) -> None:
     """Replace the flags of ``wagons`` in one transaction, recording that they were judged
-    with ``revision_name`` (``flagged_wagons``); a flag identical to a stored one keeps its
-    ``detected_utc``."""
+    with ``revision_name`` and the thresholds of ``config_key``, and how many flags each
+    has (``flagged_wagons``); a flag identical to a stored one keeps its ``detected_utc``."""
     now = utc_now()
     wagon_ids = list(wagons)
     with wh.transaction() as con:
         old = con.execute(sql("q_flags_stored"), {"wagon_ids": wagon_ids}).fetchall()
         kept = {tuple(r[:7]): r[7] for r in old}
         con.execute(sql("q_flags_delete"), {"wagon_ids": wagon_ids})
-        judged = {"wagon_ids": wagon_ids, "revision": revision_name, "updated_utc": now}
         con.execute(sql("q_flags_delete_flagged_wagons"), {"wagon_ids": wagon_ids})
-        if wagon_ids:
+        if flags:
+            _insert_flags(con, flags, kept, now)
+        judged = {
+            "wagon_ids": wagon_ids,
+            "revision": revision_name,
+            "updated_utc": now,
+            "config_key": config_key,
+        }
+        if wagon_ids:  # after the flags: each wagon's count of them is recorded
             con.execute(sql("q_flags_insert_flagged_wagons"), judged)
-        if not flags:
-            return
-        rows = pl.DataFrame(
-            [
-                {
-                    "flag_id": f.flag_id,
-                    "wagon_id": f.wagon_id,
-                    "event_id": f.event_id,
-                    "kind": f.kind,
-                    "severity": f.severity,
-                    "start_utc": f.start_utc,
-                    "end_utc": f.end_utc,
-                    "evidence": f.evidence,
-                    "detected_utc": kept.get(
-                        (
-                            f.flag_id,
-                            f.event_id,
-                            f.kind,
-                            f.severity,
-                            f.start_utc,
-                            f.end_utc,
-                            f.evidence,
-                        ),
-                        now,
+
+
+def _insert_flags(
+    con: duckdb.DuckDBPyConnection,
+    flags: Sequence[Flag],
+    kept: Mapping[tuple[object, ...], dt.datetime],
+    now: dt.datetime,
+) -> None:
+    """Insert ``flags``; one identical to a stored one (``kept``) keeps its
+    ``detected_utc``, the others are detected ``now``."""
+    rows = pl.DataFrame(
+        [
+            {
+                "flag_id": f.flag_id,
+                "wagon_id": f.wagon_id,
+                "event_id": f.event_id,
+                "kind": f.kind,
+                "severity": f.severity,
+                "start_utc": f.start_utc,
+                "end_utc": f.end_utc,
+                "evidence": f.evidence,
+                "detected_utc": kept.get(
+                    (
+                        f.flag_id,
+                        f.event_id,
+                        f.kind,
+                        f.severity,
+                        f.start_utc,
+                        f.end_utc,
+                        f.evidence,
                     ),
-                }
-                for f in flags
-            ],
-            schema=_FLAG_SCHEMA,
-        )
-        con.register("flag_batch", rows)
-        try:
-            con.execute(sql("q_flags_insert"))
-        finally:
-            con.unregister("flag_batch")
+                    now,
+                ),
+            }
+            for f in flags
+        ],
+        schema=_FLAG_SCHEMA,
+    )
+    con.register("flag_batch", rows)
+    try:
+        con.execute(sql("q_flags_insert"))
+    finally:
+        con.unregister("flag_batch")

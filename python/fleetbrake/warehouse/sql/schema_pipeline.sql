@@ -90,13 +90,19 @@ CREATE TABLE IF NOT EXISTS flags (
 );
 
 -- When each wagon's flags were last judged (every judged wagon, flagged or not), with which
--- revision: a unit of `fleetbrake watch` judges the wagons whose files, timeline or estimates
--- were written since (q_flags_stale_wagons.sql), not the whole fleet.
+-- revision: `run` (and each unit of `fleetbrake watch`) judges the wagons whose files,
+-- timeline or estimates were written since, or whose flags were judged with other thresholds
+-- or have been removed (q_flags_stale_wagons.sql), not the whole fleet.
 CREATE TABLE IF NOT EXISTS flagged_wagons (
     wagon_id       VARCHAR   NOT NULL,
     model_revision VARCHAR   NOT NULL,
     updated_utc    TIMESTAMP NOT NULL   -- when its flags were judged (rewritten every time)
 );
+-- The flag configuration the wagon was judged with (FlagConfig.key(): a hash of every
+-- threshold) and how many flags that stored (null in databases made before they were
+-- recorded: such a wagon is judged again once).
+ALTER TABLE flagged_wagons ADD COLUMN IF NOT EXISTS config_key VARCHAR;
+ALTER TABLE flagged_wagons ADD COLUMN IF NOT EXISTS flag_count BIGINT;
 
 -- The registry entries the last `run` used (so that commands given only --db, like
 -- close-loop, simulate each wagon as `run` did).
