@@ -333,34 +333,16 @@ impl Propagators {
         self.rotated.is_empty()
     }
 
-    /// One step of propagator `k` under input `u` (modal, length r); `w`, `v`: scratch.
-    fn apply(&self, k: usize, xi: &mut [f64], u: &[f64], w: &mut [f64], v: &mut [f64]) {
+    /// Propagator `k`'s `e` and `g` (r each).
+    fn rates(&self, k: usize) -> (&[f64], &[f64]) {
         let r = self.order;
-        let e = &self.e[k * r..(k + 1) * r];
-        let g = &self.g[k * r..(k + 1) * r];
-        if !self.rotated[k] {
-            for i in 0..r {
-                xi[i] = e[i] * xi[i] + g[i] * u[i];
-            }
-            return;
-        }
-        let q = &self.q[k * r * r..(k + 1) * r * r];
-        // w = Qᵀ ξ, v = Qᵀ u (Q row-major: accumulate row by row)
-        w.fill(0.0);
-        v.fill(0.0);
-        for (row, (&x, &ui)) in q.chunks_exact(r).zip(xi.iter().zip(u)) {
-            for j in 0..r {
-                w[j] += row[j] * x;
-                v[j] += row[j] * ui;
-            }
-        }
-        for j in 0..r {
-            w[j] = e[j] * w[j] + g[j] * v[j];
-        }
-        // ξ = Q w
-        for (row, x) in q.chunks_exact(r).zip(xi.iter_mut()) {
-            *x = row.iter().zip(w.iter()).map(|(a, b)| a * b).sum();
-        }
+        (&self.e[k * r..(k + 1) * r], &self.g[k * r..(k + 1) * r])
+    }
+
+    /// Propagator `k`'s eigenbasis `Q` (r, r) row-major (meaningful where `rotated`).
+    fn basis_matrix(&self, k: usize) -> &[f64] {
+        let r = self.order;
+        &self.q[k * r * r..(k + 1) * r * r]
     }
 
     /// One run from `xi0` (length r): step `s` applies propagator `index[s]` `repeats[s]`
@@ -405,22 +387,348 @@ impl Propagators {
         }
         let n_out = c.len() / r;
         let mut y = vec![0.0; (s + 1) * n_out];
-        let mut xi = xi0.to_vec();
-        let (mut w, mut v) = (vec![0.0; r], vec![0.0; r]);
-        let outputs = |xi: &[f64], y: &mut [f64]| {
-            for (yo, row) in y.iter_mut().zip(c.chunks_exact(r)) {
-                *yo = row.iter().zip(xi).map(|(a, b)| a * b).sum();
-            }
-        };
-        outputs(&xi, &mut y[..n_out]);
+        let mut run = BasisRun::new(self, Vec::new(), c);
+        run.start(xi0);
+        run.outputs();
+        y[..n_out].copy_from_slice(&run.y[..n_out]);
         for step in 0..s {
+            let k = index[step];
+            run.enter(k);
             let uk = &u[step * r..(step + 1) * r];
-            for _ in 0..repeats[step] {
-                self.apply(index[step], &mut xi, uk, &mut w, &mut v);
+            if run.at == MODAL {
+                run.u.copy_from_slice(uk);
+            } else {
+                transpose_times(self.basis_matrix(k), uk, &mut run.u);
             }
-            outputs(&xi, &mut y[(step + 1) * n_out..(step + 2) * n_out]);
+            let (e, g) = self.rates(k);
+            for _ in 0..repeats[step] {
+                for (((w, &ei), &gi), &ui) in run.w.iter_mut().zip(e).zip(g).zip(&run.u) {
+                    *w = ei * *w + gi * ui;
+                }
+            }
+            run.outputs();
+            y[(step + 1) * n_out..(step + 2) * n_out].copy_from_slice(&run.y[..n_out]);
         }
+        let mut xi = vec![0.0; r];
+        run.state(&mut xi);
         Ok((y, xi))
+    }
+}
+
+/// Where a run's state is kept when no rotated propagator holds it: the modal coordinates,
+/// the basis of every nominal propagator.
+const MODAL: usize = usize::MAX;
+
+/// A propagator's basis as a run steps in it: the input vectors `Qᵀ b` (m, r) row-major,
+/// the output rows `C Q` in blocks ([`out_blocks`]), and `Qᵀ` (r, r) row-major, with which
+/// the state leaves the basis. The modal basis: the vectors `b` and `C` themselves, no `Qᵀ`.
+#[derive(Debug, Clone, Default)]
+struct Basis {
+    b: Vec<f64>,
+    ct: Vec<f64>,
+    qt: Vec<f64>,
+}
+
+/// `out = Mᵀ x`, `M` row-major (len(x), len(out)), its rows accumulated in order.
+#[inline(always)]
+fn transpose_times(m: &[f64], x: &[f64], out: &mut [f64]) {
+    out.fill(0.0);
+    for (row, &xi) in m.chunks_exact(out.len()).zip(x) {
+        for (o, &a) in out.iter_mut().zip(row) {
+            *o += a * xi;
+        }
+    }
+}
+
+/// Output rows summed together, mode by mode, in registers (four AVX2 vectors): each
+/// output's sum runs over the modes in order, as a row-by-row product would.
+const OUT_BLOCK: usize = 16;
+
+/// Output rows `c` (n_out, r) row-major in blocks of `OUT_BLOCK` rows, each block stored
+/// mode by mode (`[(block r + i) OUT_BLOCK + j] = c[block OUT_BLOCK + j, i]`), the rows
+/// padded with zeros to a whole number of blocks.
+fn out_blocks(c: &[f64], r: usize) -> Vec<f64> {
+    let n_out = c.len() / r;
+    let mut out = vec![0.0; n_out.div_ceil(OUT_BLOCK) * OUT_BLOCK * r];
+    for (o, row) in c.chunks_exact(r).enumerate() {
+        let (block, j) = (o / OUT_BLOCK, o % OUT_BLOCK);
+        for (i, &v) in row.iter().enumerate() {
+            out[(block * r + i) * OUT_BLOCK + j] = v;
+        }
+    }
+    out
+}
+
+/// `y = C w` from `C` in blocks ([`out_blocks`]); `y` padded to whole blocks.
+#[inline(always)]
+fn blocks_times(blocks: &[f64], w: &[f64], y: &mut [f64]) {
+    let r = w.len();
+    for (block, yb) in blocks
+        .chunks_exact(r * OUT_BLOCK)
+        .zip(y.chunks_exact_mut(OUT_BLOCK))
+    {
+        let mut acc = [0.0f64; OUT_BLOCK];
+        for (col, &wi) in block.chunks_exact(OUT_BLOCK).zip(w) {
+            for j in 0..OUT_BLOCK {
+                acc[j] += col[j] * wi;
+            }
+        }
+        yb.copy_from_slice(&acc);
+    }
+}
+
+/// The largest of `y` (`-inf` for none), four lanes at a time.
+#[inline(always)]
+fn largest(y: &[f64]) -> f64 {
+    let mut m = [f64::NEG_INFINITY; 4];
+    let mut chunks = y.chunks_exact(4);
+    for c in &mut chunks {
+        for l in 0..4 {
+            m[l] = if c[l] > m[l] { c[l] } else { m[l] };
+        }
+    }
+    chunks
+        .remainder()
+        .iter()
+        .chain(&m)
+        .fold(f64::NEG_INFINITY, |top, &v| if v > top { v } else { top })
+}
+
+/// A run of propagators that keeps its state `w` in the basis of the propagator that
+/// stepped it last. Consecutive steps of one rotated propagator, `ξ ← Q [e ⊙ (Qᵀ ξ) + g ⊙
+/// (Qᵀ u)]`, become `w ← e ⊙ w + g ⊙ (Qᵀ u)` with `Qᵀ u` from the basis's rotated input
+/// vectors and the outputs from its rotated rows: O(r) a step and input, as a nominal step,
+/// instead of three r x r products. `ξ = Q w` is formed only when another basis takes over
+/// or the state is handed on. A basis is built the first time a step of its propagator
+/// comes (once per run, not per step). Nominal steps are the former ones operation for
+/// operation (bit for bit); rotated ones equal them to rounding.
+struct BasisRun<'a> {
+    props: &'a Propagators,
+    /// The input vectors (m, r) and output rows (n_out, r) in modal coordinates.
+    inputs: Vec<f64>,
+    c: &'a [f64],
+    modal: Basis,
+    /// Per propagator: its basis once built (rotated ones only).
+    rotated: Vec<Option<Basis>>,
+    /// The state, in the basis `at` (a propagator's index, or `MODAL`).
+    w: Vec<f64>,
+    at: usize,
+    /// Scratch: the state in modal coordinates (r), the step's input (r), the outputs.
+    x: Vec<f64>,
+    u: Vec<f64>,
+    /// The outputs, padded to whole blocks; `n_out` of them are the model's.
+    y: Vec<f64>,
+    n_out: usize,
+}
+
+/// The basis `at` of a run (a free function: the caller borrows the run's other fields).
+#[inline(always)]
+fn basis_at<'b>(modal: &'b Basis, rotated: &'b [Option<Basis>], at: usize) -> &'b Basis {
+    if at == MODAL {
+        modal
+    } else {
+        rotated[at]
+            .as_ref()
+            .expect("a basis is built when the state enters it")
+    }
+}
+
+impl<'a> BasisRun<'a> {
+    /// A run of `props` with input vectors `inputs` (m, r) and output rows `c` (n_out, r),
+    /// both row-major in modal coordinates.
+    fn new(props: &'a Propagators, inputs: Vec<f64>, c: &'a [f64]) -> Self {
+        let r = props.order;
+        let n_out = c.len() / r;
+        let modal = Basis {
+            b: inputs.clone(),
+            ct: out_blocks(c, r),
+            qt: Vec::new(),
+        };
+        BasisRun {
+            props,
+            inputs,
+            c,
+            modal,
+            rotated: vec![None; props.len()],
+            w: vec![0.0; r],
+            at: MODAL,
+            x: vec![0.0; r],
+            u: vec![0.0; r],
+            y: vec![0.0; n_out.div_ceil(OUT_BLOCK) * OUT_BLOCK],
+            n_out,
+        }
+    }
+
+    /// Start from `xi` (modal coordinates).
+    fn start(&mut self, xi: &[f64]) {
+        self.w.copy_from_slice(xi);
+        self.at = MODAL;
+    }
+
+    /// The state in modal coordinates, `ξ = Q w`.
+    #[inline(always)]
+    fn state(&self, xi: &mut [f64]) {
+        if self.at == MODAL {
+            xi.copy_from_slice(&self.w);
+        } else {
+            let qt = &basis_at(&self.modal, &self.rotated, self.at).qt;
+            transpose_times(qt, &self.w, xi);
+        }
+    }
+
+    /// Move the state into propagator `k`'s basis (built if new): nothing when it is there
+    /// already (the same propagator, or nominal after nominal).
+    #[inline(always)]
+    fn enter(&mut self, k: usize) {
+        let to = if self.props.rotated[k] { k } else { MODAL };
+        if to == self.at {
+            return;
+        }
+        let mut x = std::mem::take(&mut self.x);
+        self.state(&mut x);
+        if to == MODAL {
+            self.w.copy_from_slice(&x);
+        } else {
+            if self.rotated[k].is_none() {
+                self.rotated[k] = Some(self.build(k));
+            }
+            transpose_times(self.props.basis_matrix(k), &x, &mut self.w);
+        }
+        self.x = x;
+        self.at = to;
+    }
+
+    /// Propagator `k`'s rotated basis: `Qᵀ b` for each input vector, `C Q`, `Qᵀ`.
+    fn build(&self, k: usize) -> Basis {
+        let r = self.props.order;
+        let q = self.props.basis_matrix(k);
+        let n_out = self.c.len() / r;
+        let mut b = vec![0.0; self.inputs.len()];
+        for (from, to) in self.inputs.chunks_exact(r).zip(b.chunks_exact_mut(r)) {
+            transpose_times(q, from, to);
+        }
+        // row o of C Q is Qᵀ c_o
+        let mut cq = vec![0.0; r * n_out];
+        for (row, row_q) in self.c.chunks_exact(r).zip(cq.chunks_exact_mut(r)) {
+            transpose_times(q, row, row_q);
+        }
+        let ct = out_blocks(&cq, r);
+        let mut qt = vec![0.0; r * r];
+        for (i, row) in q.chunks_exact(r).enumerate() {
+            for (j, &v) in row.iter().enumerate() {
+                qt[j * r + i] = v;
+            }
+        }
+        Basis { b, ct, qt }
+    }
+
+    /// `y = C ξ` (every output row), from the state in its basis.
+    #[inline(always)]
+    fn outputs(&mut self) {
+        let ct = &basis_at(&self.modal, &self.rotated, self.at).ct;
+        blocks_times(ct, &self.w, &mut self.y);
+    }
+
+    /// The outputs onto a piece's rows: the sensor (the first probe), the face mean and the
+    /// maximum over the face nodes, with `t_ref` added.
+    #[inline(always)]
+    fn emit(&mut self, np: usize, t_ref: f64, rows: &mut PieceRows) {
+        self.outputs();
+        let top = largest(&self.y[np + 1..self.n_out]);
+        rows.sensor.push(self.y[0] + t_ref);
+        rows.mean.push(self.y[np] + t_ref);
+        rows.max.push(top + t_ref);
+    }
+
+    /// A chain's steps `s0 .. s1` from the state as it is, the outputs before the first and
+    /// after each onto `rows`. The inputs are the flux vector then the face sets' (`inputs`
+    /// laid out by [`BasisRun::for_chain`]).
+    #[inline(always)]
+    fn chain_steps_generic(&mut self, job: &StepsJob, rows: &mut PieceRows) {
+        let steps = job.steps;
+        let r = self.props.order;
+        let n_faces = self.inputs.len() / r - 1;
+        self.emit(job.n_probes, job.t_ref, rows);
+        for s in job.s0..job.s1 {
+            let k = steps.prop[s];
+            self.enter(k);
+            let (e, g) = self.props.rates(k);
+            let basis = basis_at(&self.modal, &self.rotated, self.at);
+            let (b_flux, b_faces) = basis.b.split_at(r);
+            let q = steps.flux[s];
+            let air = steps.ambient[s] - job.t_ref;
+            for (ui, &b) in self.u.iter_mut().zip(b_flux) {
+                *ui = q * b;
+            }
+            for (f, b_face) in b_faces.chunks_exact(r).enumerate() {
+                let d = steps.h[s * n_faces + f] * air;
+                for (ui, &b) in self.u.iter_mut().zip(b_face) {
+                    *ui += d * b;
+                }
+            }
+            for (((w, &ei), &gi), &ui) in self.w.iter_mut().zip(e).zip(g).zip(&self.u) {
+                *w = ei * *w + gi * ui;
+            }
+            self.emit(job.n_probes, job.t_ref, rows);
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn chain_steps_avx2(&mut self, job: &StepsJob, rows: &mut PieceRows) {
+        self.chain_steps_generic(job, rows);
+    }
+
+    /// A run for [`Propagators::simulate_chain`]: the inputs `b_flux` then `b_faces`.
+    fn for_chain(props: &'a Propagators, model: &ChainModel<'a>) -> Self {
+        let mut inputs = model.b_flux.to_vec();
+        inputs.extend_from_slice(model.b_faces);
+        BasisRun::new(props, inputs, model.c)
+    }
+}
+
+/// The steps of one piece to take: `s0 .. s1` of `steps`, at reference `t_ref`.
+struct StepsJob<'s, 'a> {
+    steps: &'s ChainSteps<'a>,
+    s0: usize,
+    s1: usize,
+    t_ref: f64,
+    n_probes: usize,
+}
+
+/// The rows a piece's steps give, one per output time: sensor, face mean, face maximum.
+#[derive(Debug, Default)]
+struct PieceRows {
+    sensor: Vec<f64>,
+    mean: Vec<f64>,
+    max: Vec<f64>,
+}
+
+/// How the steps of a chain's pieces are taken: the kernel's [`BasisRun`]; the tests keep
+/// the former step-by-step rotation as the reference it must equal.
+trait PieceStepper {
+    /// The steps of `job` from `xi` (modal coordinates), the state after them left in `xi`;
+    /// the outputs before the first step and after each pushed onto `rows`.
+    fn run(&mut self, job: &StepsJob, xi: &mut [f64], rows: &mut PieceRows);
+}
+
+impl PieceStepper for BasisRun<'_> {
+    fn run(&mut self, job: &StepsJob, xi: &mut [f64], rows: &mut PieceRows) {
+        self.start(xi);
+        self.chain_steps(job, rows);
+        self.state(xi);
+    }
+}
+
+impl BasisRun<'_> {
+    fn chain_steps(&mut self, job: &StepsJob, rows: &mut PieceRows) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2_fma() {
+            // SAFETY: the CPU has the features the function is compiled for.
+            unsafe { self.chain_steps_avx2(job, rows) };
+            return;
+        }
+        self.chain_steps_generic(job, rows);
     }
 }
 
@@ -579,8 +887,9 @@ fn mean_difference(trusted: &[f64], predicted: &[f64], min_count: usize) -> Opti
 impl Propagators {
     /// Run piece `p` from `xi0` at reference `t_ref` (see [`ChainSteps`]).
     #[allow(clippy::too_many_arguments)]
-    fn run_piece(
+    fn run_piece<S: PieceStepper>(
         &self,
+        stepper: &mut S,
         model: &ChainModel,
         steps: &ChainSteps,
         p: usize,
@@ -591,53 +900,27 @@ impl Propagators {
         t_first: f64,
         out: &mut Piece,
     ) {
-        let r = self.order;
-        let n_faces = model.b_faces.len() / r;
-        let n_out = model.c.len() / r;
-        let np = model.n_probes;
         let (s0, s1) = (steps.step_off[p], steps.step_off[p + 1]);
         let rows = s1 - s0 + 1;
         let mut xi = xi0.to_vec();
-        let (mut w, mut v, mut u) = (vec![0.0; r], vec![0.0; r], vec![0.0; r]);
-        let mut sensor = Vec::with_capacity(rows);
-        let mut mean = Vec::with_capacity(rows);
-        let mut max = Vec::with_capacity(rows);
-        // C transposed (r, n_out): y accumulated mode by mode, the loop over outputs vectorises
-        let mut ct = vec![0.0; r * n_out];
-        for (o, row) in model.c.chunks_exact(r).enumerate() {
-            for (i, &v) in row.iter().enumerate() {
-                ct[i * n_out + o] = v;
-            }
-        }
-        let mut y = vec![0.0; n_out];
-        let mut emit = |xi: &[f64]| {
-            y.fill(0.0);
-            for (col, &x) in ct.chunks_exact(n_out).zip(xi) {
-                for (yo, &c) in y.iter_mut().zip(col) {
-                    *yo += c * x;
-                }
-            }
-            let top = y[np + 1..].iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v));
-            sensor.push(y[0] + t_ref);
-            mean.push(y[np] + t_ref);
-            max.push(top + t_ref);
+        let mut taken = PieceRows {
+            sensor: Vec::with_capacity(rows),
+            mean: Vec::with_capacity(rows),
+            max: Vec::with_capacity(rows),
         };
-        emit(&xi);
-        for s in s0..s1 {
-            let q = steps.flux[s];
-            let air = steps.ambient[s] - t_ref;
-            for (ui, &b) in u.iter_mut().zip(model.b_flux) {
-                *ui = q * b;
-            }
-            for f in 0..n_faces {
-                let d = steps.h[s * n_faces + f] * air;
-                for (ui, &b) in u.iter_mut().zip(&model.b_faces[f * r..(f + 1) * r]) {
-                    *ui += d * b;
-                }
-            }
-            self.apply(steps.prop[s], &mut xi, &u, &mut w, &mut v);
-            emit(&xi);
-        }
+        let job = StepsJob {
+            steps,
+            s0,
+            s1,
+            t_ref,
+            n_probes: model.n_probes,
+        };
+        stepper.run(&job, &mut xi, &mut taken);
+        let PieceRows {
+            mut sensor,
+            mean,
+            max,
+        } = taken;
         let mut new_lag = None;
         if let Some(tau) = rule.lag_tau_s {
             // the lag acts on the block's temperature, the anchoring shifts on the reading
@@ -765,6 +1048,23 @@ impl Propagators {
                 });
             }
         }
+        let mut stepper = BasisRun::for_chain(self, model);
+        Ok(self.chain(&mut stepper, model, steps, trusted, ambient, rule))
+    }
+
+    /// [`Propagators::simulate_chain`] on checked inputs, its pieces stepped by `stepper`.
+    fn chain<S: PieceStepper>(
+        &self,
+        stepper: &mut S,
+        model: &ChainModel,
+        steps: &ChainSteps,
+        trusted: &[f64],
+        ambient: &[f64],
+        rule: &AnchorRule,
+    ) -> ChainOutputs {
+        let r = self.order;
+        let n = trusted.len();
+        let n_seg = steps.seg_cont.len();
         let nan = f64::NAN;
         let mut out = ChainOutputs {
             sensor_c: vec![nan; n],
@@ -808,11 +1108,11 @@ impl Propagators {
                 reference += shift;
                 anchor = ANCHOR_BEFORE;
                 self.run_piece(
-                    model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                    stepper, model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
                 );
             } else {
                 self.run_piece(
-                    model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                    stepper, model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
                 );
                 let length = rule.anchor_s.min(piece.sensor.len());
                 let own = mean_difference(
@@ -827,7 +1127,8 @@ impl Propagators {
                         anchor = ANCHOR_AFTER;
                     }
                     self.run_piece(
-                        model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                        stepper, model, steps, j, reference, &xi, lag_last, rule, t_first,
+                        &mut piece,
                     );
                 }
             }
@@ -844,6 +1145,7 @@ impl Propagators {
                 let c = steps.seg_cont[j];
                 if own < size && c != usize::MAX {
                     self.run_piece(
+                        stepper,
                         model,
                         steps,
                         c,
@@ -867,13 +1169,316 @@ impl Propagators {
             out.contact_mean_c[a..=b].copy_from_slice(&piece.mean);
             out.contact_max_c[a..=b].copy_from_slice(&piece.max);
         }
-        Ok(out)
+        out
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The former step of propagator `k` (kept as the tests' reference): a rotated one
+    /// rotates in and out every step, `ξ ← Q [e ⊙ (Qᵀ ξ) + g ⊙ (Qᵀ u)]`.
+    fn apply_step_by_step(
+        props: &Propagators,
+        k: usize,
+        xi: &mut [f64],
+        u: &[f64],
+        w: &mut [f64],
+        v: &mut [f64],
+    ) {
+        let r = props.order;
+        let e = &props.e[k * r..(k + 1) * r];
+        let g = &props.g[k * r..(k + 1) * r];
+        if !props.rotated[k] {
+            for i in 0..r {
+                xi[i] = e[i] * xi[i] + g[i] * u[i];
+            }
+            return;
+        }
+        let q = &props.q[k * r * r..(k + 1) * r * r];
+        w.fill(0.0);
+        v.fill(0.0);
+        for (row, (&x, &ui)) in q.chunks_exact(r).zip(xi.iter().zip(u)) {
+            for j in 0..r {
+                w[j] += row[j] * x;
+                v[j] += row[j] * ui;
+            }
+        }
+        for j in 0..r {
+            w[j] = e[j] * w[j] + g[j] * v[j];
+        }
+        for (row, x) in q.chunks_exact(r).zip(xi.iter_mut()) {
+            *x = row.iter().zip(w.iter()).map(|(a, b)| a * b).sum();
+        }
+    }
+
+    /// The chain's former piece stepping, in modal coordinates step by step: the reference.
+    struct StepByStep<'a> {
+        props: &'a Propagators,
+        model: ChainModel<'a>,
+    }
+
+    impl PieceStepper for StepByStep<'_> {
+        fn run(&mut self, job: &StepsJob, xi: &mut [f64], rows: &mut PieceRows) {
+            let (props, model, steps, t_ref) = (self.props, &self.model, job.steps, job.t_ref);
+            let r = props.order;
+            let n_faces = model.b_faces.len() / r;
+            let n_out = model.c.len() / r;
+            let np = model.n_probes;
+            let (mut w, mut v, mut u) = (vec![0.0; r], vec![0.0; r], vec![0.0; r]);
+            let mut y = vec![0.0; n_out];
+            let mut emit = |xi: &[f64]| {
+                for (yo, row) in y.iter_mut().zip(model.c.chunks_exact(r)) {
+                    *yo = row.iter().zip(xi).map(|(a, b)| a * b).sum();
+                }
+                let top = y[np + 1..].iter().fold(f64::NEG_INFINITY, |m, &v| m.max(v));
+                rows.sensor.push(y[0] + t_ref);
+                rows.mean.push(y[np] + t_ref);
+                rows.max.push(top + t_ref);
+            };
+            emit(xi);
+            for s in job.s0..job.s1 {
+                let q = steps.flux[s];
+                let air = steps.ambient[s] - t_ref;
+                for (ui, &b) in u.iter_mut().zip(model.b_flux) {
+                    *ui = q * b;
+                }
+                for f in 0..n_faces {
+                    let d = steps.h[s * n_faces + f] * air;
+                    for (ui, &b) in u.iter_mut().zip(&model.b_faces[f * r..(f + 1) * r]) {
+                        *ui += d * b;
+                    }
+                }
+                apply_step_by_step(props, steps.prop[s], xi, &u, &mut w, &mut v);
+                emit(xi);
+            }
+        }
+    }
+
+    /// An orthogonal 4 x 4 basis (row-major): plane rotations by `angles` in (0,1), (1,2),
+    /// (2,3), (0,3).
+    fn basis4(angles: [f64; 4]) -> Vec<f64> {
+        let mut q = vec![0.0; 16];
+        for i in 0..4 {
+            q[i * 4 + i] = 1.0;
+        }
+        for (&(a, b), &t) in [(0, 1), (1, 2), (2, 3), (0, 3)].iter().zip(&angles) {
+            let (c, s) = (t.cos(), t.sin());
+            for row in q.chunks_exact_mut(4) {
+                let (x, y) = (row[a], row[b]);
+                row[a] = c * x - s * y;
+                row[b] = s * x + c * y;
+            }
+        }
+        q
+    }
+
+    /// Six propagators of four modes: nominal and rotated (three bases) at 1 s, one rotated
+    /// and the nominal at 5 s.
+    fn switching_propagators() -> Propagators {
+        let lam = [0.002, 0.02, 0.1, 0.5];
+        let shifted = |f: f64, add: f64| -> Vec<f64> { lam.iter().map(|l| l * f + add).collect() };
+        let table: [(Vec<f64>, Option<Vec<f64>>, f64); 6] = [
+            (lam.to_vec(), None, 1.0),
+            (
+                shifted(1.3, 0.004),
+                Some(basis4([0.3, -0.2, 0.5, 0.1])),
+                1.0,
+            ),
+            (
+                shifted(1.7, 0.011),
+                Some(basis4([-0.4, 0.6, 0.2, -0.3])),
+                1.0,
+            ),
+            (
+                shifted(1.3, 0.004),
+                Some(basis4([0.3, -0.2, 0.5, 0.1])),
+                5.0,
+            ),
+            (lam.to_vec(), None, 5.0),
+            (shifted(2.1, 0.02), Some(basis4([0.7, 0.1, -0.6, 0.4])), 1.0),
+        ];
+        let (mut e, mut g, mut q, mut rotated) = (vec![], vec![], vec![], vec![]);
+        for (l, basis, dt) in table {
+            let (ek, gk) = exact_propagator(&l, dt);
+            e.extend(ek);
+            g.extend(gk);
+            rotated.push(basis.is_some());
+            q.extend(basis.unwrap_or(vec![0.0; 16]));
+        }
+        Propagators::new(4, e, g, q, rotated).unwrap()
+    }
+
+    fn max_difference(a: &[f64], b: &[f64]) -> f64 {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| {
+                assert_eq!(x.is_nan(), y.is_nan());
+                if x.is_nan() {
+                    0.0
+                } else {
+                    (x - y).abs()
+                }
+            })
+            .fold(0.0, f64::max)
+    }
+
+    #[test]
+    fn a_chain_kept_in_its_rotated_bases_equals_stepping_by_the_formula() {
+        // three segments (the last on a 5 s grid), a window continued past the second,
+        // readings that shift the second from before it and the third from its own first
+        // seconds, a sensor lag; the propagators switch every few steps among the nominal
+        // and three rotated bases, and runs of one propagator cross the pieces' ends
+        let props = switching_propagators();
+        let model = ChainModel {
+            b_flux: &[2e-6, 1e-5, 5e-5, 1e-4],
+            b_faces: &[-0.02, 0.01, -0.03, 0.005, 0.004, -0.015, 0.02, -0.01],
+            c: &[
+                1.0, 0.6, 0.3, -0.2, 0.9, 0.4, 0.1, 0.2, 1.1, 0.8, -0.3, 0.5, 0.7, 1.2, 0.2, -0.1,
+                0.95, 0.3, 0.6, 0.4,
+            ],
+            n_probes: 1,
+        };
+        let n = 121;
+        let t = 118;
+        let fine = [0usize, 1, 1, 1, 2, 2, 1, 0, 2, 2, 5, 5];
+        let coarse = [3usize, 3, 4, 3, 3, 3, 4, 4];
+        let prop: Vec<usize> = (0..t)
+            .map(|s| match s {
+                80..=87 => coarse[s - 80],
+                _ => fine[(s / 3) % fine.len()],
+            })
+            .collect();
+        let flux: Vec<f64> = (0..t)
+            .map(|s| if (s / 10) % 3 == 0 { 4e4 } else { 0.0 })
+            .collect();
+        let ambient: Vec<f64> = (0..t).map(|s| 8.0 + 0.05 * s as f64).collect();
+        let h: Vec<f64> = (0..2 * t).map(|k| 15.0 + ((k * 7) % 11) as f64).collect();
+        let at: Vec<f64> = (0..9).map(|k| (80 + 5 * k) as f64).collect();
+        let steps = ChainSteps {
+            flux: &flux,
+            ambient: &ambient,
+            h: &h,
+            prop: &prop,
+            piece_a: &[0, 40, 80, 80],
+            piece_b: &[40, 80, 120, 110],
+            piece_dt: &[1.0, 1.0, 5.0, 1.0],
+            step_off: &[0, 40, 80, 88, 118],
+            at: &at,
+            at_off: &[0, 0, 0, 9, 9],
+            seg_cont: &[usize::MAX, 3, usize::MAX],
+            seg_window: &[0, 60, 0],
+        };
+        let mut trusted = vec![f64::NAN; n];
+        trusted[..3].fill(21.0);
+        trusted[35..40].fill(60.0);
+        trusted[80..86].fill(20.0);
+        let air = vec![9.0; n];
+        let rule = AnchorRule {
+            anchor_s: 5,
+            anchor_min_readings: 3,
+            window_s: 10,
+            tolerance_k: 1e-3,
+            lag_tau_s: Some(20.0),
+        };
+        let kept = props
+            .simulate_chain(&model, &steps, &trusted, &air, &rule)
+            .unwrap();
+        let mut by_formula = StepByStep {
+            props: &props,
+            model,
+        };
+        let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule);
+        // the chain exercises what it should: a start, a shift from before, one from after,
+        // a window continued past its segment
+        assert_eq!(
+            reference.anchor,
+            vec![ANCHOR_START, ANCHOR_BEFORE, ANCHOR_AFTER]
+        );
+        assert_eq!(reference.window_sensor_c.len(), 60);
+        assert_eq!(kept.anchor, reference.anchor);
+        let spread = reference
+            .sensor_c
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        assert!(spread.1 - spread.0 > 5.0, "a chain that heats: {spread:?}");
+        for (name, a, b) in [
+            ("sensor", &kept.sensor_c, &reference.sensor_c),
+            (
+                "contact mean",
+                &kept.contact_mean_c,
+                &reference.contact_mean_c,
+            ),
+            ("contact max", &kept.contact_max_c, &reference.contact_max_c),
+            ("shift", &kept.shift_k, &reference.shift_k),
+            ("reference", &kept.reference_c, &reference.reference_c),
+            (
+                "window sensor",
+                &kept.window_sensor_c,
+                &reference.window_sensor_c,
+            ),
+            ("window mean", &kept.window_mean_c, &reference.window_mean_c),
+            ("window max", &kept.window_max_c, &reference.window_max_c),
+        ] {
+            let d = max_difference(a, b);
+            assert!(d <= 1e-10, "{name}: {d:e} K from the step-by-step formula");
+        }
+        // nominal steps are the former ones operation for operation: bit for bit
+        let nominal: Vec<usize> = prop.iter().map(|&k| if k < 3 { 0 } else { 4 }).collect();
+        let steps = ChainSteps {
+            prop: &nominal,
+            ..steps
+        };
+        let kept = props
+            .simulate_chain(&model, &steps, &trusted, &air, &rule)
+            .unwrap();
+        let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule);
+        assert_eq!(kept, reference);
+    }
+
+    #[test]
+    fn a_switched_run_kept_in_its_rotated_bases_equals_stepping_by_the_formula() {
+        let props = switching_propagators();
+        let r = 4;
+        let c = [1.0, 0.6, 0.3, -0.2, 0.9, 0.4, 0.1, 0.2, 1.1, 0.8, -0.3, 0.5];
+        let s = 60;
+        let index: Vec<usize> = (0..s)
+            .map(|k| [1, 1, 2, 0, 0, 2, 2, 5, 3, 1][(k / 2) % 10])
+            .collect();
+        let repeats: Vec<u32> = (0..s).map(|k| 1 + (k % 3) as u32).collect();
+        let u: Vec<f64> = (0..s * r).map(|k| ((k * 13) % 7) as f64 - 2.5).collect();
+        let xi0 = [3.0, -1.0, 0.5, 2.0];
+        let (y, xi) = props.simulate(&index, &repeats, &u, &xi0, &c).unwrap();
+        let mut x = xi0.to_vec();
+        let (mut w, mut v) = (vec![0.0; r], vec![0.0; r]);
+        let outputs = |x: &[f64]| -> Vec<f64> {
+            c.chunks_exact(r)
+                .map(|row| row.iter().zip(x).map(|(a, b)| a * b).sum())
+                .collect()
+        };
+        let mut expected = outputs(&x);
+        for k in 0..s {
+            for _ in 0..repeats[k] {
+                apply_step_by_step(
+                    &props,
+                    index[k],
+                    &mut x,
+                    &u[k * r..(k + 1) * r],
+                    &mut w,
+                    &mut v,
+                );
+            }
+            expected.extend(outputs(&x));
+        }
+        assert!(max_difference(&y, &expected) <= 1e-10);
+        assert!(max_difference(&xi, &x) <= 1e-10);
+        assert!(x.iter().any(|v| v.abs() > 1.0));
+    }
 
     #[test]
     fn the_exact_propagator_has_its_limits() {
