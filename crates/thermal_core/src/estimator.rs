@@ -160,8 +160,9 @@ pub struct Switching {
     /// The smoother's mode sequence: the filter's, with the manoeuvre mode begun this many
     /// steps before each switch-on (the test switches a window after a step of the power;
     /// the smoother, which sees the whole series, lets the power step where it did). Where
-    /// that changes the sequence, the smoother runs on a second forward pass with it. 0: the
-    /// filter's sequence.
+    /// that changes the sequence, the smoother runs on a second forward pass with it (resumed
+    /// from the filter's checkpoint before the first second it changes). 0: the filter's
+    /// sequence.
     pub smoother_lead_steps: usize,
     /// σ_q over a step with the cylinder applied (`Transition::applied`), W/√s.
     pub applied_w_per_sqrt_s: f64,
@@ -581,6 +582,113 @@ unsafe fn gemv_rows_avx2(
     }
 }
 
+/// `gemv_rows` with two second outputs: `out += Σ_i a_i rows_i`, `out2 += Σ_{i < b.len()}
+/// b_i rows_i` and `out3 += Σ_{i < b.len()} c_i rows_i` (`c` as long as `b`), each entry the
+/// chain of multiply-adds of `axpy` row after row, to the bit (as `gemv_rows`'s and `times`'s:
+/// the smoother's `Σλ`, `Σ c_mean` and `Σ c_node` of one face node in one pass over Σ). With
+/// FMA the entries are held in AVX2 registers by blocks of 8 columns.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn gemv_rows3<const FMA: bool>(
+    a: &[f64],
+    b: &[f64],
+    c: &[f64],
+    rows: &[f64],
+    stride: usize,
+    out: &mut [f64],
+    out2: &mut [f64],
+    out3: &mut [f64],
+) {
+    let w = out.len();
+    let nb = b.len();
+    assert!(nb <= a.len() && c.len() == nb && w <= stride);
+    assert!(out2.len() == w && out3.len() == w);
+    assert!(a.is_empty() || rows.len() >= (a.len() - 1) * stride + w);
+    #[cfg(target_arch = "x86_64")]
+    if FMA {
+        // SAFETY: FMA is only true inside functions compiled with avx2 and fma (`run_avx2`);
+        // the lengths are the ones asserted above.
+        unsafe { gemv_rows3_avx2(a, b, c, rows, stride, out, out2, out3) };
+        return;
+    }
+    for (i, &ai) in a.iter().enumerate() {
+        let row = &rows[i * stride..i * stride + w];
+        axpy::<FMA>(ai, row, out);
+        if i < nb {
+            axpy::<FMA>(b[i], row, out2);
+            axpy::<FMA>(c[i], row, out3);
+        }
+    }
+}
+
+/// `gemv_rows3` with AVX2 and FMA. Caller: the lengths `gemv_rows3` asserts.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn gemv_rows3_avx2(
+    a: &[f64],
+    b: &[f64],
+    c: &[f64],
+    rows: &[f64],
+    stride: usize,
+    out: &mut [f64],
+    out2: &mut [f64],
+    out3: &mut [f64],
+) {
+    use std::arch::x86_64::*;
+    let (w, nb, rp) = (out.len(), b.len(), rows.as_ptr());
+    let (op, o2p, o3p) = (out.as_mut_ptr(), out2.as_mut_ptr(), out3.as_mut_ptr());
+    // SAFETY: every load reads row i < a.len() at columns below w <= stride (the caller's
+    // lengths), every store writes below w into outputs of length w.
+    unsafe {
+        let mut j0 = 0;
+        while j0 + 8 <= w {
+            let ld = |p: *mut f64| [_mm256_loadu_pd(p.add(j0)), _mm256_loadu_pd(p.add(j0 + 4))];
+            let (mut s, mut s2, mut s3) = (ld(op), ld(o2p), ld(o3p));
+            for i in 0..nb {
+                let row = rp.add(i * stride + j0);
+                let (ai, bi, ci) = (
+                    _mm256_set1_pd(a[i]),
+                    _mm256_set1_pd(b[i]),
+                    _mm256_set1_pd(c[i]),
+                );
+                for q in 0..2 {
+                    let x = _mm256_loadu_pd(row.add(4 * q));
+                    s[q] = _mm256_fmadd_pd(ai, x, s[q]);
+                    s2[q] = _mm256_fmadd_pd(bi, x, s2[q]);
+                    s3[q] = _mm256_fmadd_pd(ci, x, s3[q]);
+                }
+            }
+            for (i, &av) in a.iter().enumerate().skip(nb) {
+                let (ai, row) = (_mm256_set1_pd(av), rp.add(i * stride + j0));
+                for (q, sq) in s.iter_mut().enumerate() {
+                    *sq = _mm256_fmadd_pd(ai, _mm256_loadu_pd(row.add(4 * q)), *sq);
+                }
+            }
+            for q in 0..2 {
+                _mm256_storeu_pd(op.add(j0 + 4 * q), s[q]);
+                _mm256_storeu_pd(o2p.add(j0 + 4 * q), s2[q]);
+                _mm256_storeu_pd(o3p.add(j0 + 4 * q), s3[q]);
+            }
+            j0 += 8;
+        }
+        for j in j0..w {
+            let (mut s, mut s2, mut s3) = (*op.add(j), *o2p.add(j), *o3p.add(j));
+            for (i, &av) in a.iter().enumerate() {
+                let x = *rp.add(i * stride + j);
+                s = av.mul_add(x, s);
+                if i < nb {
+                    s2 = b[i].mul_add(x, s2);
+                    s3 = c[i].mul_add(x, s3);
+                }
+            }
+            *op.add(j) = s;
+            *o2p.add(j) = s2;
+            *o3p.add(j) = s3;
+        }
+    }
+}
+
 /// The transpose of a rows x cols row-major matrix, its rows padded with zeros to `width`
 /// (>= rows) entries.
 fn transpose(a: &[f64], rows: usize, cols: usize, width: usize) -> Vec<f64> {
@@ -862,7 +970,40 @@ impl Transition {
             }
         }
         let tpow: &[f64] = if d.brake { &tsum[..n] } else { tp };
-        for i in 0..r {
+        if !d.lag {
+            // without a lag no row of T is needed whole: row i of F X Fᵀ is made in one
+            // pass, each mode entry of T made where it is used (the same operations)
+            for i in 0..r {
+                let xi = &x[i * n..(i + 1) * n];
+                let xp = if d.brake { xi[r] + xi[ib] } else { xi[r] };
+                t[r] = self.phi * xi[r];
+                if d.brake {
+                    t[ib] = self.brake_phi * xi[ib];
+                }
+                let (ei, gi) = (self.e[i], self.gamma[i]);
+                let o = &mut out[i * n..(i + 1) * n];
+                let gap = gap.filter(|u| u[i] != 0.0).map(|u| (self.q_gap * u[i], u));
+                let row = PredictRow {
+                    o,
+                    t,
+                    xi,
+                    e: &self.e,
+                    gamma: &self.gamma,
+                    tpow,
+                    xp,
+                    ei,
+                    gi,
+                    r,
+                };
+                match (ph.as_mut(), gap) {
+                    (Some((h, acc)), Some((c, u))) => row.run::<FMA, true, true>(acc, h[i], c, u),
+                    (Some((h, acc)), None) => row.run::<FMA, true, false>(acc, h[i], 0.0, tpow),
+                    (None, Some((c, u))) => row.run::<FMA, false, true>(z, 0.0, c, u),
+                    (None, None) => row.run::<FMA, false, false>(z, 0.0, 0.0, tpow),
+                }
+            }
+        }
+        for i in (0..r).filter(|_| d.lag) {
             let xi = &x[i * n..(i + 1) * n];
             // the power heating the modes: X_iP (+ X_iPb)
             let xp = if d.brake { xi[r] + xi[ib] } else { xi[r] };
@@ -1031,14 +1172,6 @@ impl Transition {
                 Some((u, c, _, _)) => (-h[i], c * h[i] - u[i]),
                 None => (0.0, 0.0),
             };
-            let modes = o[..r].iter_mut().zip(&li[..r]).zip(&self.e);
-            let extra = ftu[..r].iter().zip(&fth[..r]).zip(&self.lag_row);
-            for (((oj, &lij), &ej), ((&uj, &hj), &lj)) in modes.zip(extra) {
-                let mut v = madd::<FMA>(ej, lij, lj * ls);
-                v = madd::<FMA>(a1, uj, v);
-                v = madd::<FMA>(a2, hj, v);
-                *oj = v;
-            }
             // the power's and the lag's entries of R_i
             let gl = dot::<FMA>(&self.gamma, &li[..r]);
             let mut rp_i = madd::<FMA>(self.lag_power, ls, madd::<FMA>(self.phi, li[r], gl));
@@ -1051,13 +1184,37 @@ impl Transition {
             if d.brake {
                 let v = madd::<FMA>(self.lag_power, ls, madd::<FMA>(self.brake_phi, li[ib], gl));
                 o[ib] = madd::<FMA>(a1, ftu[ib], madd::<FMA>(a2, fth[ib], v));
-                for ((aj, bj), oj) in acc.iter_mut().zip(accb.iter_mut()).zip(o.iter_mut()) {
+            }
+            // the mode entries of R_i made and gathered in one pass (the same operations as
+            // a pass that makes them and one that gathers them), then the others gathered
+            let (e, lr) = (&self.e[..r], &self.lag_row[..r]);
+            let (fu, fh, lm) = (&ftu[..r], &fth[..r], &li[..r]);
+            let (om, ot) = o.split_at_mut(r);
+            let (am, at) = acc[..n].split_at_mut(r);
+            if d.brake {
+                let (bm, bt) = accb[..n].split_at_mut(r);
+                for j in 0..r {
+                    let mut v = madd::<FMA>(e[j], lm[j], lr[j] * ls);
+                    v = madd::<FMA>(a1, fu[j], v);
+                    v = madd::<FMA>(a2, fh[j], v);
+                    am[j] = madd::<FMA>(gi, v, am[j]);
+                    bm[j] = madd::<FMA>(gi, v, bm[j]);
+                    om[j] = v * ei;
+                }
+                for ((aj, bj), oj) in at.iter_mut().zip(bt.iter_mut()).zip(ot.iter_mut()) {
                     *aj = madd::<FMA>(gi, *oj, *aj);
                     *bj = madd::<FMA>(gi, *oj, *bj);
                     *oj *= ei;
                 }
             } else {
-                for (aj, oj) in acc.iter_mut().zip(o.iter_mut()) {
+                for j in 0..r {
+                    let mut v = madd::<FMA>(e[j], lm[j], lr[j] * ls);
+                    v = madd::<FMA>(a1, fu[j], v);
+                    v = madd::<FMA>(a2, fh[j], v);
+                    am[j] = madd::<FMA>(gi, v, am[j]);
+                    om[j] = v * ei;
+                }
+                for (aj, oj) in at.iter_mut().zip(ot.iter_mut()) {
                     *aj = madd::<FMA>(gi, *oj, *aj);
                     *oj *= ei;
                 }
@@ -1074,6 +1231,56 @@ impl Transition {
         }
         if d.brake {
             out[ib * n..].copy_from_slice(accb);
+        }
+    }
+}
+
+/// Row i of `F X Fᵀ` for a diagonal transition without a lag, in one pass: the mode entries
+/// of `T = X Fᵀ` made where they are used, `t` holding its other entries (`P`, `P_b`).
+struct PredictRow<'a> {
+    o: &'a mut [f64],
+    t: &'a [f64],
+    xi: &'a [f64],
+    e: &'a [f64],
+    gamma: &'a [f64],
+    tpow: &'a [f64],
+    xp: f64,
+    ei: f64,
+    gi: f64,
+    r: usize,
+}
+
+impl PredictRow<'_> {
+    /// `ACC`: adds `h_i` times the row into `acc` (Σh); `GAP`: adds `c u` (the mode row's
+    /// share of `q_gap u uᵀ`). Each entry: `v = e_i T_ij + γ_i T_Pj`, then those, in the
+    /// order of `Transition::predict_cov`'s passes.
+    #[inline(always)]
+    fn run<const FMA: bool, const ACC: bool, const GAP: bool>(
+        self,
+        acc: &mut [f64],
+        hi: f64,
+        c: f64,
+        u: &[f64],
+    ) {
+        let (r, n) = (self.r, self.o.len());
+        let (ei, gi, xp) = (self.ei, self.gi, self.xp);
+        let (o, tpow) = (&mut self.o[..n], &self.tpow[..n]);
+        let (acc, u) = (&mut acc[..n], &u[..n]);
+        let (xi, e, g) = (&self.xi[..r], &self.e[..r], &self.gamma[..r]);
+        for j in 0..r {
+            let tj = madd::<FMA>(e[j], xi[j], g[j] * xp);
+            let v = madd::<FMA>(ei, tj, gi * tpow[j]);
+            if ACC {
+                acc[j] = madd::<FMA>(hi, v, acc[j]);
+            }
+            o[j] = if GAP { madd::<FMA>(c, u[j], v) } else { v };
+        }
+        for j in r..n {
+            let v = madd::<FMA>(ei, self.t[j], gi * tpow[j]);
+            if ACC {
+                acc[j] = madd::<FMA>(hi, v, acc[j]);
+            }
+            o[j] = if GAP { madd::<FMA>(c, u[j], v) } else { v };
         }
     }
 }
@@ -1246,6 +1453,13 @@ struct Checkpoint {
     gain: Vec<f64>,
     nu: f64,
     s_var: f64,
+    /// The pass's state at the checkpoint besides these (a second pass resumes from it):
+    /// where the filtered covariance is, the steady cache in force, and how many caches and
+    /// recorded excursion steps there were.
+    last: Last,
+    steady: Option<usize>,
+    n_caches: usize,
+    n_nodes: usize,
 }
 
 /// One recorded step of an excursion from a steady state: the filtered covariance after a
@@ -1316,6 +1530,18 @@ impl Memo {
             .iter()
             .find(|(k, _)| *k == key)
             .map(|&(_, u)| u as usize)
+    }
+
+    /// Back to the memo as it was with `n_nodes` nodes and `n_caches` steady caches (nodes and
+    /// children are only ever appended).
+    fn truncate(&mut self, n_nodes: usize, n_caches: usize) {
+        self.nodes.truncate(n_nodes);
+        self.roots.truncate(n_caches);
+        let keep = |list: &mut Vec<(Key, u32)>| list.retain(|&(_, u)| (u as usize) < n_nodes);
+        self.roots.iter_mut().for_each(keep);
+        self.nodes
+            .iter_mut()
+            .for_each(|node| keep(&mut node.children));
     }
 
     /// Whether a child of `last` would be recorded: `last` is recorded and the memory is not
@@ -1787,21 +2013,45 @@ fn run_generic<const FMA: bool>(
     noise: Noise,
     settings: &Settings,
 ) -> Outputs {
+    run_led::<FMA>(problem, noise, settings, true)
+}
+
+/// `resume`: the smoother's second pass on the led mode sequence starts from the filter's
+/// checkpoint before the first second whose mode the lead changes (false: from the prior;
+/// the same results to the bit, tested).
+#[inline(always)]
+fn run_led<const FMA: bool>(
+    problem: &Problem<'_>,
+    noise: Noise,
+    settings: &Settings,
+    resume: bool,
+) -> Outputs {
     let k = Kernel::new(problem, noise, settings);
-    let mut fwd = forward::<FMA>(&k, settings, None);
+    let mut fwd = forward::<FMA>(&k, settings, None, None);
     let mut out = std::mem::take(&mut fwd.outputs);
     if settings.smooth {
         let lead = k.switching.map_or(0, |s| s.smoother_lead_steps);
-        // the smoother's pass: the filter's, or a second one on the led mode sequence
-        let led = led_modes(&fwd.manoeuvre, lead).map(|modes| {
-            let quiet = Settings {
-                outputs: false,
-                ..*settings
-            };
-            forward::<FMA>(&k, &quiet, Some(&modes))
-        });
-        let pass = led.as_ref().map_or(&fwd, |f| f);
-        let (est, frozen) = smooth::<FMA>(&k, pass, settings);
+        // the smoother's pass: the filter's, or a second one on the led mode sequence. Up
+        // to the step before the first second the lead changes both passes do the same
+        // operations on the same numbers: the second one resumes from the filter's last
+        // checkpoint before it, with the filter's caches and recorded excursions as they
+        // were there.
+        let pass = match led_modes(&fwd.manoeuvre, lead) {
+            Some(modes) => {
+                let quiet = Settings {
+                    outputs: false,
+                    ..*settings
+                };
+                let first = (1..modes.len())
+                    .find(|&t| modes[t] != fwd.manoeuvre[t])
+                    .expect("led modes differ somewhere");
+                let block = (first - 1) / settings.checkpoint_steps.max(1);
+                let from = resume.then_some((fwd, block));
+                forward::<FMA>(&k, &quiet, Some(&modes), from)
+            }
+            None => fwd,
+        };
+        let (est, frozen) = smooth::<FMA>(&k, &pass, settings);
         out.smoothed = Some(est);
         out.smoother_frozen_steps = frozen;
     }
@@ -1820,10 +2070,19 @@ struct Forward {
     memo_of: Vec<u32>,
 }
 
+/// The forward pass (`forced`: the power noise's mode of each step instead of the test's).
+/// `from`: a pass with the same settings and the same modes up to and including the step of
+/// its checkpoint `b`, whose checkpoints, caches and recorded excursions are taken and which
+/// this pass resumes after that step (only without outputs: those before it are not made).
 // `t` indexes the readings, the modes, the outputs and the steps alike
 #[allow(clippy::needless_range_loop)]
 #[inline(always)]
-fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bool]>) -> Forward {
+fn forward<const FMA: bool>(
+    k: &Kernel,
+    settings: &Settings,
+    forced: Option<&[bool]>,
+    from: Option<(Forward, usize)>,
+) -> Forward {
     let p = k.p;
     let (r, n) = (k.d.r, k.d.n);
     let n_t = p.reading_c.len();
@@ -1862,7 +2121,31 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
         let b = (1.0 / s.window_steps).min(1.0);
         (b, (b / (2.0 - b)).sqrt())
     });
-    for t in 0..n_t {
+    let mut start = 0;
+    if let Some((f, b)) = from {
+        // the state after step t0 = b block (the innovation test's is not needed: the modes
+        // are forced)
+        debug_assert!(forced.is_some() && !settings.outputs && settings.smooth);
+        let t0 = b * block;
+        start = t0 + 1;
+        let (n_caches, n_nodes) = (f.checkpoints[b].n_caches, f.checkpoints[b].n_nodes);
+        (modes, memo_of, manoeuvre_of) = (f.modes, f.memo_of, f.manoeuvre);
+        modes[start..].fill(FULL);
+        memo_of[start..].fill(FULL);
+        (caches, memo, checkpoints) = (f.caches, f.memo, f.checkpoints);
+        caches.truncate(n_caches);
+        memo.truncate(n_nodes, n_caches);
+        checkpoints.truncate(b + 1);
+        let cp = &checkpoints[b];
+        x.copy_from_slice(&cp.x);
+        gain.copy_from_slice(&cp.gain);
+        if cp.last == Last::Buf {
+            cov.copy_from_slice(&cp.cov);
+        }
+        (last, steady) = (cp.last, cp.steady);
+        prev_key = k.key(t0, manoeuvre_of[t0]);
+    }
+    for t in start..n_t {
         if let Some(f) = forced {
             manoeuvre = f[t];
         }
@@ -2063,6 +2346,10 @@ fn forward<const FMA: bool>(k: &Kernel, settings: &Settings, forced: Option<&[bo
                 gain: gain.clone(),
                 nu,
                 s_var,
+                last,
+                steady,
+                n_caches: caches.len(),
+                n_nodes: memo.nodes.len(),
             });
         }
         prev_key = key;
@@ -2225,6 +2512,8 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
     let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
     let mut back: Option<BackSteady> = None;
     let mut frozen_steps = 0;
+    // the largest smoothed face node of the second after (the guess of the fused pass)
+    let mut j_next = 0;
     for (b, cp) in checkpoints.iter().enumerate().rev() {
         let t0 = b * block;
         let t1 = (t0 + block).min(n_t);
@@ -2249,17 +2538,20 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                 sig_power = &c.sig_power;
             } else {
                 let cov = &rep.covs[i * nn..(i + 1) * nn];
-                // one pass: Σλ and Σ c_mean
+                // one pass: Σλ, Σ c_mean and Σ c_node of the face node that was the largest
+                // one second later (usually the largest now: else `times` again, the same bits)
                 xs_t.fill(0.0);
                 sc_mean.fill(0.0);
-                gemv_rows::<FMA>(
+                sc_node.fill(0.0);
+                gemv_rows3::<FMA>(
                     &lam,
-                    1.0,
-                    Some(&k.cm[..r]),
+                    &k.cm[..r],
+                    k.node_row(j_next),
                     cov,
                     n,
                     &mut xs_t,
-                    Some(&mut sc_mean),
+                    &mut sc_mean,
+                    &mut sc_node,
                 );
                 for (v, xi) in xs_t.iter_mut().zip(x) {
                     *v = xi - *v;
@@ -2267,7 +2559,9 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                 mean = dot::<FMA>(&k.cm, &xs_t[..r]);
                 power = k.power_of(&xs_t);
                 (top, j) = k.nodes_max::<FMA>(&xs_t, None, &mut node_values);
-                k.times::<FMA>(cov, k.node_row(j), &mut sc_node);
+                if j != j_next {
+                    k.times::<FMA>(cov, k.node_row(j), &mut sc_node);
+                }
                 sig_mean = &sc_mean;
                 sig_node = &sc_node;
                 sig_power = if k.d.brake {
@@ -2302,6 +2596,7 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                     )
                 }
             };
+            j_next = j;
             est.mean_c[t] = mean + p.t_ref_c;
             est.mean_sd_k[t] = mean_var.max(0.0).sqrt();
             est.max_c[t] = top + p.t_ref_c;
@@ -2500,6 +2795,11 @@ mod tests {
     /// A small problem: three modes, a diagonal, a dense and a gap-like transition, readings
     /// of a simulated truth with noise and missing stretches.
     fn problem(lag: bool, n_t: usize, seed: u64) -> Problem<'static> {
+        problem_from(lag, n_t, seed, 0)
+    }
+
+    /// `problem` with the truth's unexplained power of 2 W from step `power_from` on.
+    fn problem_from(lag: bool, n_t: usize, seed: u64, power_from: usize) -> Problem<'static> {
         let mut rng = Rng(seed);
         let r = 3;
         let lam = [0.004, 0.2, 1.5];
@@ -2618,7 +2918,6 @@ mod tests {
         }
         // readings of a truth stepped by the model, with an unexplained power of 2 W
         let mut x = vec![0.0; n];
-        x[r] = 2.0;
         let mut h = vec![0.0; n];
         if lag {
             h[r + 1] = 1.0;
@@ -2640,6 +2939,9 @@ mod tests {
                         * dot(&p.c_probe, &p.w[(t - 1) * r..t * r]);
                 }
                 x = nx;
+            }
+            if t == power_from {
+                x[r] = 2.0;
             }
             let missing = (t % 1500 > 1480) || t % 1500 == 7;
             p.reading_c.to_mut()[t] = if missing {
@@ -3160,6 +3462,81 @@ mod tests {
     }
 
     #[test]
+    fn the_led_pass_resumed_from_the_filters_checkpoint_is_the_led_pass_from_the_start() {
+        // to the bit, with steady stretches and recorded excursions (the 9,000-step problem
+        // repeats its missing readings, dense stretch and gap), blocks before the first
+        // changed second or none; resuming one checkpoint too late changes the results
+        let lead = 15;
+        let mut noise = SWITCHING;
+        if let Some(sw) = noise.switching.as_mut() {
+            sw.smoother_lead_steps = lead;
+        }
+        let mut skipped = 0;
+        for (lag, n_t, seed, on) in [
+            (false, 400, 7, 0),
+            (true, 600, 7, 300),
+            (false, 9000, 13, 4000),
+            (false, 9000, 13, 0),
+        ] {
+            let p = problem_from(lag, n_t, seed, on);
+            for (tol, block) in [
+                (0.0, 16),
+                (1e-7, 64),
+                (1e-7, 16),
+                (1e-12, 128),
+                (1e-7, 100_000),
+            ] {
+                let s = settings(tol, block);
+                let resumed = run_led::<false>(&p, noise, &s, true);
+                let fresh = run_led::<false>(&p, noise, &s, false);
+                let what = format!("lag {lag} n {n_t} tol {tol} block {block}");
+                let (a, b) = (resumed.smoothed.unwrap(), fresh.smoothed.unwrap());
+                for (name, x, y) in [
+                    ("mean_c", &a.mean_c, &b.mean_c),
+                    ("mean_sd_k", &a.mean_sd_k, &b.mean_sd_k),
+                    ("max_c", &a.max_c, &b.max_c),
+                    ("max_sd_k", &a.max_sd_k, &b.max_sd_k),
+                    ("power_w", &a.power_w, &b.power_w),
+                    ("power_sd_w", &a.power_sd_w, &b.power_sd_w),
+                ] {
+                    let bits = |v: &[f64]| v.iter().map(|z| z.to_bits()).collect::<Vec<_>>();
+                    assert_eq!(bits(x), bits(y), "{what}: smoothed {name}");
+                }
+                assert_eq!(resumed.smoother_frozen_steps, fresh.smoother_frozen_steps);
+                let modes = &resumed.manoeuvre;
+                let led = led_modes(modes, lead).expect("the lead changes the modes");
+                let first = (1..n_t).find(|&t| led[t] != modes[t]).unwrap();
+                skipped += (first - 1) / block;
+                // a restart one checkpoint later than the first changed second's block is
+                // not the led pass (this test would see it)
+                if (first - 1) / block + 1 < n_t.div_ceil(block) && block == 16 {
+                    let k = Kernel::new(&p, noise, &s);
+                    let mut fwd = forward::<false>(&k, &s, None, None);
+                    fwd.outputs = Outputs::default();
+                    let quiet = Settings {
+                        outputs: false,
+                        ..s
+                    };
+                    let late = forward::<false>(
+                        &k,
+                        &quiet,
+                        Some(&led),
+                        Some((fwd, (first - 1) / block + 1)),
+                    );
+                    let (est, _) = smooth::<false>(&k, &late, &s);
+                    assert_differ(
+                        "a late restart's smoothed power",
+                        &est.power_w,
+                        &b.power_w,
+                        1e-9,
+                    );
+                }
+            }
+        }
+        assert!(skipped > 0, "no case resumed after its first block");
+    }
+
+    #[test]
     fn steady_stretches_change_nothing_but_the_cost() {
         for lag in [false, true] {
             let p = problem(lag, 3000, 11);
@@ -3388,6 +3765,68 @@ mod tests {
                 if has_avx2_fma() {
                     check(true);
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn the_three_row_sums_are_the_axpy_chains() {
+        // `gemv_rows3` (both codes) against `axpy` row after row, to the bit: every width
+        // (blocks of 8, the tail), the second and third outputs over the first rows
+        let mut rng = Rng(31);
+        for (rows, width, stride, nb) in [
+            (39, 39, 39, 37),
+            (38, 38, 38, 37),
+            (5, 3, 7, 2),
+            (9, 17, 17, 9),
+            (4, 8, 8, 0),
+            (0, 9, 9, 0),
+        ] {
+            let m: Vec<f64> = (0..rows * stride).map(|_| rng.normal()).collect();
+            let a: Vec<f64> = (0..rows).map(|_| rng.normal()).collect();
+            let b: Vec<f64> = (0..nb).map(|_| rng.normal()).collect();
+            let c: Vec<f64> = (0..nb).map(|_| rng.normal()).collect();
+            let start: Vec<f64> = (0..width).map(|_| rng.normal()).collect();
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            let check = |fma: bool| {
+                let mut want = [start.clone(), start.clone(), start.clone()];
+                for i in 0..rows {
+                    let row = &m[i * stride..i * stride + width];
+                    if fma {
+                        axpy::<true>(a[i], row, &mut want[0]);
+                        if i < nb {
+                            axpy::<true>(b[i], row, &mut want[1]);
+                            axpy::<true>(c[i], row, &mut want[2]);
+                        }
+                    } else {
+                        axpy::<false>(a[i], row, &mut want[0]);
+                        if i < nb {
+                            axpy::<false>(b[i], row, &mut want[1]);
+                            axpy::<false>(c[i], row, &mut want[2]);
+                        }
+                    }
+                }
+                let [mut o1, mut o2, mut o3] = [start.clone(), start.clone(), start.clone()];
+                if fma {
+                    #[cfg(target_arch = "x86_64")]
+                    {
+                        // SAFETY: the CPU has the features; the lengths are gemv_rows3's.
+                        unsafe {
+                            gemv_rows3_avx2(&a, &b, &c, &m, stride, &mut o1, &mut o2, &mut o3)
+                        };
+                    }
+                } else {
+                    gemv_rows3::<false>(&a, &b, &c, &m, stride, &mut o1, &mut o2, &mut o3);
+                }
+                let what = format!("fma {fma} rows {rows} width {width} nb {nb}");
+                assert_eq!(bits(&o1), bits(&want[0]), "{what}");
+                assert_eq!(bits(&o2), bits(&want[1]), "{what}: second");
+                assert_eq!(bits(&o3), bits(&want[2]), "{what}: third");
+            };
+            check(false);
+            #[cfg(target_arch = "x86_64")]
+            if has_avx2_fma() {
+                check(true);
             }
         }
     }
