@@ -186,16 +186,6 @@ def test_a_unit_of_files_judges_its_wagons_and_the_stale_ones_only(
     db, whole_db = tmp_path / "fleet.duckdb", tmp_path / "whole.duckdb"
     wagon = late.parent.name
 
-    def flags(path: Path) -> list[tuple[object, ...]]:
-        con = duckdb.connect(str(path), read_only=True)
-        try:
-            return con.execute(
-                "SELECT flag_id, wagon_id, kind, severity, start_utc, end_utc, evidence "
-                "FROM flags ORDER BY flag_id"
-            ).fetchall()
-        finally:
-            con.close()
-
     with InlineEngine() as engine:
         _run(copy, db, engine, rom_refinement, rom_cache_dir)
         con = duckdb.connect(str(db))
@@ -233,7 +223,7 @@ def test_a_unit_of_files_judges_its_wagons_and_the_stale_ones_only(
     assert unit.flags is not None and again.flags is not None
     assert unit.flags.wagons == sorted({wagon, other})
     assert again.flags.wagons == []  # nothing changed, nothing stale
-    assert flags(db) == flags(whole_db) and flags(db)
+    assert _flags(db) == _flags(whole_db) and _flags(db)
 
 
 def test_large_arrow_tables_cross_to_the_workers_as_mapped_files_and_leave_nothing() -> None:
