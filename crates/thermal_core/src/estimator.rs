@@ -455,85 +455,41 @@ fn dot4<const FMA: bool>(x: &[f64], a: &[f64], b: &[f64], c: &[f64], d: &[f64]) 
     out
 }
 
-/// `out += Σ_i (σ a_i) rows_i` (σ = ±1; and `out2 += Σ_{i < b.len()} b_i rows_i` with `b`) over the first
-/// `out.len()` entries of the rows `rows[i stride ..]`, i in order: each entry is the chain of
-/// multiply-adds of `axpy` (`axpy2`) row after row, to the bit. With FMA the entries are held
-/// in AVX2 registers by blocks of 16 columns while the rows stream past (an `axpy` per row
-/// loads and stores the whole output again).
+/// `out += Σ_i (σ a_i) rows_i` (σ = ±1) over the first `out.len()` entries of the rows
+/// `rows[i stride ..]`, i in order: each entry is the chain of multiply-adds of `axpy` row
+/// after row, to the bit. With FMA the entries are held in AVX2 registers by blocks of 16
+/// columns while the rows stream past (an `axpy` per row loads and stores the whole output
+/// again).
 #[inline(always)]
-fn gemv_rows<const FMA: bool>(
-    a: &[f64],
-    sign: f64,
-    b: Option<&[f64]>,
-    rows: &[f64],
-    stride: usize,
-    out: &mut [f64],
-    out2: Option<&mut [f64]>,
-) {
+fn gemv_rows<const FMA: bool>(a: &[f64], sign: f64, rows: &[f64], stride: usize, out: &mut [f64]) {
     let w = out.len();
-    let nb = b.map_or(0, <[f64]>::len);
-    assert!(nb <= a.len() && w <= stride);
+    assert!(w <= stride);
     assert!(a.is_empty() || rows.len() >= (a.len() - 1) * stride + w);
-    if let Some(o2) = out2.as_ref() {
-        assert!(o2.len() == w);
-    }
     #[cfg(target_arch = "x86_64")]
     if FMA {
         // SAFETY: FMA is only true inside functions compiled with avx2 and fma (`run_avx2`);
         // the lengths are the ones asserted above.
-        unsafe { gemv_rows_avx2(a, sign, b.unwrap_or(&[]), rows, stride, out, out2) };
+        unsafe { gemv_rows_avx2(a, sign, rows, stride, out) };
         return;
     }
-    let mut out2 = out2;
     for (i, &ai) in a.iter().enumerate() {
-        let row = &rows[i * stride..i * stride + w];
-        axpy::<FMA>(sign * ai, row, out);
-        if let (Some(bv), Some(o2)) = (b.filter(|_| i < nb), out2.as_mut()) {
-            axpy::<FMA>(bv[i], row, o2);
-        }
+        axpy::<FMA>(sign * ai, &rows[i * stride..i * stride + w], out);
     }
 }
 
 /// `gemv_rows` with AVX2 and FMA. Caller: the lengths `gemv_rows` asserts.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn gemv_rows_avx2(
-    a: &[f64],
-    sign: f64,
-    b: &[f64],
-    rows: &[f64],
-    stride: usize,
-    out: &mut [f64],
-    out2: Option<&mut [f64]>,
-) {
+unsafe fn gemv_rows_avx2(a: &[f64], sign: f64, rows: &[f64], stride: usize, out: &mut [f64]) {
     use std::arch::x86_64::*;
-    let w = out.len();
-    let (nb, rp) = (if out2.is_some() { b.len() } else { 0 }, rows.as_ptr());
-    let op = out.as_mut_ptr();
-    let o2p = out2.map_or(std::ptr::null_mut(), <[f64]>::as_mut_ptr);
+    let (w, rp, op) = (out.len(), rows.as_ptr(), out.as_mut_ptr());
     // SAFETY: every load reads row i < a.len() at columns below w <= stride (the caller's
-    // lengths), every store writes below w; `o2p` is only used when nb > 0 (out2 given).
+    // lengths), every store writes below w.
     unsafe {
         let mut j0 = 0;
         while j0 + 16 <= w {
             let mut s: [__m256d; 4] = std::array::from_fn(|q| _mm256_loadu_pd(op.add(j0 + 4 * q)));
-            if nb > 0 {
-                let mut s2: [__m256d; 4] =
-                    std::array::from_fn(|q| _mm256_loadu_pd(o2p.add(j0 + 4 * q)));
-                for i in 0..nb {
-                    let (ai, bi) = (_mm256_set1_pd(sign * a[i]), _mm256_set1_pd(b[i]));
-                    let row = rp.add(i * stride + j0);
-                    for q in 0..4 {
-                        let x = _mm256_loadu_pd(row.add(4 * q));
-                        s[q] = _mm256_fmadd_pd(ai, x, s[q]);
-                        s2[q] = _mm256_fmadd_pd(bi, x, s2[q]);
-                    }
-                }
-                for (q, v) in s2.iter().enumerate() {
-                    _mm256_storeu_pd(o2p.add(j0 + 4 * q), *v);
-                }
-            }
-            for (i, &av) in a.iter().enumerate().skip(nb) {
+            for (i, &av) in a.iter().enumerate() {
                 let ai = _mm256_set1_pd(sign * av);
                 let row = rp.add(i * stride + j0);
                 for (q, sq) in s.iter_mut().enumerate() {
@@ -547,42 +503,24 @@ unsafe fn gemv_rows_avx2(
         }
         while j0 + 4 <= w {
             let mut s = _mm256_loadu_pd(op.add(j0));
-            let mut s2 = if nb > 0 {
-                _mm256_loadu_pd(o2p.add(j0))
-            } else {
-                s
-            };
             for (i, &av) in a.iter().enumerate() {
                 let x = _mm256_loadu_pd(rp.add(i * stride + j0));
                 s = _mm256_fmadd_pd(_mm256_set1_pd(sign * av), x, s);
-                if i < nb {
-                    s2 = _mm256_fmadd_pd(_mm256_set1_pd(b[i]), x, s2);
-                }
             }
             _mm256_storeu_pd(op.add(j0), s);
-            if nb > 0 {
-                _mm256_storeu_pd(o2p.add(j0), s2);
-            }
             j0 += 4;
         }
         for j in j0..w {
-            let (mut s, mut s2) = (*op.add(j), if nb > 0 { *o2p.add(j) } else { 0.0 });
+            let mut s = *op.add(j);
             for (i, &av) in a.iter().enumerate() {
-                let x = *rp.add(i * stride + j);
-                s = (sign * av).mul_add(x, s);
-                if i < nb {
-                    s2 = b[i].mul_add(x, s2);
-                }
+                s = (sign * av).mul_add(*rp.add(i * stride + j), s);
             }
             *op.add(j) = s;
-            if nb > 0 {
-                *o2p.add(j) = s2;
-            }
         }
     }
 }
 
-/// `gemv_rows` with two second outputs: `out += Σ_i a_i rows_i`, `out2 += Σ_{i < b.len()}
+/// `gemv_rows` with two more outputs: `out += Σ_i a_i rows_i`, `out2 += Σ_{i < b.len()}
 /// b_i rows_i` and `out3 += Σ_{i < b.len()} c_i rows_i` (`c` as long as `b`), each entry the
 /// chain of multiply-adds of `axpy` row after row, to the bit (as `gemv_rows`'s and `times`'s:
 /// the smoother's `Σλ`, `Σ c_mean` and `Σ c_node` of one face node in one pass over Σ). With
@@ -1886,9 +1824,9 @@ impl<'a> Kernel<'a> {
     ) -> (f64, usize) {
         let (r, m) = (self.d.r, self.m.next_multiple_of(4));
         v.fill(0.0);
-        gemv_rows::<FMA>(&x[..r], 1.0, None, &self.cn_t, m, &mut v[..m], None);
+        gemv_rows::<FMA>(&x[..r], 1.0, &self.cn_t, m, &mut v[..m]);
         if let Some((s_t, lam)) = minus {
-            gemv_rows::<FMA>(lam, -1.0, None, s_t, m, &mut v[..m], None);
+            gemv_rows::<FMA>(lam, -1.0, s_t, m, &mut v[..m]);
         }
         let mut best = (f64::NEG_INFINITY, 0usize);
         for (j, &vj) in v[..self.m].iter().enumerate() {
@@ -1910,7 +1848,7 @@ impl<'a> Kernel<'a> {
     fn times<const FMA: bool>(&self, m: &[f64], c: &[f64], out: &mut [f64]) {
         let n = self.d.n;
         out.fill(0.0);
-        gemv_rows::<FMA>(&c[..c.len().min(n)], 1.0, None, m, n, &mut out[..n], None);
+        gemv_rows::<FMA>(&c[..c.len().min(n)], 1.0, m, n, &mut out[..n]);
     }
 
     /// `sᵀ M s` for a symmetric M (`tmp`: n scratch).
@@ -3709,53 +3647,42 @@ mod tests {
     #[test]
     fn the_register_held_row_sums_are_the_axpy_chains() {
         // `gemv_rows` (both codes) against `axpy` row after row, to the bit: every width
-        // (blocks of 16, of 4, the tail), a second output over the first rows or none, ±1
+        // (blocks of 16, of 4, the tail), ±1 (the three outputs: `gemv_rows3`'s test)
         let mut rng = Rng(12);
-        for (rows, width, stride, nb) in [
-            (37, 24, 24, 0),
-            (39, 39, 39, 37),
-            (39, 39, 39, 0),
-            (5, 3, 7, 2),
-            (38, 38, 40, 38),
-            (1, 17, 17, 1),
-            (0, 9, 9, 0),
+        for (rows, width, stride) in [
+            (37, 24, 24),
+            (39, 39, 39),
+            (5, 3, 7),
+            (38, 38, 40),
+            (1, 17, 17),
+            (0, 9, 9),
         ] {
             let m: Vec<f64> = (0..rows * stride).map(|_| rng.normal()).collect();
             let a: Vec<f64> = (0..rows).map(|_| rng.normal()).collect();
-            let b: Vec<f64> = (0..nb).map(|_| rng.normal()).collect();
             let start: Vec<f64> = (0..width).map(|_| rng.normal()).collect();
             for sign in [1.0, -1.0] {
-                let (mut w1, mut w2) = (start.clone(), start.clone());
+                let mut want = start.clone();
                 for i in 0..rows {
-                    let row = &m[i * stride..i * stride + width];
-                    axpy::<true>(sign * a[i], row, &mut w1);
-                    if i < nb {
-                        axpy::<true>(b[i], row, &mut w2);
-                    }
+                    axpy::<true>(sign * a[i], &m[i * stride..i * stride + width], &mut want);
                 }
                 let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 let check = |fma: bool| {
-                    let (mut o1, mut o2) = (start.clone(), start.clone());
-                    let second = (nb > 0).then_some(&b[..]);
-                    let out2 = (nb > 0).then_some(&mut o2[..]);
+                    let mut got = start.clone();
                     if fma {
                         #[cfg(target_arch = "x86_64")]
                         {
                             // SAFETY: the CPU has the features; the lengths are gemv_rows'.
-                            unsafe { gemv_rows_avx2(&a, sign, &b, &m, stride, &mut o1, out2) };
+                            unsafe { gemv_rows_avx2(&a, sign, &m, stride, &mut got) };
                         }
                     } else {
-                        gemv_rows::<false>(&a, sign, second, &m, stride, &mut o1, out2);
+                        gemv_rows::<false>(&a, sign, &m, stride, &mut got);
                     }
-                    let what = format!("fma {fma} rows {rows} width {width} nb {nb} sign {sign}");
+                    let what = format!("fma {fma} rows {rows} width {width} sign {sign}");
                     if fma {
-                        assert_eq!(bits(&o1), bits(&w1), "{what}");
-                        if nb > 0 {
-                            assert_eq!(bits(&o2), bits(&w2), "{what}: second");
-                        }
+                        assert_eq!(bits(&got), bits(&want), "{what}");
                     } else {
                         // the scalar code is the unfused chain: within rounding of the fused
-                        for (x, y) in o1.iter().zip(&w1) {
+                        for (x, y) in got.iter().zip(&want) {
                             assert!((x - y).abs() <= 1e-12 * (1.0 + y.abs()), "{what}");
                         }
                     }
