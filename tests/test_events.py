@@ -417,3 +417,116 @@ def test_chains_and_windows() -> None:
     assert not events_module._overlaps(merged, t[7], t[49])
     assert events_module._overlaps(merged, t[0], t[99])
     assert not events_module._overlaps(merged, t[71], t[99])
+
+
+# --------------------------------------------------------------------------------------------
+# The stage's reads and the smoothed speed (docs/benchmarks.md, session 15)
+
+
+@pytest.mark.parametrize("window", [1, 2, 3, 4, 5, 7, 9])
+def test_running_median_is_polars_bit_for_bit(window: int) -> None:
+    rng = np.random.default_rng(window)
+    for n in [0, 1, 2, window - 1, window, 2 * window - 1, 2 * window, 2 * window + 1, 50, 997]:
+        values = np.round(rng.normal(60.0, 25.0, max(n, 0)), 1)
+        values[rng.random(values.size) < 0.3] = 0.0  # ties, as a stopped wagon's GPS gives
+        values[rng.random(values.size) < 0.1] = 61.3
+        expected = (
+            pl.Series(values, dtype=pl.Float64)
+            .rolling_median(window_size=window, center=True, min_samples=1)
+            .to_numpy()
+        )
+        got = events_module.running_median(values, window)
+        assert got.dtype == np.float64 and got.shape == expected.shape
+        assert np.array_equal(got, expected), (window, n)
+
+
+def _two_wagons_overlapping(fleet: Path) -> list[str]:
+    """Two wagons, each with chains of files apart and files overlapping in time (the same
+    seconds logged twice: the chunk's rows are not in time order by file)."""
+    wagons = [WAGON, "SGG-0002"]
+    write_registry(fleet, wagons)
+    rng = np.random.default_rng(11)
+    for w, wagon in enumerate(wagons):
+        for k in range(3):
+            start = T0_UTC + dt.timedelta(hours=2 * k, minutes=7 * w)
+            frame = make_session(rng, start, n_events=3).frame
+            write_session(fleet, wagon, frame, start)
+            if k == 1:  # the middle of the session again, in a second file
+                late = frame.slice(frame.height // 3, frame.height // 3)
+                write_session(fleet, wagon, late, late["time_utc"][0])
+    return wagons
+
+
+def test_a_chunk_of_windows_reads_each_as_the_per_window_query(tmp_path: Path) -> None:
+    from fleetbrake.warehouse.connection import open_warehouse, sql
+
+    fleet, db = tmp_path / "fleet", tmp_path / "fleet.duckdb"
+    wagons = _two_wagons_overlapping(fleet)
+    run_ingest(fleet, db, progress=False)
+    config = EventConfig()
+    with open_warehouse(db, read_only=True) as wh:
+        files = wh.con.execute(sql("q_events_files"), {"wagon_ids": wagons}).fetchall()
+        windows = []
+        for wagon in [*wagons, "SGG-0404"]:  # the last: a window of no samples
+            spans = [(a, b) for w, a, b, _ in files if w == wagon] or [(T0_UTC, T0_UTC)]
+            chains = tuple((a, b) for a, b in spans)
+            windows += [
+                events_module._Window(wagon, chains, 1, last=False),  # the whole wagon
+                events_module._Window(wagon, chains[1:2] or chains, 1, last=True),
+            ]
+        windows.insert(1, events_module._Window(WAGON, (), 0, last=False))  # nothing to read
+        task = events_module._chunk_task(wh, windows, config)
+        assert task.samples is not None
+        stored_order = task.samples.column("time_utc").to_numpy()
+        assert not np.all(np.diff(stored_order) > np.timedelta64(0))  # the sort is exercised
+        reading = [w for w in windows if w.chains]
+        parts = events_module._window_parts(task.samples, len(reading))
+        for window, part in zip(reading, parts, strict=True):
+            params = {
+                "wagon_id": window.wagon_id,
+                "from_utc": window.chains[0][0],
+                "to_utc": window.chains[-1][1],
+            }
+            expected = wh.con.sql(sql("q_event_samples"), params=params).pl()
+            assert part.schema == expected.schema
+            assert part.equals(expected), window
+        assert sum(p.height for p in parts) == task.samples.num_rows
+        assert parts[-1].is_empty() and parts[-2].is_empty()
+
+
+@pytest.mark.parametrize("load_rows", [1, 60_000])
+def test_chunks_of_several_wagons_give_each_wagons_events(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, load_rows: int
+) -> None:
+    fleet = tmp_path / "fleet"
+    _two_wagons_overlapping(fleet)
+    whole = run_ingest(fleet, tmp_path / "a.duckdb", progress=False)  # both wagons, one chunk
+    monkeypatch.setattr(events_module, "_LOAD_ROWS", load_rows)  # each chain alone; or pairs
+    apart = run_ingest(fleet, tmp_path / "b.duckdb", progress=False)
+    assert whole.events is not None and apart.events is not None
+    assert whole.events.wagons == apart.events.wagons == 2
+    assert whole.events.chains == apart.events.chains == 6
+    expected = _events(tmp_path / "a.duckdb").drop("detected_utc")
+    assert expected.height >= 12 and expected["wagon_id"].n_unique() == 2
+    assert _events(tmp_path / "b.duckdb").drop("detected_utc").equals(expected)
+    by_wagon = pl.concat(
+        [
+            detect_events(  # each wagon's events from its samples alone, no warehouse
+                _samples_of(tmp_path / "a.duckdb", wagon), wagon
+            )
+            for wagon in [WAGON, "SGG-0002"]
+        ]
+    ).sort("start_utc")
+    assert by_wagon.select(expected.columns).equals(expected.select(expected.columns))
+
+
+def _samples_of(db: Path, wagon: str) -> pl.DataFrame:
+    con = duckdb.connect(str(db), read_only=True)
+    try:
+        return con.sql(
+            "SELECT time_utc, file_id, speed_kmh, distance_m, brake_pressure_bar, block_temp_c, "
+            "block_temp_fault FROM samples WHERE wagon_id = $w ORDER BY time_utc, file_id",
+            params={"w": wagon},
+        ).pl()
+    finally:
+        con.close()

@@ -75,6 +75,46 @@ def grid(
 
 
 # --------------------------------------------------------------------------------------------
+# The stored estimates on a span's grid
+
+
+def test_stored_estimates_land_on_their_seconds_of_the_span() -> None:
+    from fleetbrake.flags.estimated import ESTIMATE_COLUMNS, estimate_on_grid
+
+    series = make_series(np.full(100, 40.0))  # seconds 0-99 from T0
+    seconds = [-5, 3, 4, 7, 50, 99, 100, 130]  # three rows outside the span
+    rows = len(seconds)
+    values = {
+        name: np.arange(rows, dtype=np.float64) + 10.0 * i
+        for i, name in enumerate(ESTIMATE_COLUMNS)
+    }
+    frame = pl.DataFrame({"time_utc": pl.Series([at(s) for s in seconds]), **values}).with_columns(
+        pl.when(pl.int_range(pl.len()) == 4)  # a row the smoother left without a power
+        .then(None)
+        .otherwise(pl.col("unexplained_power_w"))
+        .alias("unexplained_power_w"),
+        pl.col("innovation_k").cast(pl.Float32),  # another float type
+    )
+    config = dataclasses.replace(DEFAULT_FLAG_CONFIG, est_settle_s=2)
+    # rows outside the span (each row picked), and all inside (the rows as they are)
+    for given, picked in ((frame, range(rows)), (frame.slice(1, 5), range(1, 6))):
+        est = estimate_on_grid(series, given, config)
+        kept = [(seconds[j], j) for j in picked if 0 <= seconds[j] < 100]
+        for i, name in enumerate(ESTIMATE_COLUMNS):
+            expected = np.full(100, np.nan)
+            for s, j in kept:
+                expected[s] = j + 10.0 * i
+            if name == "unexplained_power_w":
+                expected[50] = np.nan  # its null
+            assert np.array_equal(getattr(est, name), expected, equal_nan=True), name
+        has = np.zeros(100, dtype=bool)
+        has[[s for s, _ in kept]] = True
+        assert np.array_equal(est.settled, has & (np.arange(100) >= 5))
+    empty = estimate_on_grid(series, frame.clear(), config)
+    assert np.isnan(empty.unexplained_power_w).all() and not empty.settled.any()
+
+
+# --------------------------------------------------------------------------------------------
 # Residual-scaled thresholds
 
 

@@ -107,12 +107,13 @@ def estimate_on_grid(
     if frame.height:
         k = seconds_since(frame["time_utc"], series.t0)
         inside = (k >= 0) & (k < n)
-        columns = frame.select(  # one polars query for every column
-            pl.col(name).cast(pl.Float64).fill_null(np.nan) for name in ESTIMATE_COLUMNS
-        )
-        for name in ESTIMATE_COLUMNS:
-            out[name][k[inside]] = columns[name].to_numpy()[inside]
-        has[k[inside]] = True
+        at = k[inside]
+        whole = bool(inside.all())  # the span holds every row: no copy of them
+        for name in ESTIMATE_COLUMNS:  # no polars query: a float column's nulls are NaN
+            column = frame[name]
+            values = (column if column.dtype == pl.Float64 else column.cast(pl.Float64)).to_numpy()
+            out[name][at] = values if whole else values[inside]
+        has[at] = True
     settled = has.copy()
     first = np.flatnonzero(has)
     if first.size:

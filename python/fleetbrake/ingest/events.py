@@ -48,10 +48,12 @@ and the events table is brought in line for a batch of whole wagons (about 1,000
 one transaction: events that are the same are left alone (their ``detected_utc``
 unchanged), changed or vanished ones are replaced or deleted, new ones inserted, and the
 wagons' dirty ranges removed. A run killed half-way leaves whole wagons done and the others'
-dirty ranges in place, so the next run does their work again. Samples are loaded a few whole
-chains (at most about 500,000 rows, unless one chain is longer) at a time: a partition,
-detected by an engine's worker when ``update_events`` is given an engine
-(:mod:`fleetbrake.engine`), while this process, the single writer, commits the batches.
+dirty ranges in place, so the next run does their work again. Samples are loaded whole
+chains at a time, the touched chains of several wagons together (at most about 200,000
+rows, unless one chain is longer) with one query, in stored order: a partition, cut into
+its wagons' windows and sorted by time and detected by an engine's worker when
+``update_events`` is given an engine (:mod:`fleetbrake.engine`), while this process, the
+single writer, commits the batches.
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ from typing import Any, Protocol
 import duckdb
 import numpy as np
 import polars as pl
+import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.engine.writer import WriteBehind
 from fleetbrake.warehouse.connection import Warehouse, reader, sql
@@ -76,6 +79,7 @@ __all__ = [
     "EventConfig",
     "EventUpdate",
     "detect_events",
+    "running_median",
     "update_events",
 ]
 
@@ -222,11 +226,11 @@ class _Series:
 
     @classmethod
     def of(cls, samples: pl.DataFrame, config: EventConfig) -> _Series:
-        # two polars queries per chain (the columns, the smoothed speed), the rest in numpy:
-        # each polars call costs about 0.3 ms, and a wagon-day has a few chains
+        # one polars query per chain (the columns), the rest in numpy: each polars call
+        # costs about 0.3 ms, and a wagon-day has a few chains
         columns = [
             pl.col("time_utc").cast(pl.Datetime("us")),
-            pl.col("speed_kmh"),
+            pl.col("speed_kmh").cast(pl.Float64),
             pl.col("distance_m").cast(pl.Float64),
             pl.col("brake_pressure_bar").cast(pl.Float64),
             pl.col("block_temp_c").cast(pl.Float64),
@@ -242,20 +246,9 @@ class _Series:
                 subset="time_utc", keep="first", maintain_order=True
             )
             time_us = _physical_us(frame["time_utc"])
-        speed = (
-            frame.lazy()
-            .select("time_utc", "speed_kmh")
-            .drop_nulls()
-            .drop_nans()
-            .select(
-                "time_utc",
-                pl.col("speed_kmh").rolling_median(
-                    window_size=config.speed_median_samples, center=True, min_samples=1
-                ),
-            )
-            .collect()
-        )
         time_s = time_us / _US_PER_S
+        speed_kmh = frame["speed_kmh"].to_numpy()  # null: NaN
+        has_speed = ~np.isnan(speed_kmh)
         file_id = (
             frame["file_id"].to_numpy()
             if "file_id" in frame.columns
@@ -283,8 +276,8 @@ class _Series:
                 if "block_temp_fault" in frame.columns
                 else np.zeros(frame.height, dtype=bool)
             ),
-            speed_time_s=_physical_us(speed["time_utc"]) / _US_PER_S,
-            speed_kmh=speed["speed_kmh"].to_numpy(),
+            speed_time_s=time_s[has_speed],
+            speed_kmh=running_median(speed_kmh[has_speed], config.speed_median_samples),
         )
 
     def speed_at(self, time_s: float, near_s: float) -> float:
@@ -419,6 +412,30 @@ def _kind(
     return "slowdown"
 
 
+def running_median(values: np.ndarray, window: int) -> np.ndarray:
+    """The running median of ``values`` (no NaN) over ``window`` samples centred on each,
+    fewer at the ends: polars' ``rolling_median(window, center=True, min_samples=1)``, bit
+    for bit, at a third of its cost. An odd window's full medians are each window's middle
+    value (numpy's partition of the sliding windows: a choice, no arithmetic); the ``window
+    // 2`` values at each end, whose shorter windows may average two, and an even window
+    are polars' own."""
+    n, half = values.size, window // 2
+    if window % 2 == 0 or n < 2 * window:
+        return _polars_running_median(values, window)
+    out = np.empty(n, dtype=np.float64)
+    windows = np.lib.stride_tricks.sliding_window_view(values, window)
+    out[half : n - half] = np.partition(windows, half, axis=1)[:, half]
+    if half:  # an end's windows hold only its first (last) 2 x half values
+        out[:half] = _polars_running_median(values[: 2 * half], window)[:half]
+        out[n - half :] = _polars_running_median(values[n - 2 * half :], window)[half:]
+    return out
+
+
+def _polars_running_median(values: np.ndarray, window: int) -> np.ndarray:
+    series = pl.Series(values, dtype=pl.Float64)
+    return series.rolling_median(window_size=window, center=True, min_samples=1).to_numpy()
+
+
 def _physical_us(times: pl.Series) -> np.ndarray:
     """Microseconds since the epoch of a ``Datetime("us")`` column without nulls."""
     return times.to_numpy().view(np.int64)
@@ -455,8 +472,10 @@ class EventUpdate:
     """Ids of the events inserted by this update."""
 
 
-_LOAD_ROWS = 500_000
-"""Samples loaded per query at most (whole chains; a longer chain is loaded alone)."""
+_LOAD_ROWS = 200_000
+"""Samples loaded per query at most (whole chains of one or more wagons, a partition; a
+longer chain is loaded alone): about five wagon-days, the size of the other stages' chunks
+(a hundred wagon-days make twenty partitions for the workers to share)."""
 
 _COMMIT_EVENTS = 1_000
 """Events brought in line per transaction at most (whole wagons; a wagon with more is
@@ -512,14 +531,15 @@ def update_events(
 ) -> EventUpdate:
     """Detect the events of every chain of files touched since the last update (see module).
 
-    This process reads each wagon's touched chains (a few at a time, at most about
-    ``_LOAD_ROWS`` samples: a partition), ``engine.map`` runs the detection on them (default:
-    the builtin ``map``, here; an engine's workers otherwise), and this process brings whole
-    wagons' events in line, a batch of wagons (at most about ``_COMMIT_EVENTS`` events) in one
-    transaction, as their partitions come back. The transactions run on a writer thread
-    (:class:`~fleetbrake.engine.writer.WriteBehind`), one batch at a time and in order, while
-    the next wagons' samples are read on a second connection (:func:`reader`): the reads and
-    the commits overlap instead of adding up."""
+    This process reads the wagons' touched chains (several wagons' at a time, at most about
+    ``_LOAD_ROWS`` samples, one query: a partition, :func:`_detect_tasks`), ``engine.map``
+    runs the detection on them (default: the builtin ``map``, here; an engine's workers
+    otherwise, which cut and sort the rows: :func:`_window_parts`), and this process brings
+    whole wagons' events in line, a batch of wagons (at most about ``_COMMIT_EVENTS``
+    events) in one transaction, as their partitions come back. The transactions run on a
+    writer thread (:class:`~fleetbrake.engine.writer.WriteBehind`), one batch at a time and
+    in order, while the next wagons' samples are read on a second connection
+    (:func:`reader`): the reads and the commits overlap instead of adding up."""
     config = config or EventConfig()
     con = wh.con
     update = EventUpdate()
@@ -539,7 +559,7 @@ def update_events(
         tasks = _detect_tasks(source, by_wagon, config, affected_by_wagon)
         results = map(_detect_task, tasks) if engine is None else engine.map(_detect_task, tasks)
         found: list[pl.DataFrame] = []
-        for task_wagon, events, last in results:
+        for task_wagon, events, last in (one for chunk in results for one in chunk):
             found.append(events)
             if not last:
                 continue
@@ -566,24 +586,95 @@ class Mapper(Protocol):
 
 
 @dataclass(frozen=True)
-class _DetectTask:
-    """A partition of the detection: some touched chains of one wagon, their samples each."""
+class _Window:
+    """A time window of one wagon's samples read in one piece: some of its touched chains
+    (consecutive ones, with the chains between them) or none."""
 
     wagon_id: str
-    chains: tuple[pl.DataFrame, ...]
-    config: EventConfig
+    chains: tuple[tuple[dt.datetime, dt.datetime], ...]
+    """The touched chains' time spans, in time order (the window runs from the first's start
+    to the last's end)."""
+    rows: int
+    """Samples of the window's files (what chunks are sized by)."""
     last: bool
-    """The wagon's last partition: its events can be brought in line once it is back."""
-
-    def __str__(self) -> str:
-        return f"wagon {self.wagon_id} ({len(self.chains)} stretches of samples)"
+    """The wagon's last window: its events can be brought in line once it is back."""
 
 
-def _detect_task(task: _DetectTask) -> tuple[str, pl.DataFrame, bool]:
-    """The events of a partition's chains (pure: runs in an engine's worker)."""
-    found = [pl.DataFrame(schema=EVENT_COLUMNS)]
-    found += [detect_events(samples, task.wagon_id, task.config) for samples in task.chains]
-    return task.wagon_id, pl.concat(found), task.last
+@dataclass(frozen=True)
+class _DetectTask:
+    """A partition of the detection: windows of one or more wagons, in wagon order, and their
+    samples read together (``q_events_chunk_samples.sql``: Arrow, each row with its
+    window's 1-based ``part_ix``, in stored order)."""
+
+    windows: tuple[_Window, ...]
+    samples: pa.Table | None
+    """The samples of the windows with chains (``part_ix`` counts those); None: none has."""
+    config: EventConfig
+
+    def __str__(self) -> str:  # how an engine names the partition in an error
+        wagons = list(dict.fromkeys(w.wagon_id for w in self.windows))
+        chains = sum(len(w.chains) for w in self.windows)
+        names = f"wagon {wagons[0]}" if len(wagons) == 1 else "wagons " + ", ".join(wagons)
+        return f"{names} ({chains} stretches of samples)"
+
+
+def _detect_task(task: _DetectTask) -> list[tuple[str, pl.DataFrame, bool]]:
+    """The events of each window's chains, in the task's order (pure: runs in an engine's
+    worker): the chunk cut into the windows it read (:func:`_window_parts`), each sorted as
+    ``q_event_samples.sql`` sorts one, each chain's slice detected alone."""
+    parts = iter(_window_parts(task.samples, sum(1 for w in task.windows if w.chains)))
+    out = []
+    for window in task.windows:
+        found = [pl.DataFrame(schema=EVENT_COLUMNS)]
+        if window.chains:
+            samples = next(parts)
+            times = samples["time_utc"].to_numpy()  # sorted; numpy: no Series per lookup
+            for from_utc, to_utc in window.chains:
+                lo = int(np.searchsorted(times, np.datetime64(from_utc, "us"), "left"))
+                hi = int(np.searchsorted(times, np.datetime64(to_utc, "us"), "right"))
+                chain = samples.slice(lo, hi - lo)
+                found.append(detect_events(chain, window.wagon_id, task.config))
+        out.append((window.wagon_id, pl.concat(found), window.last))
+    return out
+
+
+_SAMPLE_COLUMNS: dict[str, pl.DataType] = {
+    "time_utc": pl.Datetime("us"),
+    "file_id": pl.Int64(),
+    "speed_kmh": pl.Float64(),
+    "distance_m": pl.Float64(),
+    "brake_pressure_bar": pl.Float64(),
+    "block_temp_c": pl.Float64(),
+    "block_temp_fault": pl.Boolean(),
+}
+"""The columns of ``q_event_samples.sql`` (a window's samples as the detection reads them)."""
+
+
+def _window_parts(samples: pa.Table | None, windows: int) -> list[pl.DataFrame]:
+    """Each of ``windows`` windows' samples of a chunk read by ``q_events_chunk_samples.sql``
+    (by ``part_ix``), sorted by ``time_utc`` then ``file_id`` as ``q_event_samples.sql`` sorts
+    one window (a file holds one sample per time: the order is total, so any sort gives the
+    same rows), without ``part_ix``. The stored order holds each window's rows in a few runs
+    (its files were written together), mostly in time order: each window is its runs'
+    slices joined without a copy, sorted only when its times do not strictly increase."""
+    empty = pl.DataFrame(schema=_SAMPLE_COLUMNS)
+    if samples is None or samples.num_rows == 0:
+        return [empty] * windows
+    frame = pl.from_arrow(samples)
+    assert isinstance(frame, pl.DataFrame)  # a table converts to a frame
+    ix = frame["part_ix"].to_numpy()
+    frame = frame.select(list(_SAMPLE_COLUMNS))
+    runs: list[list[pl.DataFrame]] = [[] for _ in range(windows)]
+    starts = [0, *(np.flatnonzero(ix[1:] != ix[:-1]) + 1).tolist(), ix.size]
+    for a, b in itertools.pairwise(starts):
+        runs[int(ix[a]) - 1].append(frame.slice(a, b - a))
+    parts = []
+    for pieces in runs:
+        part = pl.concat(pieces, rechunk=False) if pieces else empty
+        if not np.all(np.diff(_physical_us(part["time_utc"])) > 0):  # or a time repeated
+            part = part.sort(["time_utc", "file_id"])
+        parts.append(part)
+    return parts
 
 
 def _detect_tasks(
@@ -592,28 +683,63 @@ def _detect_tasks(
     config: EventConfig,
     affected_by_wagon: dict[str, list[_Chain]],
 ) -> Iterator[_DetectTask]:
-    """Each dirty wagon's touched chains, read a few at a time (at most about ``_LOAD_ROWS``
-    samples, unless one chain is longer), in wagon order; records each wagon's touched
-    chains in ``affected_by_wagon``. Read lazily, between the wagons' transactions."""
-    con = wh.con
-    for wagon_id in sorted(by_wagon):
-        files = con.execute(sql("q_events_wagon_files"), {"wagon_id": wagon_id}).fetchall()
-        chains = _chains(files, config.max_gap_s)
+    """The dirty wagons' touched chains as windows (:func:`_load_groups`), in wagon order,
+    packed into chunks of at most about ``_LOAD_ROWS`` samples (whole windows; a longer one
+    alone), each chunk's samples read with one query (``q_events_chunk_samples.sql``); the
+    wagons' files are read with one query (``q_events_files.sql``). Records each wagon's
+    touched chains in ``affected_by_wagon``. Read lazily, between the wagons' transactions."""
+    wagon_ids = sorted(by_wagon)
+    files_by_wagon: dict[str, list[tuple[dt.datetime, dt.datetime, int]]] = {}
+    if wagon_ids:
+        rows = wh.con.execute(sql("q_events_files"), {"wagon_ids": wagon_ids}).fetchall()
+        for wagon_id, first, last, n in rows:
+            files_by_wagon.setdefault(wagon_id, []).append((first, last, n))
+    chunk: list[_Window] = []
+    held = 0
+    for wagon_id in wagon_ids:
+        chains = _chains(files_by_wagon.get(wagon_id, []), config.max_gap_s)
         touched = _merged(by_wagon[wagon_id], dt.timedelta(seconds=config.max_gap_s))
         affected = [c for c in chains if _overlaps(touched, c.from_utc, c.to_utc)]
         affected_by_wagon[wagon_id] = affected
         groups = _load_groups(chains, affected)
-        if not groups:
-            yield _DetectTask(wagon_id, (), config, last=True)
-        for i, group in enumerate(groups):
-            samples = _samples(wh, wagon_id, group[0].from_utc, group[-1].to_utc)
-            times = samples["time_utc"].to_numpy()  # sorted; numpy: no Series per lookup
-            slices = []
-            for member in group:
-                lo = int(np.searchsorted(times, np.datetime64(member.from_utc, "us"), "left"))
-                hi = int(np.searchsorted(times, np.datetime64(member.to_utc, "us"), "right"))
-                slices.append(samples.slice(lo, hi - lo))
-            yield _DetectTask(wagon_id, tuple(slices), config, last=i == len(groups) - 1)
+        windows = [
+            _Window(
+                wagon_id,
+                tuple((c.from_utc, c.to_utc) for c in group),
+                _span_rows(chains, group),
+                last=i == len(groups) - 1,
+            )
+            for i, group in enumerate(groups)
+        ] or [_Window(wagon_id, (), 0, last=True)]
+        for window in windows:
+            if chunk and held + window.rows > _LOAD_ROWS:
+                yield _chunk_task(wh, chunk, config)
+                chunk, held = [], 0
+            chunk.append(window)
+            held += window.rows
+    if chunk:
+        yield _chunk_task(wh, chunk, config)
+
+
+def _chunk_task(wh: Warehouse, windows: list[_Window], config: EventConfig) -> _DetectTask:
+    """A chunk of windows with the samples of those with chains, read with one query (their
+    ``part_ix`` counts them in order; none read when no window has chains)."""
+    reading = [w for w in windows if w.chains]
+    samples = None
+    if reading:
+        params = {
+            "wagon_ids": [w.wagon_id for w in reading],
+            "from_utc": [w.chains[0][0] for w in reading],
+            "to_utc": [w.chains[-1][1] for w in reading],
+        }
+        samples = wh.con.sql(sql("q_events_chunk_samples"), params=params).to_arrow_table()
+    return _DetectTask(tuple(windows), samples, config)
+
+
+def _span_rows(chains: list[_Chain], group: list[_Chain]) -> int:
+    """Samples of the chains from ``group``'s first to its last (those between included)."""
+    first, last = chains.index(group[0]), chains.index(group[-1])
+    return sum(c.rows for c in chains[first : last + 1])
 
 
 def _load_groups(chains: list[_Chain], affected: list[_Chain]) -> list[list[_Chain]]:
@@ -702,14 +828,6 @@ def _insert_events(con: duckdb.DuckDBPyConnection, events: pl.DataFrame) -> None
         con.execute(sql("q_insert_events"))
     finally:
         con.unregister("event_batch")
-
-
-def _samples(
-    wh: Warehouse, wagon_id: str, from_utc: dt.datetime, to_utc: dt.datetime
-) -> pl.DataFrame:
-    """A wagon's samples in [from_utc, to_utc], sorted by time (then file)."""
-    params = {"wagon_id": wagon_id, "from_utc": from_utc, "to_utc": to_utc}
-    return wh.con.sql(sql("q_event_samples"), params=params).pl()
 
 
 _NO_EVENTS = pl.DataFrame(schema=EVENT_COLUMNS)

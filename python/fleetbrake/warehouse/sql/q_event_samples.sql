@@ -1,4 +1,6 @@
--- The samples of one wagon in a time window, for the event detection (fleetbrake.events).
+-- The samples of one wagon in a time window, sorted, as the event detection reads a window
+-- (fleetbrake.ingest.events reads several windows with one q_events_chunk_samples.sql and
+-- sorts each so; tests/test_events.py compares each window's rows with this query's).
 -- Parameters: $wagon_id, $from_utc, $to_utc.
 WITH staged AS (
     SELECT
