@@ -5,7 +5,9 @@ from __future__ import annotations
 import fcntl
 import os
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -119,3 +121,36 @@ def default_rom(reduced_model_for: Callable[..., object]) -> object:
     from fleetbrake.fleet.registry import WagonConfig
 
     return reduced_model_for(WagonConfig(wagon_id="TEST-0001"))
+
+
+@dataclass(frozen=True)
+class RunFleet:
+    """A generated fleet, run: its database and the simulation config it was run with."""
+
+    db: Path
+    simulation: Any
+
+
+@pytest.fixture(scope="session")
+def convection_fleet(
+    tmp_path_factory: pytest.TempPathFactory,
+    reduced_model_for: Callable[..., object],
+    rom_cache_dir: Path,
+) -> Iterator[RunFleet]:
+    """The database and simulation config of two wagons x 2 days (seed 4) with an undeclared
+    convection (gain 2.0, exponent 0.8) and the anomalies, run: the close loop's small fleet.
+    Tests that write to it work on a copy."""
+    from fleetbrake.app.run import run_fleet
+    from fleetbrake.model.effects import ConvectionSpeed, EffectSet
+    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.synth.generator import SynthConfig, generate_fleet
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
+        out = tmp_path_factory.mktemp("clfleet")
+        effects = EffectSet((ConvectionSpeed(gain=2.0, exponent=0.8),))
+        config = SynthConfig(wagons=2, days=2, seed=4, effects=effects, anomalies=True)
+        generate_fleet(out / "fleet", config, rom=reduced_model_for)
+        simulation = SimulationConfig(refinement=TEST_REFINEMENT)
+        run_fleet(out / "fleet", out / "fleet.duckdb", simulation=simulation, progress=False)
+        yield RunFleet(out / "fleet.duckdb", simulation)

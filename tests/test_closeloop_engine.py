@@ -8,8 +8,6 @@ from __future__ import annotations
 import datetime as dt
 import shutil
 import threading
-from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +16,7 @@ import polars as pl
 import pytest
 
 from conftest import TEST_REFINEMENT
-from fleetbrake.app.run import run_fleet
+from conftest import RunFleet as Fleet
 from fleetbrake.closeloop import fitdata
 from fleetbrake.closeloop.fitdata import FitData
 from fleetbrake.closeloop.loop import CloseLoopConfig, _event_sets, run_close_loop
@@ -32,7 +30,6 @@ from fleetbrake.model.effects import (
 )
 from fleetbrake.simulation.predictions import (
     Revision,
-    SimulationConfig,
     current_revision,
     load_wagon,
     model_for,
@@ -40,33 +37,16 @@ from fleetbrake.simulation.predictions import (
     stored_wagons,
 )
 from fleetbrake.simulation.series import running_median
-from fleetbrake.synth.generator import SynthConfig, generate_fleet
 from fleetbrake.warehouse.connection import open_warehouse
 
 START = dt.date(2024, 3, 4)
 HOLDOUT = START + dt.timedelta(days=1)
 
 
-@dataclass
-class Fleet:
-    db: Path
-    simulation: SimulationConfig
-
-
 @pytest.fixture(scope="module")
-def fleet(
-    tmp_path_factory: pytest.TempPathFactory, reduced_model_for: Any, rom_cache_dir: Path
-) -> Iterator[Fleet]:
-    """Two wagons x 2 days with an undeclared convection and the anomalies, run."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
-        out = tmp_path_factory.mktemp("clfleet")
-        effects = EffectSet((ConvectionSpeed(gain=2.0, exponent=0.8),))
-        config = SynthConfig(wagons=2, days=2, seed=4, effects=effects, anomalies=True)
-        generate_fleet(out / "fleet", config, rom=reduced_model_for)
-        simulation = SimulationConfig(refinement=TEST_REFINEMENT)
-        run_fleet(out / "fleet", out / "fleet.duckdb", simulation=simulation, progress=False)
-        yield Fleet(out / "fleet.duckdb", simulation)
+def fleet(convection_fleet: Fleet) -> Fleet:
+    """``conftest.convection_fleet``: the close loop's small fleet, run."""
+    return convection_fleet
 
 
 EFFECT_SETS = [

@@ -2,7 +2,8 @@
 the modal response of the declared inputs in cache-sized blocks (``model.estimator.
 _modal_response``) against the whole-series formula it replaced, and a wagon's rows built as
 Arrow from the estimate's arrays (``simulation.estimates._rows``) against the polars frame it
-replaced, built here the old way. Equal means equal: ``np.array_equal`` and Arrow's
+replaced, built here the old way; the dense transitions' steps gathered from one sort (session
+15) against the scan per transition. Equal means equal: ``np.array_equal`` and Arrow's
 ``equals``, not a tolerance.
 """
 
@@ -99,6 +100,32 @@ def test_the_modal_response_in_blocks_is_the_whole_series_formula_bit_for_bit(
     assert got.shape == (steps, r) and np.array_equal(got, want)
     empty = estimator._modal_response(rom, table, index[:0], step_flux[:0], drive[:0], r)
     assert empty.shape == (0, r)
+
+
+@pytest.mark.parametrize("seat_sd_k", [0.0, 0.4])
+def test_the_modal_response_of_many_dense_transitions_is_the_formula_bit_for_bit(
+    default_rom: ReducedModel, seat_sd_k: float
+) -> None:
+    """A speed-varying convection: dense transitions among the diagonal ones, each gathered
+    once from the steps sorted by transition (session 15) instead of a scan of the series
+    per transition; the same bits as the formula, whichever transitions the steps use (one
+    used by no step, one by a single step)."""
+    rom = default_rom
+    rng = np.random.default_rng(15)
+    table = _table(rom, seat_sd_k, dense=False)
+    faces = len(rom.face_names)
+    for h in (1.0, 2.5, 4.0, 7.5, 11.0):
+        table.get(np.full(faces, h), 1, 1.0, False, False, False)
+    assert sum(not d for d in table.diagonal) == 5
+    r = rom.order + int(seat_sd_k > 0)
+    steps = 3_000
+    index = rng.integers(0, len(table.g) - 2, steps).astype(np.int64)  # the last: unused
+    index[1_234] = len(table.g) - 2  # used by one step only
+    step_flux = np.where(rng.random(steps) < 0.3, rng.uniform(0, 4e4, steps), 0.0)
+    drive = rng.uniform(0, 60.0, (steps, faces)) * rng.normal(0, 8.0, (steps, 1))
+    got = estimator._modal_response(rom, table, index, step_flux, drive, r)
+    want = _whole_series_response(rom, table, index, step_flux, drive, r)
+    assert got.shape == (steps, r) and np.array_equal(got, want)
 
 
 def test_prepare_is_the_same_whatever_the_block(

@@ -2025,10 +2025,41 @@ def _make_revision(
 ) -> None:
     """Simulate ``event_ids`` with the new ``revision`` and re-estimate the virtual sensor
     with it (every wagon), its sigma_w fitted first on the days of the ``fit`` events (a
-    property of the revision: docs/estimator.md)."""
-    simulate_events(wh, wagons, revision, sim, event_ids=list(event_ids), engine=engine)
-    fit_revision_noise(wh, wagons, revision, fit, EstimationConfig(chain=sim.chain), engine=engine)
-    estimate_wagons(wh, wagons, revision, EstimationConfig(chain=sim.chain), engine=engine)
+    property of the revision: docs/estimator.md).
+
+    The simulation and the estimate are independent (the estimate and the sigma_w fit read
+    the samples, not the predictions; they write other tables), so the simulation runs on a
+    second connection (a cursor of ``wh``'s, its writes on its own writer thread) in a thread
+    of its own while sigma_w is fitted and the wagons are estimated: the partitions of both
+    share the engine's workers, which no longer wait between the three steps for the
+    parent's reads and last commits. The same rows as the three one after the other (the
+    same pure functions of the same partitions); the simulation's progress bar is not shown
+    (one live display at a time)."""
+    config = EstimationConfig(chain=sim.chain)
+    ids = list(event_ids)
+    cursor = wh.con.cursor()
+    try:
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="revision-simulation") as pool:
+            simulated = pool.submit(
+                simulate_events,
+                Warehouse(wh.path, cursor, None),
+                wagons,
+                revision,
+                sim,
+                event_ids=ids,
+                progress=False,
+                engine=engine,
+            )
+            try:
+                fit_revision_noise(wh, wagons, revision, fit, config, engine=engine)
+                estimate_wagons(wh, wagons, revision, config, engine=engine)
+            finally:
+                # the thread ends before anything is raised: the estimate's error, else the
+                # simulation's
+                wait_for([simulated])
+            simulated.result()
+    finally:
+        cursor.close()
 
 
 def refit_moved(

@@ -928,11 +928,19 @@ def _modal_response(
     if seat:
         u = np.concatenate([u, np.zeros((u.shape[0], 1))], axis=1)
     w = u * g_all[index]
-    for k in np.flatnonzero(~np.array(table.diagonal, dtype=bool)):
-        gmat = table.gmat[k]
-        rows = index == k
-        assert gmat is not None
-        w[rows] = u[rows] @ gmat.T
+    dense = np.flatnonzero(~np.array(table.diagonal, dtype=bool))
+    if dense.size:
+        # each dense transition's steps, ascending (a stable sort of the steps by transition,
+        # cut where the transition changes): the rows ``index == k`` selects, found once
+        # instead of a scan of the whole series per transition (a speed-varying convection
+        # has a hundred and more)
+        order = np.argsort(index, kind="stable")
+        bounds = np.searchsorted(index[order], np.arange(len(table.diagonal) + 1))
+        for k in dense:
+            gmat = table.gmat[k]
+            rows = order[bounds[k] : bounds[k + 1]]
+            assert gmat is not None
+            w[rows] = u[rows] @ gmat.T
     return w
 
 
