@@ -128,6 +128,12 @@ def rom_simulate_chain(
     tolerance_k: float,
     lag_tau_s: float | None,
 ) -> tuple[list[NDArray[np.float64]], NDArray[np.uint8]]: ...
+def rom_chain_systems(
+    h: NDArray[np.float64],
+    h_nominal: NDArray[np.float64],
+    piece_dt: NDArray[np.float64],
+    step_off: NDArray[np.int64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]: ...
 def rom_exact_propagator(
     lam: NDArray[np.float64], dt_s: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...

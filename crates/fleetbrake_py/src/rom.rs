@@ -9,7 +9,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use thermal_core::rom::{
-    exact_propagator, AnchorRule, ChainModel, ChainSteps, ModalStepper, Propagators,
+    exact_propagator, step_systems, AnchorRule, ChainModel, ChainSteps, ModalStepper, Propagators,
 };
 use thermal_core::ThermalError;
 
@@ -233,11 +233,47 @@ fn rom_simulate_chain<'py>(
     Ok((floats, out.anchor.into_pyarray(py)))
 }
 
+/// The distinct step systems of a chain's steps (`thermal_core::rom::step_systems`): h (T,
+/// F) per step, h_nominal (F), piece_dt (P), step_off (P+1). Returns (dh (K, F), dt (K),
+/// each step's system (T)).
+#[pyfunction]
+#[allow(clippy::type_complexity)]
+fn rom_chain_systems<'py>(
+    py: Python<'py>,
+    h: PyReadonlyArray2<'py, f64>,
+    h_nominal: PyReadonlyArray1<'py, f64>,
+    piece_dt: PyReadonlyArray1<'py, f64>,
+    step_off: PyReadonlyArray1<'py, i64>,
+) -> PyResult<(
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<i64>>,
+)> {
+    let faces = h_nominal.len()?;
+    if h.as_array().shape()[1] != faces {
+        return Err(PyValueError::new_err(format!(
+            "step convection has {} face sets, h_nominal {faces}",
+            h.as_array().shape()[1]
+        )));
+    }
+    let step_off = non_negative(step_off.as_slice()?, "step offsets")?;
+    let (h_s, h0, dt) = (h.as_slice()?, h_nominal.as_slice()?, piece_dt.as_slice()?);
+    let out = call_detached(py, || step_systems(h_s, h0, dt, &step_off))?;
+    let systems = out.dt_s.len();
+    let index: Vec<i64> = out.index.iter().map(|&k| k as i64).collect();
+    Ok((
+        out.dh.into_pyarray(py).reshape([systems, faces])?,
+        out.dt_s.into_pyarray(py),
+        index.into_pyarray(py),
+    ))
+}
+
 /// Add the reduced model's functions to the module.
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rom_simulate_batch, m)?)?;
     m.add_function(wrap_pyfunction!(rom_simulate_switched, m)?)?;
     m.add_function(wrap_pyfunction!(rom_exact_propagator, m)?)?;
     m.add_function(wrap_pyfunction!(rom_simulate_chain, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_chain_systems, m)?)?;
     Ok(())
 }

@@ -444,32 +444,42 @@ fn transpose_times(m: &[f64], x: &[f64], out: &mut [f64]) {
 /// output's sum runs over the modes in order, as a row-by-row product would.
 const OUT_BLOCK: usize = 16;
 
-/// Output rows `c` (n_out, r) row-major in blocks of `OUT_BLOCK` rows, each block stored
-/// mode by mode (`[(block r + i) OUT_BLOCK + j] = c[block OUT_BLOCK + j, i]`), the rows
-/// padded with zeros to a whole number of blocks.
-fn out_blocks(c: &[f64], r: usize) -> Vec<f64> {
+/// The block of a run with at most this many output rows (the close loop's fits read the
+/// sensor and the face mean only): one AVX2 vector instead of four, the same sums.
+const SMALL_OUT_BLOCK: usize = 4;
+
+/// The output block of `n_out` rows: [`SMALL_OUT_BLOCK`] for a few, else [`OUT_BLOCK`].
+fn out_block(n_out: usize) -> usize {
+    if n_out <= SMALL_OUT_BLOCK {
+        SMALL_OUT_BLOCK
+    } else {
+        OUT_BLOCK
+    }
+}
+
+/// Output rows `c` (n_out, r) row-major in blocks of `block` rows, each block stored mode by
+/// mode (`[(b r + i) block + j] = c[b block + j, i]`), the rows padded with zeros to a whole
+/// number of blocks.
+fn out_blocks(c: &[f64], r: usize, block: usize) -> Vec<f64> {
     let n_out = c.len() / r;
-    let mut out = vec![0.0; n_out.div_ceil(OUT_BLOCK) * OUT_BLOCK * r];
+    let mut out = vec![0.0; n_out.div_ceil(block) * block * r];
     for (o, row) in c.chunks_exact(r).enumerate() {
-        let (block, j) = (o / OUT_BLOCK, o % OUT_BLOCK);
+        let (b, j) = (o / block, o % block);
         for (i, &v) in row.iter().enumerate() {
-            out[(block * r + i) * OUT_BLOCK + j] = v;
+            out[(b * r + i) * block + j] = v;
         }
     }
     out
 }
 
-/// `y = C w` from `C` in blocks ([`out_blocks`]); `y` padded to whole blocks.
+/// `y = C w` from `C` in blocks of `B` rows ([`out_blocks`]); `y` padded to whole blocks.
 #[inline(always)]
-fn blocks_times(blocks: &[f64], w: &[f64], y: &mut [f64]) {
+fn blocks_times<const B: usize>(blocks: &[f64], w: &[f64], y: &mut [f64]) {
     let r = w.len();
-    for (block, yb) in blocks
-        .chunks_exact(r * OUT_BLOCK)
-        .zip(y.chunks_exact_mut(OUT_BLOCK))
-    {
-        let mut acc = [0.0f64; OUT_BLOCK];
-        for (col, &wi) in block.chunks_exact(OUT_BLOCK).zip(w) {
-            for j in 0..OUT_BLOCK {
+    for (block, yb) in blocks.chunks_exact(r * B).zip(y.chunks_exact_mut(B)) {
+        let mut acc = [0.0f64; B];
+        for (col, &wi) in block.chunks_exact(B).zip(w) {
+            for j in 0..B {
                 acc[j] += col[j] * wi;
             }
         }
@@ -516,9 +526,10 @@ struct BasisRun<'a> {
     /// Scratch: the state in modal coordinates (r), the step's input (r), the outputs.
     x: Vec<f64>,
     u: Vec<f64>,
-    /// The outputs, padded to whole blocks; `n_out` of them are the model's.
+    /// The outputs, padded to whole blocks of `block` rows; `n_out` of them are the model's.
     y: Vec<f64>,
     n_out: usize,
+    block: usize,
 }
 
 /// The basis `at` of a run (a free function: the caller borrows the run's other fields).
@@ -539,9 +550,10 @@ impl<'a> BasisRun<'a> {
     fn new(props: &'a Propagators, inputs: Vec<f64>, c: &'a [f64]) -> Self {
         let r = props.order;
         let n_out = c.len() / r;
+        let block = out_block(n_out);
         let modal = Basis {
             b: inputs.clone(),
-            ct: out_blocks(c, r),
+            ct: out_blocks(c, r, block),
             qt: Vec::new(),
         };
         BasisRun {
@@ -554,8 +566,9 @@ impl<'a> BasisRun<'a> {
             at: MODAL,
             x: vec![0.0; r],
             u: vec![0.0; r],
-            y: vec![0.0; n_out.div_ceil(OUT_BLOCK) * OUT_BLOCK],
+            y: vec![0.0; n_out.div_ceil(block) * block],
             n_out,
+            block,
         }
     }
 
@@ -612,7 +625,7 @@ impl<'a> BasisRun<'a> {
         for (row, row_q) in self.c.chunks_exact(r).zip(cq.chunks_exact_mut(r)) {
             transpose_times(q, row, row_q);
         }
-        let ct = out_blocks(&cq, r);
+        let ct = out_blocks(&cq, r, self.block);
         let mut qt = vec![0.0; r * r];
         for (i, row) in q.chunks_exact(r).enumerate() {
             for (j, &v) in row.iter().enumerate() {
@@ -626,15 +639,24 @@ impl<'a> BasisRun<'a> {
     #[inline(always)]
     fn outputs(&mut self) {
         let ct = &basis_at(&self.modal, &self.rotated, self.at).ct;
-        blocks_times(ct, &self.w, &mut self.y);
+        if self.block == SMALL_OUT_BLOCK {
+            blocks_times::<SMALL_OUT_BLOCK>(ct, &self.w, &mut self.y);
+        } else {
+            blocks_times::<OUT_BLOCK>(ct, &self.w, &mut self.y);
+        }
     }
 
     /// The outputs onto a piece's rows: the sensor (the first probe), the face mean and the
-    /// maximum over the face nodes, with `t_ref` added.
+    /// maximum over the face nodes (NaN when the run has no face-node rows), with `t_ref`
+    /// added.
     #[inline(always)]
     fn emit(&mut self, np: usize, t_ref: f64, rows: &mut PieceRows) {
         self.outputs();
-        let top = largest(&self.y[np + 1..self.n_out]);
+        let top = if self.n_out > np + 1 {
+            largest(&self.y[np + 1..self.n_out])
+        } else {
+            f64::NAN
+        };
         rows.sensor.push(self.y[0] + t_ref);
         rows.mean.push(self.y[np] + t_ref);
         rows.max.push(top + t_ref);
@@ -755,7 +777,9 @@ pub struct ChainModel<'a> {
     pub b_flux: &'a [f64],
     /// Face-set input vectors (F, r) row-major.
     pub b_faces: &'a [f64],
-    /// Output rows (n_out, r) row-major: probes, face mean, face-max nodes.
+    /// Output rows (n_out, r) row-major: probes, face mean, face-max nodes (none: the
+    /// maximum is NaN, and the run computes only the rows it has, as the close loop's fits
+    /// do).
     pub c: &'a [f64],
     pub n_probes: usize,
 }
@@ -997,8 +1021,8 @@ impl Propagators {
                 steps.h.len(),
             );
         }
-        if model.c.len() % r != 0 || model.c.len() / r < model.n_probes + 2 || model.n_probes == 0 {
-            return mismatch("output rows", (model.n_probes + 2) * r, model.c.len());
+        if model.c.len() % r != 0 || model.c.len() / r < model.n_probes + 1 || model.n_probes == 0 {
+            return mismatch("output rows", (model.n_probes + 1) * r, model.c.len());
         }
         if n_seg > n_piece {
             return mismatch("pieces", n_seg, n_piece);
@@ -1171,6 +1195,113 @@ impl Propagators {
         }
         out
     }
+}
+
+/// The distinct step systems of a chain's steps and each step's among them (see
+/// [`step_systems`]).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct StepSystems {
+    /// (K, F) row-major: each system's convection change from nominal per face set.
+    pub dh: Vec<f64>,
+    /// (K) each system's time step.
+    pub dt_s: Vec<f64>,
+    /// (T) each step's system.
+    pub index: Vec<usize>,
+}
+
+/// `numpy.round(x, 12)`: `rint(x 1e12) / 1e12`, as numpy computes it.
+#[inline(always)]
+fn round_12(x: f64) -> f64 {
+    (x * 1e12).round_ties_even() / 1e12
+}
+
+/// The step systems of a chain's steps, as `fleetbrake.model.rom.ReducedModel.simulate_chain`
+/// keys its propagators: each step's convection change from nominal per face set, `dh =
+/// round(h - h_nominal, 12)` (numpy's rounding, bit for bit), with its piece's time step
+/// (`piece_dt`, the steps `step_off[p] .. step_off[p+1]` of piece `p`). Returns the
+/// distinct (dh, dt) in the order they first come (zeros told apart by their sign: either
+/// is the nominal system) and each step's index among them; one pass over the steps, a
+/// step with the convection and time step of the one before taking its index. `h` (T, F)
+/// row-major, `h_nominal` (F).
+pub fn step_systems(
+    h: &[f64],
+    h_nominal: &[f64],
+    piece_dt: &[f64],
+    step_off: &[usize],
+) -> Result<StepSystems> {
+    use std::collections::HashMap;
+    let f = h_nominal.len();
+    let t = step_off.last().copied().unwrap_or(0);
+    if step_off.len() != piece_dt.len() + 1 {
+        return Err(ThermalError::LengthMismatch {
+            name: "step offsets".into(),
+            expected: piece_dt.len() + 1,
+            got: step_off.len(),
+        });
+    }
+    if let Some(p) = step_off.windows(2).position(|w| w[1] < w[0]) {
+        return Err(ThermalError::InvalidParameter {
+            name: "step offsets".into(),
+            value: p as f64,
+            reason: "must not decrease".into(),
+        });
+    }
+    if h.len() != t * f || step_off.first().is_some_and(|&s| s != 0) {
+        return Err(ThermalError::LengthMismatch {
+            name: "step convection".into(),
+            expected: t * f,
+            got: h.len(),
+        });
+    }
+    let mut out = StepSystems {
+        index: vec![0; t],
+        ..Default::default()
+    };
+    let mut seen: HashMap<Vec<u64>, usize> = HashMap::new();
+    let mut key = vec![0u64; f + 1];
+    let mut row = vec![0.0; f];
+    // the step before: its convection (bits) and time step, and its system
+    let mut before: Option<(usize, u64, usize)> = None;
+    for (p, &dt) in piece_dt.iter().enumerate() {
+        let dt_bits = dt.to_bits();
+        for s in step_off[p]..step_off[p + 1] {
+            let hs = &h[s * f..(s + 1) * f];
+            if let Some((prev, prev_dt, k)) = before {
+                let same = prev_dt == dt_bits
+                    && hs
+                        .iter()
+                        .zip(&h[prev * f..(prev + 1) * f])
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                if same {
+                    out.index[s] = k;
+                    before = Some((s, dt_bits, k));
+                    continue;
+                }
+            }
+            for ((d, kb), (&hv, &h0)) in row
+                .iter_mut()
+                .zip(key.iter_mut())
+                .zip(hs.iter().zip(h_nominal))
+            {
+                *d = round_12(hv - h0);
+                *kb = d.to_bits();
+            }
+            key[f] = dt_bits;
+            let k = match seen.get(key.as_slice()) {
+                Some(&k) => k,
+                None => {
+                    let k = out.dt_s.len();
+                    seen.insert(key.clone(), k);
+                    out.dh.extend_from_slice(&row);
+                    out.dt_s.push(dt);
+                    k
+                }
+            };
+            out.index[s] = k;
+            before = Some((s, dt_bits, k));
+        }
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -1428,6 +1559,30 @@ mod tests {
             let d = max_difference(a, b);
             assert!(d <= 1e-10, "{name}: {d:e} K from the step-by-step formula");
         }
+        // the sensor and the face mean only (the close loop's fits: two output rows, one
+        // small block): the same sums, bit for bit; no maximum
+        let two = ChainModel {
+            c: &model.c[..2 * 4],
+            ..model
+        };
+        let few = props
+            .simulate_chain(&two, &steps, &trusted, &air, &rule)
+            .unwrap();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for (name, a, b) in [
+            ("sensor", &few.sensor_c, &kept.sensor_c),
+            ("contact mean", &few.contact_mean_c, &kept.contact_mean_c),
+            ("shift", &few.shift_k, &kept.shift_k),
+            ("reference", &few.reference_c, &kept.reference_c),
+            ("window sensor", &few.window_sensor_c, &kept.window_sensor_c),
+            ("window mean", &few.window_mean_c, &kept.window_mean_c),
+        ] {
+            assert_eq!(bits(a), bits(b), "{name}");
+        }
+        assert_eq!(few.anchor, kept.anchor);
+        assert!(few.contact_max_c.iter().all(|v| v.is_nan()));
+        assert!(few.window_max_c.iter().all(|v| v.is_nan()));
+        assert_eq!(few.window_max_c.len(), kept.window_max_c.len());
         // nominal steps are the former ones operation for operation: bit for bit
         let nominal: Vec<usize> = prop.iter().map(|&k| if k < 3 { 0 } else { 4 }).collect();
         let steps = ChainSteps {
@@ -1439,6 +1594,39 @@ mod tests {
             .unwrap();
         let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule);
         assert_eq!(kept, reference);
+    }
+
+    #[test]
+    fn step_systems_are_numpys_rounded_keys_in_the_order_they_come() {
+        let h_nominal = [10.0, 0.0];
+        // piece 0 at 1 s (5 steps), piece 1 at 5 s (3 steps)
+        let rows: [[f64; 2]; 8] = [
+            [10.0, 0.0],              // nominal
+            [10.0, 0.0],              // the same as the step before
+            [12.5, 0.3],              // new
+            [10.0 + 1e-14, 0.0],      // rounds to the nominal's change (0): the first system
+            [12.5, 0.3],              // seen before, not the step before
+            [12.5, 0.3],              // the same convection at 5 s: a system of its own
+            [11.23456789012345, 0.0], // rounded to 12 decimals
+            [10.0, 0.0],              // the nominal at 5 s
+        ];
+        let h: Vec<f64> = rows.concat();
+        let out = step_systems(&h, &h_nominal, &[1.0, 5.0], &[0, 5, 8]).unwrap();
+        assert_eq!(out.index, vec![0, 0, 1, 0, 1, 2, 3, 4]);
+        assert_eq!(out.dt_s, vec![1.0, 1.0, 5.0, 5.0, 5.0]);
+        assert_eq!(
+            out.dh,
+            vec![0.0, 0.0, 2.5, 0.3, 2.5, 0.3, 1.234567890123, 0.0, 0.0, 0.0]
+        );
+        // a piece without steps, and no steps at all
+        let out = step_systems(&h[..4], &h_nominal, &[1.0, 2.0, 1.0], &[0, 1, 1, 2]).unwrap();
+        assert_eq!(out.index, vec![0, 0]);
+        let none = step_systems(&[], &h_nominal, &[], &[0]).unwrap();
+        assert!(none.index.is_empty() && none.dt_s.is_empty());
+        // lengths that do not fit
+        assert!(step_systems(&h[..6], &h_nominal, &[1.0], &[0, 2]).is_err());
+        assert!(step_systems(&h, &h_nominal, &[1.0, 5.0], &[0, 5]).is_err());
+        assert!(step_systems(&h, &h_nominal, &[1.0, 5.0], &[0, 6, 5]).is_err());
     }
 
     #[test]

@@ -19,8 +19,12 @@ declared loading of every sample before the effects
 be applied to the cached inputs). An evaluation applies the effects to those inputs in numpy,
 forms each step's flux, air and convection (a convection varying inside a piece rounded to
 ``H_QUANTUM_W_M2K``, piece by piece, vectorised), and runs each span's chain in one call of the
-reduced model's chain kernel (:meth:`~fleetbrake.model.rom.ReducedModel.simulate_chain`); the
-windows' sensor predictions are read at the cached seconds. No database, no polars frame, no
+reduced model's chain kernel with the two output rows it reads, the sensor and the face mean
+(:func:`~fleetbrake.model.romchain.simulate_chain_sensor`: those of
+:meth:`~fleetbrake.model.rom.ReducedModel.simulate_chain` bit for bit, the steps' propagators
+keyed in Rust); the windows' sensor predictions are read at the cached seconds. An input the
+effects leave as declared (the flux and the air under a convection law; every input of the
+declared model) is turned into steps once per span and reused. No database, no polars frame, no
 Python per event: equal to :func:`~fleetbrake.simulation.predictions.predict_wagon` to rounding
 (a test holds it to 1e-9 K).
 
@@ -65,6 +69,7 @@ from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.effects import DriveInputs, EffectSet
 from fleetbrake.model.estimator import noise_from_second_differences
 from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
+from fleetbrake.model.romchain import simulate_chain_sensor
 from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
 from fleetbrake.simulation.chains import (
     ANCHOR_TOLERANCE_K,
@@ -158,22 +163,41 @@ def _step_mean(samples: FloatArray) -> FloatArray:
     return 0.5 * (samples[:-1] + samples[1:])
 
 
-@dataclass
-class _Loading:
-    """Per-step flux, air and convection (S, F) of a piece's samples."""
+def _steps_of(
+    span: _Span,
+    applied: Sequence[DriveInputs],
+    name: str,
+    get: Callable[[DriveInputs], FloatArray | None],
+) -> FloatArray:
+    """One input of the kernel per step (``get`` of each source's loading: the step means,
+    the sources' steps concatenated and gathered into the chain's; a face set the loading
+    has no convection for: zeros), for the span's loading with the effects ``applied`` (the
+    fine samples', then each coarse piece's). Where every source's array is the declared
+    one itself (the effects left it as it was), the span's declared steps, made once."""
+    declared = [span.fine, *span.coarse]
+    unchanged = all(get(a) is get(d) for a, d in zip(applied, declared, strict=True))
+    if unchanged and name in span.declared_steps:
+        return span.declared_steps[name]
+    parts: list[FloatArray] = []
+    for inputs in applied:
+        values = get(inputs)
+        size = inputs.flux_w_m2.size - 1
+        parts.append(
+            np.zeros(size) if values is None else _step_mean(np.asarray(values, dtype=np.float64))
+        )
+    steps = np.concatenate(parts)[span.gather]
+    if unchanged:
+        span.declared_steps[name] = steps
+    return steps
 
-    flux: FloatArray
-    air: FloatArray
-    h: FloatArray
 
+def _convection_of(face: str) -> Callable[[DriveInputs], FloatArray | None]:
+    """The loading's convection on ``face`` (None: none given)."""
 
-def _loading(inputs: DriveInputs, faces: Sequence[str]) -> _Loading:
-    h = np.zeros((inputs.flux_w_m2.size - 1, len(faces)))
-    for j, face in enumerate(faces):
-        if face in inputs.h_w_m2k:
-            h[:, j] = _step_mean(np.asarray(inputs.h_w_m2k[face], dtype=np.float64))
-    flux = np.asarray(inputs.flux_w_m2, dtype=np.float64)
-    return _Loading(_step_mean(flux), _step_mean(np.asarray(inputs.ambient_c)), h)
+    def get(inputs: DriveInputs) -> FloatArray | None:
+        return inputs.h_w_m2k.get(face)
+
+    return get
 
 
 @dataclass
@@ -206,6 +230,16 @@ class _Span:
     order)."""
     contact: FloatArray | None = None
     """The face temperature of the last state-dependent fixed point (a warm start)."""
+    declared_steps: dict[str, FloatArray] = field(default_factory=dict, repr=False)
+    """The kernel's per-step inputs (``flux``, ``air``, ``h:<face>``) of the declared loading,
+    made the first time an evaluation's effects leave that input as declared (the same
+    arrays: an effect that does not change an input returns it as it was given), and reused
+    by later evaluations that leave it so; not pickled (a worker makes its own)."""
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["declared_steps"] = {}
+        return state
 
 
 @dataclass
@@ -679,11 +713,12 @@ class FitData:
                 c.replace(contact_c=np.interp(at, np.arange(a, b + 1), contact[a : b + 1]))
                 for c, (a, b, at) in zip(coarse, span.coarse_at, strict=True)
             ]
-        loads = [_loading(block.apply_to_inputs(fine), faces)]
-        loads += [_loading(block.apply_to_inputs(c), faces) for c in coarse]
-        flux = np.concatenate([x.flux for x in loads])[span.gather]
-        air = np.concatenate([x.air for x in loads])[span.gather]
-        h = np.concatenate([x.h for x in loads], axis=0)[span.gather]
+        applied = [block.apply_to_inputs(fine), *(block.apply_to_inputs(c) for c in coarse)]
+        flux = _steps_of(span, applied, "flux", lambda x: x.flux_w_m2)
+        air = _steps_of(span, applied, "air", lambda x: x.ambient_c)
+        h = np.column_stack(
+            [_steps_of(span, applied, f"h:{face}", _convection_of(face)) for face in faces]
+        ).reshape(flux.size, len(faces))
         # a convection varying inside a piece is rounded, piece by piece (simulate_timeline's)
         starts = span.step_offsets[:-1]
         varying = np.maximum.reduceat(h, starts, axis=0) != np.minimum.reduceat(h, starts, axis=0)
@@ -711,8 +746,10 @@ class FitData:
             tolerance_k=ANCHOR_TOLERANCE_K,
             lag_tau_s=None if lag is None else float(getattr(lag, "tau_s", 0.0)),
         )
-        run = model.simulate_chain(
-            pieces, trusted_c=span.trusted_c, ambient_c=span.ambient_c, rule=rule
+        # the sensor and the face mean only (what an evaluation reads): the same as
+        # ``model.simulate_chain``'s, bit for bit
+        run = simulate_chain_sensor(
+            model, pieces, trusted_c=span.trusted_c, ambient_c=span.ambient_c, rule=rule
         )
         _count(1)
         values = np.asarray(run.window_sensor_c, dtype=np.float64)[span.select]
