@@ -151,7 +151,9 @@ def rom_simulate_batch(
 
 # ``problems``: the dicts of ``fleetbrake.model.estimator._as_kernel_args``; the optional keys
 # ("applied", "q_modes", "power_noise", "brake_phi"/"brake_q": the braking's power P_b per
-# transition) absent or None when the option is off.
+# transition) absent or None when the option is off. ``manoeuvre_tolerances``: the filter's
+# and the smoother's steady tolerances for the steps in the manoeuvre mode (None: the two
+# tolerances before it there too).
 def estimator_run(
     problems: list[dict[str, Any]],
     measurement_k: float,
@@ -162,4 +164,5 @@ def estimator_run(
     checkpoint_steps: int,
     outputs_wanted: bool,
     switching: tuple[float, float, float, float, float, int, float] | None = None,
+    manoeuvre_tolerances: tuple[float, float] | None = None,
 ) -> list[dict[str, Any]]: ...

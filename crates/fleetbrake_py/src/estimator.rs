@@ -223,10 +223,11 @@ fn outputs<'py>(py: Python<'py>, out: Outputs, n: usize) -> PyResult<Bound<'py, 
 /// settings; wagons in parallel, the GIL released. Returns one dictionary per problem.
 /// `switching`: (σ_q, window in steps, on, off, hold, the smoother's lead in steps, σ_q over
 /// a step with the cylinder applied) of the power noise's two modes, or None for σ_w at every
-/// step.
+/// step. `manoeuvre_tolerances`: (filter, smoother) steady tolerances for the steps in the
+/// manoeuvre mode, or None for `steady_tolerance` and `smoother_tolerance` there too.
 #[pyfunction]
 #[allow(clippy::too_many_arguments)]
-#[pyo3(signature = (problems, measurement_k, power_w_per_sqrt_s, smooth, steady_tolerance, smoother_tolerance, checkpoint_steps, outputs_wanted, switching=None))]
+#[pyo3(signature = (problems, measurement_k, power_w_per_sqrt_s, smooth, steady_tolerance, smoother_tolerance, checkpoint_steps, outputs_wanted, switching=None, manoeuvre_tolerances=None))]
 fn estimator_run<'py>(
     py: Python<'py>,
     problems: &Bound<'py, PyList>,
@@ -238,6 +239,7 @@ fn estimator_run<'py>(
     checkpoint_steps: usize,
     outputs_wanted: bool,
     switching: Option<(f64, f64, f64, f64, f64, usize, f64)>,
+    manoeuvre_tolerances: Option<(f64, f64)>,
 ) -> PyResult<Vec<Bound<'py, PyDict>>> {
     let dicts: Vec<Bound<'py, PyDict>> = problems
         .iter()
@@ -267,6 +269,7 @@ fn estimator_run<'py>(
         smooth,
         steady_tolerance,
         smoother_tolerance,
+        manoeuvre_tolerances,
         checkpoint_steps,
         outputs: outputs_wanted,
         replay: true,

@@ -197,6 +197,13 @@ pub struct Settings {
     /// The same for the smoother's information matrix (which only the smoothed variances
     /// use: the smoothed means do not depend on it).
     pub smoother_tolerance: f64,
+    /// The filter's and the smoother's tolerances for the steps in the manoeuvre mode (whose
+    /// keys and steady states are their own); None: `steady_tolerance` and
+    /// `smoother_tolerance` there too. A loose tolerance freezes the quiet mode's long
+    /// settling after each release at little cost to the estimates, while in the manoeuvre
+    /// mode, where the power's variance moves fast and the estimates follow it, the same
+    /// tolerance moves them by far more (`docs/estimator.md`, session 15).
+    pub manoeuvre_tolerances: Option<(f64, f64)>,
     pub checkpoint_steps: usize,
     /// Whether to produce the per-second outputs (false: the likelihood only).
     pub outputs: bool,
@@ -1544,8 +1551,12 @@ struct Kernel<'a> {
     /// applied.
     sw2: [f64; 3],
     switching: Option<Switching>,
+    /// The steady tests' tolerances, the filter's and the smoother's, in the quiet mode ...
     tol: f64,
     tol_back: f64,
+    /// ... and in the manoeuvre mode.
+    tol_manoeuvre: f64,
+    tol_back_manoeuvre: f64,
     h: Vec<f64>,
     cm: Vec<f64>,
     /// The face nodes' rows transposed (r x m, m padded to a multiple of 4): node values as a
@@ -1596,6 +1607,12 @@ impl<'a> Kernel<'a> {
             switching: noise.switching,
             tol: settings.steady_tolerance,
             tol_back: settings.smoother_tolerance,
+            tol_manoeuvre: settings
+                .manoeuvre_tolerances
+                .map_or(settings.steady_tolerance, |t| t.0),
+            tol_back_manoeuvre: settings
+                .manoeuvre_tolerances
+                .map_or(settings.smoother_tolerance, |t| t.1),
             h,
             cm: p.c_mean.clone(),
             cn_t: transpose(&p.c_nodes, p.n_nodes(), r, p.n_nodes().next_multiple_of(4)),
@@ -1618,6 +1635,26 @@ impl<'a> Kernel<'a> {
                 manoeuvre,
             )
         })
+    }
+
+    /// The filter's steady test's tolerance for a step with `key`.
+    #[inline(always)]
+    fn tol_of(&self, key: Key) -> f64 {
+        if key.2 {
+            self.tol_manoeuvre
+        } else {
+            self.tol
+        }
+    }
+
+    /// The smoother's steady test's tolerance inside the filter's steady state `key`.
+    #[inline(always)]
+    fn tol_back_of(&self, key: Key) -> f64 {
+        if key.2 {
+            self.tol_back_manoeuvre
+        } else {
+            self.tol_back
+        }
     }
 
     /// `(g P_declared)²` of the step into `t` (t > 0), W²/s.
@@ -1919,6 +1956,10 @@ pub fn run(problem: &Problem<'_>, noise: Noise, settings: &Settings) -> Result<O
     }
     crate::error::check_non_negative("steady tolerance", settings.steady_tolerance)?;
     crate::error::check_non_negative("smoother tolerance", settings.smoother_tolerance)?;
+    if let Some((filter, smoother)) = settings.manoeuvre_tolerances {
+        crate::error::check_non_negative("manoeuvre steady tolerance", filter)?;
+        crate::error::check_non_negative("manoeuvre smoother tolerance", smoother)?;
+    }
     #[cfg(target_arch = "x86_64")]
     if has_avx2_fma() {
         // SAFETY: the CPU has the features the function is compiled for.
@@ -2203,11 +2244,12 @@ fn forward<const FMA: bool>(
                         Last::Cache(c) => &caches[c].cov,
                         Last::Node(u) => &memo.nodes[u].cov,
                     };
-                    if key == prev_key && converged(&cov, src, n, k.tol, &mut w.d) {
+                    let tol = k.tol_of(key_now);
+                    if key == prev_key && converged(&cov, src, n, tol, &mut w.d) {
                         // a steady state met before for this key, within the tolerance, is
                         // taken again (so excursions from it are recorded once)
                         let again = caches.iter().position(|c| {
-                            c.key == key_now && converged(&cov, &c.cov, n, k.tol, &mut w.d)
+                            c.key == key_now && converged(&cov, &c.cov, n, tol, &mut w.d)
                         });
                         steady = Some(again.unwrap_or_else(|| {
                             caches.push(k.make_steady::<FMA>(
@@ -2578,7 +2620,15 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                     &mut work.big,
                 ),
             }
-            if mode != FULL && converged(&big_new, &big, n, k.tol_back, &mut work.d) {
+            if mode != FULL
+                && converged(
+                    &big_new,
+                    &big,
+                    n,
+                    k.tol_back_of(caches[mode as usize].key),
+                    &mut work.d,
+                )
+            {
                 let c = &caches[mode as usize];
                 let mean_var = dot::<FMA>(&k.cm, &c.sig_mean[..r])
                     - k.quad::<FMA>(&big_new, &c.sig_mean, &mut work.a);
@@ -3109,6 +3159,7 @@ mod tests {
             smooth: true,
             steady_tolerance: tol,
             smoother_tolerance: tol,
+            manoeuvre_tolerances: None,
             checkpoint_steps: block,
             outputs: true,
             replay: true,
@@ -3543,6 +3594,52 @@ mod tests {
         assert_close("smoothed mean", &a.mean_c, &b.mean_c, 1e-7);
         assert_close("smoothed mean sd", &a.mean_sd_k, &b.mean_sd_k, 1e-4);
         assert_close("smoothed power sd", &a.power_sd_w, &b.power_sd_w, 1e-4);
+    }
+
+    #[test]
+    fn the_manoeuvre_modes_own_tolerances_apply_to_its_steps_only() {
+        let p = problem(false, 3000, 5);
+        let with = |tol: f64, manoeuvre: Option<(f64, f64)>| {
+            let mut s = settings(tol, 128);
+            s.manoeuvre_tolerances = manoeuvre;
+            run(&p, SWITCHING, &s).unwrap()
+        };
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let frozen = |o: &Outputs| (o.frozen_steps, o.smoother_frozen_steps);
+        let loose = with(1e-3, None);
+        assert!(loose.manoeuvre_steps > 100, "{}", loose.manoeuvre_steps);
+        // the quiet mode's tolerances given again for the manoeuvre mode: the same run
+        let again = with(1e-3, Some((1e-3, 1e-3)));
+        assert_eq!(frozen(&again), frozen(&loose));
+        assert_eq!(again.manoeuvre, loose.manoeuvre);
+        assert_eq!(bits(&again.filtered.mean_c), bits(&loose.filtered.mean_c));
+        assert_eq!(
+            bits(&again.smoothed.as_ref().unwrap().power_sd_w),
+            bits(&loose.smoothed.as_ref().unwrap().power_sd_w)
+        );
+        // the manoeuvre mode held to 0: fewer steady steps, filter and smoother (1,769 and
+        // 1,094 against 1,882 and 1,262 when written)
+        let held = with(1e-3, Some((0.0, 0.0)));
+        assert!(
+            held.frozen_steps < loose.frozen_steps,
+            "{:?}",
+            frozen(&held)
+        );
+        assert!(held.smoother_frozen_steps < loose.smoother_frozen_steps);
+        // the quiet mode exact and the manoeuvre mode loose: more (240 and 187 against 127
+        // and 3)
+        let exact = with(0.0, None);
+        let mixed = with(0.0, Some((1e-3, 1e-3)));
+        assert!(
+            mixed.frozen_steps > exact.frozen_steps,
+            "{:?}",
+            frozen(&mixed)
+        );
+        assert!(mixed.smoother_frozen_steps > exact.smoother_frozen_steps);
+        // the settings are checked
+        let mut s = settings(1e-7, 128);
+        s.manoeuvre_tolerances = Some((1e-7, -1.0));
+        assert!(run(&p, SWITCHING, &s).is_err());
     }
 
     #[test]

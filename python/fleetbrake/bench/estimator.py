@@ -224,6 +224,7 @@ def bench_estimator(
             config.noise,
             steady_tolerance=config.steady_tolerance,
             smoother_tolerance=config.smoother_tolerance,
+            manoeuvre_tolerances=config.manoeuvre_tolerances,
             manoeuvre=config.manoeuvre,
             dt_s=config.dt_s,
         )
