@@ -779,6 +779,17 @@ def test_a_chunk_is_cut_into_each_wagons_rows_sorted_as_its_own_query_sorts_them
         again = wagon_parts(cut, ["A", "B", "C"], ["time", "file_id"], ["file_id"])
         for w in ("A", "B", "C"):
             assert again[w].equals(parts[w])
+    # read with positions instead of names (``wagon_ix``, 1-based in the list the query was
+    # given, here in another order than the wagons asked for): the same parts, ``wagon_ix``
+    # dropped instead of ``wagon_id``
+    given = ["C", "A", "B"]
+    ix = np.array([given.index(w) + 1 for w in wagon], dtype=np.int32)
+    positions = table.drop_columns(["wagon_id"]).add_column(0, "wagon_ix", pa.array(ix))
+    by_ix = wagon_parts(
+        positions, ["A", "B", "C", "D"], ["time", "file_id"], ["file_id"], positions_of=given
+    )
+    for w in ("A", "B", "C", "D"):
+        assert by_ix[w].equals(parts[w])
 
 
 def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(

@@ -101,7 +101,6 @@ from fleetbrake.simulation.store import (
     StoredTimeline,
     chunk_table,
     data_keys,
-    named,
     sample_parts,
     sample_rows,
     simulated_wagons,
@@ -502,7 +501,7 @@ class _FlagHead:
 class FlagChunk:
     """Several wagons' partitions of the flags read together, one Arrow table per table with
     a ``wagon_id`` column, or for the four large ones ``wagon_ix`` (``q_*_chunk_*.sql``, in
-    stored order; :func:`~fleetbrake.simulation.store.named`): :func:`chunk_tasks` cuts
+    stored order; :func:`~fleetbrake.simulation.store.wagon_parts`): :func:`chunk_tasks` cuts
     it into the wagons' :class:`FlagTask` (the same tables :func:`flag_task` reads), which
     :func:`judge_chunk` judges one by one. Picklable: an engine ships it to a worker."""
 
@@ -569,10 +568,12 @@ def chunk_tasks(chunk: FlagChunk) -> list[FlagTask]:
     samples = sample_parts(chunk.samples, ids)
     events = wagon_parts(chunk.events, ids, ["start_utc"])
     segments = wagon_parts(chunk.segments, ids, ["start_utc"])
-    timeline = wagon_parts(named(chunk.timeline, simulated), ids, ["time_utc"])
-    predictions = wagon_parts(named(chunk.predictions, simulated), ids, ["event_id", "time_utc"])
+    timeline = wagon_parts(chunk.timeline, ids, ["time_utc"], positions_of=simulated)
+    predictions = wagon_parts(
+        chunk.predictions, ids, ["event_id", "time_utc"], positions_of=simulated
+    )
     estimates = (
-        wagon_parts(named(chunk.estimates, estimated), ids, ["time_utc"])
+        wagon_parts(chunk.estimates, ids, ["time_utc"], positions_of=estimated)
         if chunk.estimates is not None
         else {}
     )

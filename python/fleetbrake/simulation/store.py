@@ -43,7 +43,6 @@ __all__ = [
     "data_keys",
     "forget_wagon",
     "load_timeline",
-    "named",
     "replace_wagon",
     "replace_wagons",
     "sample_parts",
@@ -214,7 +213,7 @@ def chunk_name(wagon_ids: Sequence[str]) -> str:
 
 def chunk_table(wh: Warehouse, name: str, wagon_ids: Sequence[str], **params: str) -> pa.Table:
     """The rows of ``wagon_ids`` that the chunk query ``name`` (``q_*_chunk_*.sql``, with a
-    ``wagon_id`` column, or ``wagon_ix``: :func:`named`) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
+    ``wagon_id`` column, or ``wagon_ix``: :func:`wagon_parts`) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
     values: dict[str, object] = {"wagon_ids": list(wagon_ids), **params}
     return wh.con.sql(sql(name), params=values).to_arrow_table()
 
@@ -230,19 +229,34 @@ def wagon_part(
 
 
 def wagon_parts(
-    table: pa.Table, wagon_ids: Sequence[str], order_by: Sequence[str], drop: Sequence[str] = ()
+    table: pa.Table,
+    wagon_ids: Sequence[str],
+    order_by: Sequence[str],
+    drop: Sequence[str] = (),
+    *,
+    positions_of: Sequence[str] | None = None,
 ) -> dict[str, pa.Table]:
     """:func:`wagon_part` of each of ``wagon_ids`` (an empty table for a wagon without
     rows). The stored order holds each wagon's rows in a few runs (its files were written
     together), so the table is cut at the runs of ``wagon_id`` (one pass, no comparison of
-    every row with every wagon) and each wagon's runs are joined and sorted."""
-    column = table.column("wagon_id")
+    every row with every wagon) and each wagon's runs are joined and sorted. A table read
+    with ``wagon_ix`` (its wagon's 1-based position in ``positions_of``, the list the query
+    was given: ``q_simulation_chunk_samples.sql``, the flags' large chunk queries) is cut at
+    the runs of the positions, and loses ``wagon_ix`` instead. The parent reads and ships the
+    4-byte position instead of the name (a third of its processor time reading the chunk,
+    and a sixth of the bytes shipped: ``docs/benchmarks.md``, session 13), and the worker
+    never makes a name per row (half the processor time of cutting by names: session 15)."""
+    key = "wagon_id" if positions_of is None else "wagon_ix"
+    column = table.column(key)
     runs: dict[str, list[pa.Table]] = {w: [] for w in wagon_ids}
     if table.num_rows:
         encoded = pc.run_end_encode(column.combine_chunks())
         ends = encoded.run_ends.to_pylist()
+        values = encoded.values.to_pylist()
+        if positions_of is not None:
+            values = [positions_of[ix - 1] for ix in values]
         start = 0
-        for value, end in zip(encoded.values.to_pylist(), ends, strict=True):
+        for value, end in zip(values, ends, strict=True):
             if value in runs:
                 runs[value].append(table.slice(start, end - start))
             start = end
@@ -254,28 +268,18 @@ def wagon_parts(
             order = pc.sort_indices(part.select(list(order_by)), sort_keys=keys)
             if not _in_order(order):  # most wagons' rows are stored in order: no copy
                 part = part.take(order)
-        parts[wagon_id] = part.drop_columns(["wagon_id", *drop])
+        parts[wagon_id] = part.drop_columns([key, *drop])
     return parts
-
-
-def named(table: pa.Table, wagon_ids: Sequence[str]) -> pa.Table:
-    """A chunk table read with ``wagon_ix`` (its wagon's 1-based position in ``wagon_ids``,
-    the list the query was given: ``q_simulation_chunk_samples.sql``, the flags' large chunk
-    queries) with the wagon's name as ``wagon_id`` instead, first, as :func:`wagon_parts`
-    cuts it. The parent reads and ships the 4-byte position instead of the name (a third of
-    its processor time reading the chunk, and a sixth of the bytes shipped:
-    ``docs/benchmarks.md``, session 13); the worker makes the names here, for a millisecond
-    a chunk."""
-    names = pc.take(pa.array(list(wagon_ids), pa.string()), pc.subtract(table["wagon_ix"], 1))
-    return table.drop_columns(["wagon_ix"]).add_column(0, "wagon_id", names)
 
 
 def sample_parts(table: pa.Table, wagon_ids: Sequence[str]) -> dict[str, pa.Table]:
     """Each wagon's samples of a chunk read by ``q_simulation_chunk_samples.sql`` for
-    ``wagon_ids`` (with ``wagon_ix``: :func:`named`), in the order of the per-wagon query
+    ``wagon_ids`` (with ``wagon_ix``), in the order of the per-wagon query
     (time, then file) and without ``file_id``: :func:`wagon_parts` as every stage that reads
     samples by chunks cuts them."""
-    return wagon_parts(named(table, wagon_ids), wagon_ids, ["time_utc", "file_id"], ["file_id"])
+    return wagon_parts(
+        table, wagon_ids, ["time_utc", "file_id"], ["file_id"], positions_of=wagon_ids
+    )
 
 
 def _increasing(column: pa.ChunkedArray) -> bool:

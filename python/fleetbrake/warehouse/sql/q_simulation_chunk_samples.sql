@@ -2,7 +2,7 @@
 -- q_simulation_wagon_samples.sql reads one wagon's, with file_id and, for the wagon, wagon_ix:
 -- its 1-based position in $wagon_ids, not its name (4 bytes a row instead of the name's
 -- string: the strings cost the writer about a third of reading a chunk, and their bytes
--- crossed to the worker; fleetbrake.simulation.store.named puts the names back). In stored
+-- crossed to the worker, which cuts on the positions: fleetbrake.simulation.store.wagon_parts). In stored
 -- order: the reader splits them by wagon and sorts each by time_utc, file_id
 -- (fleetbrake.simulation.store.sample_parts). One query for a chunk reads each stored row
 -- group once, where one query per wagon decompressed the row groups it shares with its
