@@ -24,7 +24,8 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)  ## create .venv and install fleetbrake with its dev tools
 
 build: setup  ## (re)build the Rust extension into .venv (release)
-	$(VENV)/bin/maturin develop --release -q
+	# maturin develop installs into the active virtualenv ($$VIRTUAL_ENV) before ./.venv: name ours
+	VIRTUAL_ENV=$(abspath $(VENV)) $(VENV)/bin/maturin develop --release -q
 
 # The wheel a user installs (release build, SQL and type stubs inside); the wheel test installs
 # it into a fresh virtualenv outside the checkout.

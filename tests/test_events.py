@@ -424,7 +424,7 @@ def test_chains_and_windows() -> None:
 
 
 @pytest.mark.parametrize("window", [1, 2, 3, 4, 5, 7, 9])
-def test_running_median_is_polars_bit_for_bit(window: int) -> None:
+def test_the_shrinking_running_median_is_polars_bit_for_bit(window: int) -> None:
     rng = np.random.default_rng(window)
     for n in [0, 1, 2, window - 1, window, 2 * window - 1, 2 * window, 2 * window + 1, 50, 997]:
         values = np.round(rng.normal(60.0, 25.0, max(n, 0)), 1)
@@ -435,7 +435,7 @@ def test_running_median_is_polars_bit_for_bit(window: int) -> None:
             .rolling_median(window_size=window, center=True, min_samples=1)
             .to_numpy()
         )
-        got = events_module.running_median(values, window)
+        got = events_module.shrinking_running_median(values, window)
         assert got.dtype == np.float64 and got.shape == expected.shape
         assert np.array_equal(got, expected), (window, n)
 

@@ -79,7 +79,7 @@ __all__ = [
     "EventConfig",
     "EventUpdate",
     "detect_events",
-    "running_median",
+    "shrinking_running_median",
     "update_events",
 ]
 
@@ -277,7 +277,7 @@ class _Series:
                 else np.zeros(frame.height, dtype=bool)
             ),
             speed_time_s=time_s[has_speed],
-            speed_kmh=running_median(speed_kmh[has_speed], config.speed_median_samples),
+            speed_kmh=shrinking_running_median(speed_kmh[has_speed], config.speed_median_samples),
         )
 
     def speed_at(self, time_s: float, near_s: float) -> float:
@@ -412,10 +412,12 @@ def _kind(
     return "slowdown"
 
 
-def running_median(values: np.ndarray, window: int) -> np.ndarray:
+def shrinking_running_median(values: np.ndarray, window: int) -> np.ndarray:
     """The running median of ``values`` (no NaN) over ``window`` samples centred on each,
-    fewer at the ends: polars' ``rolling_median(window, center=True, min_samples=1)``, bit
-    for bit, at a third of its cost. An odd window's full medians are each window's middle
+    fewer at the ends (the windows shrink: not ``simulation.series.running_median``, which
+    pads the ends with the end values, as the chain's speed does): polars'
+    ``rolling_median(window, center=True, min_samples=1)``, bit for bit, at a third of its
+    cost. An odd window's full medians are each window's middle
     value (numpy's partition of the sliding windows: a choice, no arithmetic); the ``window
     // 2`` values at each end, whose shorter windows may average two, and an even window
     are polars' own."""
