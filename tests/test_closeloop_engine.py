@@ -192,6 +192,9 @@ def test_local_and_inline_engines_close_the_loop_alike(fleet: Fleet, tmp_path: P
     assert [c["effect"] for c in inline["candidates"]] == [c["effect"] for c in local["candidates"]]
     assert inline["cost"]["candidates_fitted"] == local["cost"]["candidates_fitted"]
     assert inline["cost"]["kernel_calls"] == local["cost"]["kernel_calls"] > 0
+    # the evaluations per phase are counted where they run (workers' fits from their results)
+    assert inline["cost"]["evaluations"] == local["cost"]["evaluations"]
+    assert local["cost"]["evaluations"]["screen"] >= 3 * 2  # 3 candidates, start + Jacobian
 
 
 def report_differences(

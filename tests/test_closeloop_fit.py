@@ -272,6 +272,42 @@ def test_a_refit_move_of_an_undetermined_parameter_or_a_new_one():
     )
 
 
+def test_a_refit_from_the_optimum_stops_at_the_fits_resolution_and_one_far_off_does_not():
+    """The refits' stopping rule (``step_tolerance``): a refit started at the fitted
+    parameters ends at its first trial step, before evaluating it, when that step is below
+    0.1 standard errors (the Jacobian's at the start, on the effective sample size over the
+    events as blocks): the start and the Jacobian's one vector, 2 evaluations, the start
+    returned bit for bit. scipy's own stopping (``xtol`` 1e-8 relative) evaluates more steps
+    of the same refit and moves the parameter by less than that tolerance. Started 10 standard
+    errors away, the rule does not stop the refit: it goes to the optimum."""
+    from fleetbrake.closeloop.selection import effective_sample_size, standard_errors
+
+    brakings = ThreeBrakings(alphas=(0.70, 0.72, 0.74) * 8, drop_above=1.0)
+    event = np.repeat(np.arange(24), brakings.rise_k.size)
+    fitted = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    n_eff = effective_sample_size(fitted.aligned, event)
+    sigma = float(standard_errors(fitted.jacobian, fitted.aligned, n_eff)[0])
+    assert 0.0 < sigma < 0.01
+
+    def refit_from(alpha: float, tolerance: float):  # type: ignore[no-untyped-def]
+        start = (HeatPartition(alpha=alpha),)
+        return _fit(brakings, EffectSet(), [HeatPartition], start, 7, 0.05, None, tolerance, event)
+
+    at_optimum = refit_from(fitted.x[0], 0.1)
+    assert at_optimum.evaluations <= 2
+    assert at_optimum.x[0] == fitted.x[0]
+    np.testing.assert_array_equal(at_optimum.jacobian, refit_from(fitted.x[0], 0.0).jacobian)
+    without_rule = refit_from(fitted.x[0], 0.0)
+    assert without_rule.evaluations > 2
+    assert abs(without_rule.x[0] - fitted.x[0]) < 0.1 * sigma
+
+    far_off = refit_from(fitted.x[0] + 10.0 * sigma, 0.1)
+    assert far_off.evaluations > 2
+    assert abs(far_off.x[0] - fitted.x[0]) < 0.1 * sigma
+    with pytest.raises(CloseLoopConfigError, match="refit_step_tolerance must be >= 0"):
+        CloseLoopConfig(dt.date(2024, 3, 6), refit_step_tolerance=-0.1)
+
+
 def test_brakings_over_a_frozen_gps_speed_are_left_out_of_the_fit() -> None:
     """An event braking while the logged speed repeats one value to the last digit (a GPS
     that froze) has an unknown heat input: the close loop leaves it out of fit and holdout.

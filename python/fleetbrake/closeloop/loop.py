@@ -115,6 +115,7 @@ from fleetbrake.closeloop.selection import (
     intervals_for_json,
     noise_from_residual,
     outlier_events,
+    standard_errors,
     systematic_share,
     with_numerical_term,
 )
@@ -211,6 +212,14 @@ class CloseLoopConfig:
     refit_changed_fraction: float = 0.02
     """After re-flagging, the effect is refitted only when the fit set changed by at least
     this share of its events."""
+    refit_step_tolerance: float = 0.1
+    """A refit from fitted parameters (the chosen effect on every fit event from its screened
+    parameters, the re-flag refit, the numerical term's coarse-mesh refits) ends at the first
+    trial step below this many standard errors in every parameter (its Jacobian's at the
+    start, on the effective sample size), without evaluating it (:func:`_fit`; 0: scipy's
+    default relative tolerance only). Such a step moves no parameter by more than a fifth of
+    ``refit_tolerance`` (at least 0.49 standard errors) (docs/closeloop.md, "The refits'
+    stopping rule")."""
     refit_tolerance: float = 0.25
     """A re-flag refit whose every parameter moved by less than this share of its 95 %
     interval's half-width (:func:`refit_moved`) keeps the revision as it was simulated,
@@ -274,6 +283,10 @@ class CloseLoopConfig:
             raise CloseLoopConfigError(
                 f"numerical_grid_ratios must each be > 1 (fine over coarse cells per "
                 f"direction), got {self.numerical_grid_ratios}"
+            )
+        if not self.refit_step_tolerance >= 0.0:
+            raise CloseLoopConfigError(
+                f"refit_step_tolerance must be >= 0, got {self.refit_step_tolerance}"
             )
         if not self.refit_tolerance >= 0.0:
             raise CloseLoopConfigError(f"refit_tolerance must be >= 0, got {self.refit_tolerance}")
@@ -385,6 +398,10 @@ def parameter_bounds(classes: Sequence[type[Effect]]) -> tuple[np.ndarray, np.nd
     return np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
 
 
+class _Resolved(Exception):
+    """A trial step below the fit's resolution was asked for: the fit ends where it is."""
+
+
 def _fit(
     evaluator: Evaluator,
     base: EffectSet,
@@ -393,11 +410,21 @@ def _fit(
     max_nfev: int,
     diff_step: float = 0.05,
     keep: np.ndarray | None = None,
+    step_tolerance: float = 0.0,
+    blocks: np.ndarray | None = None,
 ) -> FitResult:
     """Fit the parameters of ``classes`` (added to ``base``) by bounded least squares (trf),
     the Jacobian by forward differences with every perturbed vector of a step evaluated in
     one pass over the cached data (``evaluator.residuals``). ``keep``: (evaluator seconds)
-    the seconds fitted and scored (None: all; outlier events left out)."""
+    the seconds fitted and scored (None: all; outlier events left out).
+
+    ``step_tolerance`` > 0 (a refit from fitted parameters): the fit ends, without evaluating
+    it, at the first trial point that is within ``step_tolerance`` standard errors of the
+    current point in every parameter, the standard errors those of the Jacobian at the start
+    (:func:`~fleetbrake.closeloop.selection.standard_errors`, on the effective sample size of
+    the start's residual over ``blocks``, evaluator seconds; every second its own block when
+    None): such a step, accepted or not, moves no parameter by more than that share of its
+    own uncertainty (docs/closeloop.md, "The refits' stopping rule")."""
     from scipy.optimize import least_squares
 
     names: list[tuple[type[Effect], str]] = []
@@ -439,33 +466,64 @@ def _fit(
             out = np.where(missing, reference, out)
         return out
 
+    # trf's current point is the lowest cost its ``fun`` has seen (a trial is accepted only
+    # when it lowers the cost); the Jacobian kept per point for a fit ended by the rule
+    current: dict[str, Any] = {"x": None, "cost": math.inf, "sigma": None}
+    jacobians: dict[bytes, np.ndarray] = {}
+
+    def value(x: np.ndarray) -> np.ndarray:
+        f = aligned(raw_many([x])[0])
+        cost = float(f @ f)
+        if cost < current["cost"]:
+            current.update(x=np.array(x, dtype=np.float64), cost=cost)
+        return f
+
     def fun(x: np.ndarray) -> np.ndarray:
-        return aligned(raw_many([x])[0])
+        """trf's points: its start, then its trial steps (the rule asks before each)."""
+        sigma, here = current["sigma"], current["x"]
+        if sigma is not None and here is not None and not np.array_equal(x, here):
+            if np.all(np.abs(x - here) < sigma):
+                raise _Resolved
+        return value(x)
 
     def jac(x: np.ndarray) -> np.ndarray:
-        f0 = fun(x)
+        f0 = value(x)
         h = _steps(np.asarray(x, dtype=np.float64), lower, upper, diff_step)
         moved = [x + np.eye(x.size)[j] * h[j] for j in range(x.size)]
         columns = [(aligned(r) - f0) / h[j] for j, r in enumerate(raw_many(moved))]
-        return np.column_stack(columns) if columns else np.zeros((f0.size, 0))
+        got = np.column_stack(columns) if columns else np.zeros((f0.size, 0))
+        jacobians[np.asarray(x, dtype=np.float64).tobytes()] = got
+        if step_tolerance > 0.0 and current["sigma"] is None and got.shape[1]:
+            n_eff = (
+                float(f0.size)
+                if blocks is None
+                else effective_sample_size(f0, np.asarray(blocks)[scored])
+            )
+            current["sigma"] = step_tolerance * standard_errors(got, f0, n_eff)
+        return got
 
     x_start = np.clip(np.asarray(x0), lower + 1e-9, upper - 1e-9)
-    result = least_squares(
-        fun,
-        x_start,
-        jac=jac,
-        bounds=(lower, upper),
-        x_scale=np.asarray(scale),
-        max_nfev=max_nfev,
-        method="trf",
-    )
-    x = np.asarray(result.x, dtype=np.float64)
+    try:
+        result = least_squares(
+            fun,
+            x_start,
+            jac=jac,
+            bounds=(lower, upper),
+            x_scale=np.asarray(scale),
+            max_nfev=max_nfev,
+            method="trf",
+        )
+        x = np.asarray(result.x, dtype=np.float64)
+        jacobian = np.asarray(result.jac, dtype=np.float64)
+    except _Resolved:
+        x = current["x"]
+        jacobian = jacobians[x.tobytes()]
     r = raw_many([x])[0]
     return FitResult(
         effects=build(x),
         residual=r[np.isfinite(r) & kept],
         aligned=aligned(r),
-        jacobian=np.asarray(result.jac, dtype=np.float64),
+        jacobian=jacobian,
         x=x,
         names=tuple(f"{cls.name}.{pname}" for cls, pname in names),
         evaluations=len(seen),
@@ -486,6 +544,9 @@ class FitTask:
     diff_step: float
     exclude: frozenset[str] = frozenset()
     """Events left out of the fit (outliers)."""
+    step_tolerance: float = 0.0
+    """A refit from fitted parameters ends at a trial step below this many standard errors
+    in every parameter (:func:`_fit`; 0: scipy's own stopping only)."""
 
     def __str__(self) -> str:  # how an engine names the partition in an error
         return "candidate " + "+".join(cls.name for cls in self.classes)
@@ -496,7 +557,17 @@ def fit_task(task: FitTask) -> FitResult:
     data = task.data if isinstance(task.data, FitData) else fitdata.stored(task.data)
     calls = fitdata.kernel_calls()
     keep = _kept_seconds(data, task.exclude)
-    fitted = _fit(data, task.base, task.classes, task.start, task.max_nfev, task.diff_step, keep)
+    fitted = _fit(
+        data,
+        task.base,
+        task.classes,
+        task.start,
+        task.max_nfev,
+        task.diff_step,
+        keep,
+        task.step_tolerance,
+        data.blocks,
+    )
     return dataclasses.replace(fitted, kernel_calls=fitdata.kernel_calls() - calls)
 
 
@@ -680,6 +751,13 @@ class _Workers:
         self.kernel_calls = 0
         self.fits = 0
         self.timing: dict[str, float] = {}
+        self.evaluations: dict[str, int] = {}
+        """Model evaluations (passes over a data set's events) per phase, the Jacobians'
+        perturbed vectors included: the report's ``cost.evaluations``."""
+
+    def count(self, phase: str, evaluations: int) -> None:
+        with self._lock:
+            self.evaluations[phase] = self.evaluations.get(phase, 0) + evaluations
 
     def ref(self, data: FitData | str) -> FitData | str:
         """What an engine's task is handed for ``data``: the object, or with the local
@@ -717,16 +795,20 @@ class _Workers:
             return tasks
         return [dataclasses.replace(t, data=self.ref(t.data)) for t in tasks]
 
-    def fit(self, tasks: list[FitTask]) -> list[FitResult]:
+    def fit(self, tasks: list[FitTask], phase: str) -> list[FitResult]:
         tasks = self.shipped(tasks)
         results: list[FitResult] = self._map(fit_task, tasks)
+        self.count(phase, sum(r.evaluations for r in results))
         with self._lock:
             if self.remote and len(tasks) > 1:
                 self.kernel_calls += sum(r.kernel_calls for r in results)
             self.fits += len(results)
         return results
 
-    def evaluate(self, data: FitData, effect_sets: Sequence[EffectSet]) -> list[np.ndarray]:
+    def evaluate(
+        self, data: FitData, effect_sets: Sequence[EffectSet], phase: str
+    ) -> list[np.ndarray]:
+        self.count(phase, len(effect_sets))
         tasks = [EvalTask(data, (e,)) for e in effect_sets]
         if not self._inline(tasks):
             tasks = [dataclasses.replace(t, data=self.ref(data)) for t in tasks]
@@ -950,6 +1032,7 @@ def close_loop(
     report["cost"] = {
         "candidates_fitted": workers.fits,
         "kernel_calls": fitdata.kernel_calls() - calls + workers.kernel_calls,
+        "evaluations": dict(workers.evaluations),
         "seconds": {k: round(v, 3) for k, v in workers.timing.items()},
     }
     return report
@@ -986,6 +1069,7 @@ def _close_loop(
     timing["load_s"] = time.perf_counter() - clock
 
     base_predicted = fit_data.predict(base.effects)
+    workers.count("load", 1)
     base_frame = fit_data.frame(base.effects, base_predicted)
     evidence = _evidence(base_frame)
     r_all = fit_data.measured_c - base_predicted
@@ -999,6 +1083,7 @@ def _close_loop(
         n_eff["screen"] = n_eff["fit"]
     else:
         r_screen = screen_data.residual(base.effects)
+        workers.count("load", 1)
         keep = np.isfinite(r_screen)
         n_eff["screen"] = effective_sample_size(r_screen[keep], screen_data.blocks[keep])
     current = Candidate(
@@ -1014,8 +1099,14 @@ def _close_loop(
         return [e for e in effects if type(e) not in present]
 
     def task(
-        data: FitData, classes: Sequence[type[Effect]], start: Sequence[Effect] | None, nfev: int
+        data: FitData,
+        classes: Sequence[type[Effect]],
+        start: Sequence[Effect] | None,
+        nfev: int,
+        refit: bool = False,
     ) -> FitTask:
+        """A fit of ``classes`` from ``start``; ``refit``: every parameter starts fitted (the
+        refits' stopping rule applies, ``config.refit_step_tolerance``)."""
         return FitTask(
             data,
             base.effects,
@@ -1024,6 +1115,7 @@ def _close_loop(
             nfev,
             config.diff_step,
             excluded,
+            config.refit_step_tolerance if refit else 0.0,
         )
 
     def candidate(fitted: FitResult, k: int, on: str) -> Candidate:
@@ -1036,7 +1128,9 @@ def _close_loop(
     # as the predictions' (in parallel across the engine's workers)
     classes = [cls for cls in config.candidate_classes() if cls not in present]
     t = time.perf_counter()
-    results = workers.fit([task(screen_data, [cls], None, config.max_nfev) for cls in classes])
+    results = workers.fit(
+        [task(screen_data, [cls], None, config.max_nfev) for cls in classes], "screen"
+    )
     screened = [
         candidate(res, len(cls.PARAMETER_RANGES), screened_on)
         for cls, res in zip(classes, results, strict=True)
@@ -1050,6 +1144,7 @@ def _close_loop(
     t = time.perf_counter()
     if screened and config.max_outlier_fraction > 0:
         excluded, outliers = _outliers(fit_data, screened[0].effects, noise_k, config)
+        workers.count("outliers", 1)
         kept_seconds = _kept_seconds(fit_data, excluded)
         if kept_seconds is not None:
             keep = ok & kept_seconds
@@ -1073,9 +1168,11 @@ def _close_loop(
                 [type(e) for e in added_of(c.effects)],
                 added_of(c.effects),
                 max(4, config.max_nfev // 2),
+                refit=True,
             )
             for c in top
-        ]
+        ],
+        "refit",
     )
     candidates = [candidate(res, c.n_parameters, "fit") for c, res in zip(top, refits, strict=True)]
     candidates += screened[len(top) :] if top else screened
@@ -1166,7 +1263,8 @@ def _close_loop(
             if cls not in present and cls.name not in {e.name for e in first}
         ]
         pair_results = workers.fit(
-            [task(screen_data, [type(first[0]), cls], first, config.max_nfev) for cls in others]
+            [task(screen_data, [type(first[0]), cls], first, config.max_nfev) for cls in others],
+            "pairs",
         )
         pairs = [
             candidate(res, best.n_parameters + len(cls.PARAMETER_RANGES), screened_on)
@@ -1181,7 +1279,16 @@ def _close_loop(
                 refitted = top_pair
             else:
                 (res,) = workers.fit(
-                    [task(fit_data, [type(e) for e in added], added, max(4, config.max_nfev // 2))]
+                    [
+                        task(
+                            fit_data,
+                            [type(e) for e in added],
+                            added,
+                            max(4, config.max_nfev // 2),
+                            refit=True,
+                        )
+                    ],
+                    "pairs",
                 )
                 refitted = candidate(res, top_pair.n_parameters, "fit")
             logger.debug("refitted pair %s: rmse %.4f K", refitted.label, refitted.rmse_fit_k)
@@ -1195,7 +1302,7 @@ def _close_loop(
         fitted_all = [c for c in candidates if c.fitted_on == "fit"]
         for c, r in zip(
             fitted_all,
-            workers.evaluate(hold_data, [c.effects for c in fitted_all]),
+            workers.evaluate(hold_data, [c.effects for c in fitted_all], "holdout"),
             strict=True,
         ):
             c.rmse_holdout_k = _rmse(_finite(r))
@@ -1231,7 +1338,9 @@ def _close_loop(
         seed = added_of(chosen.effects) if chosen is not None else []
         if len(seed) < config.max_effects:
             classes = [type(e) for e in seed] + fallbacks[:1]
-            (res,) = workers.fit([task(fit_data, classes, seed, max(4, config.max_nfev // 2))])
+            (res,) = workers.fit(
+                [task(fit_data, classes, seed, max(4, config.max_nfev // 2))], "empirical"
+            )
             k = sum(len(cls.PARAMETER_RANGES) for cls in classes)
             empirical = candidate(res, k, "fit")
             logger.debug("fitted %s: rmse %.4f K", empirical.label, empirical.rmse_fit_k)
@@ -1381,7 +1490,16 @@ def _close_loop(
             refit_events = fit
             refit_data = FitData.build(loaded, refit_events, sim, base)
             (res,) = workers.fit(
-                [task(refit_data, [type(e) for e in added], added, max(1, config.max_nfev // 2))]
+                [
+                    task(
+                        refit_data,
+                        [type(e) for e in added],
+                        added,
+                        max(1, config.max_nfev // 2),
+                        refit=True,
+                    )
+                ],
+                "reflag_refit",
             )
             moved = refit_moved(best, res, _blocked(res, refit_data), config.refit_tolerance)
             timing["reflag_refit_s"] = time.perf_counter() - t
@@ -1477,12 +1595,13 @@ def _numerical_phase(
                 [type(e) for e in added_now],
                 added_now,
                 max(4, config.max_nfev // 2),
+                refit=True,
             )
             for coarse_base in coarse_bases
         ]
     )
     waited = _wait(ready)
-    coarse_fits = workers.fit(tasks)
+    coarse_fits = workers.fit(tasks, "numerical")
     numerical = _numerical_term(best.fitted, coarse_fits, base, config)
     workers.timing["numerical_s"] = time.perf_counter() - t - waited
     return numerical
@@ -1515,7 +1634,8 @@ def _input_phase(
     lower, upper = parameter_bounds(classes_now)
 
     def residual_at(x: np.ndarray) -> np.ndarray:
-        return workers.evaluate(debiased_data, [effects_at(fitted_now.effects, classes_now, x)])[0]
+        moved = [effects_at(fitted_now.effects, classes_now, x)]
+        return workers.evaluate(debiased_data, moved, "input")[0]
 
     waited = _wait(ready)
     shift, steps = input_shift(fitted_now, residual_at, lower, upper, config.input_step_tolerance)
@@ -2133,7 +2253,9 @@ def _make_engine(name: str, workers: int | None, address: str | None) -> Engine:
         if workers is not None and workers < 1:
             raise EngineConfigError(f"--workers must be >= 1, got {workers}")
         return InlineEngine()
-    return make_engine(name, workers, address=address, preload=("fleetbrake.closeloop.loop",))
+    # the workers import what a fit runs (least_squares is imported when a fit starts)
+    preload = ("fleetbrake.closeloop.loop", "scipy.optimize")
+    return make_engine(name, workers, address=address, preload=preload)
 
 
 def run_close_loop(
@@ -2154,6 +2276,9 @@ def run_close_loop(
     config = config or CloseLoopConfig(holdout_from=holdout_from)
     pool = _make_engine(engine, workers, address)  # refused before the database is opened
     with pool, open_warehouse(db_path, wait_s=wait_s) as wh:
+        # the workers start and import the close loop while the wagons are loaded, not at
+        # the screening's first fit (about a processor-second each)
+        pool.start()
         report = close_loop(wh, config, None if isinstance(pool, InlineEngine) else pool)
         json_out = Path(json_out)
         json_out.parent.mkdir(parents=True, exist_ok=True)

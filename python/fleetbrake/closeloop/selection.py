@@ -74,8 +74,10 @@ __all__ = [
     "ljung_box_white_fraction",
     "noise_from_residual",
     "outlier_events",
+    "parameter_covariance",
     "parameter_intervals",
     "refusal",
+    "standard_errors",
     "systematic_share",
     "with_numerical_term",
 ]
@@ -396,6 +398,35 @@ def improves_held_out(
 
 
 # ---------------------------------------------------------------------------- intervals
+def parameter_covariance(jacobian: np.ndarray, residual: np.ndarray, n_eff: float) -> np.ndarray:
+    """The fitted parameters' covariance from the fit's Jacobian: ``s^2 (J^T J)^-1`` with
+    ``s^2 = sum r^2 / (n - p)``, inflated by ``n / n_eff`` (the residual's correlation: ``n``
+    correlated seconds carry the information of ``n_eff`` independent ones); ``inf`` everywhere
+    when ``J^T J`` is singular (the residual does not determine the parameters)."""
+    r = np.asarray(residual, dtype=np.float64).ravel()
+    n = r.size
+    j = np.asarray(jacobian, dtype=np.float64).reshape(n, -1)
+    p = j.shape[1]
+    if n <= p:
+        raise SelectionError(f"{n} residuals cannot bound {p} parameters")
+    s2 = float(np.sum(r * r)) / (n - p)
+    inflation = n / min(max(float(n_eff), 1.0), float(n))
+    try:
+        return np.asarray(np.linalg.inv(j.T @ j) * s2 * inflation, dtype=np.float64)
+    except np.linalg.LinAlgError:
+        return np.full((p, p), np.inf)
+
+
+def standard_errors(jacobian: np.ndarray, residual: np.ndarray, n_eff: float) -> np.ndarray:
+    """Each parameter's standard error from the fit's Jacobian on ``n_eff`` independent
+    residuals (:func:`parameter_covariance`'s diagonal; ``inf`` where the data do not
+    determine it): the resolution a fit's steps are judged against
+    (``CloseLoopConfig.refit_step_tolerance``)."""
+    var = np.diag(parameter_covariance(jacobian, residual, n_eff))
+    ok = np.isfinite(var) & (var >= 0.0)
+    return np.where(ok, np.sqrt(np.where(ok, var, 0.0)), np.inf)
+
+
 def parameter_intervals(
     jacobian: np.ndarray,
     residual: np.ndarray,
@@ -406,29 +437,17 @@ def parameter_intervals(
 ) -> dict[str, tuple[float, float]]:
     """Confidence intervals of fitted parameters ``x`` (names in order) from the fit's
     Jacobian: covariance ``s^2 (J^T J)^-1`` with ``s^2 = sum r^2 / (n - p)``, inflated by
-    ``n / n_eff`` (the residual's correlation: ``n`` correlated seconds carry the information
-    of ``n_eff`` independent ones), Student-t quantile on ``n_eff - p`` degrees of freedom. A
-    parameter the residual does not determine (a singular ``J^T J``) gets ``(-inf, inf)``.
-    The inflation is exact for regressors as smooth as the residual's correlation, conservative
-    for faster ones."""
+    ``n / n_eff`` (:func:`parameter_covariance`), Student-t quantile on ``n_eff - p`` degrees
+    of freedom. A parameter the residual does not determine (a singular ``J^T J``) gets
+    ``(-inf, inf)``. The inflation is exact for regressors as smooth as the residual's
+    correlation, conservative for faster ones."""
     from scipy.stats import t as student_t
 
-    r = np.asarray(residual, dtype=np.float64).ravel()
     xs = np.asarray(x, dtype=np.float64).ravel()
     p = xs.size
     if len(names) != p:
         raise SelectionError(f"{len(names)} parameter names for {p} parameters")
-    j = np.asarray(jacobian, dtype=np.float64).reshape(r.size, p)
-    n = r.size
-    if n <= p:
-        raise SelectionError(f"{n} residuals cannot bound {p} parameters")
-    s2 = float(np.sum(r * r)) / (n - p)
-    inflation = n / min(max(float(n_eff), 1.0), float(n))
-    jtj = j.T @ j
-    try:
-        cov = np.linalg.inv(jtj) * s2 * inflation
-    except np.linalg.LinAlgError:
-        cov = np.full((p, p), np.inf)
+    cov = parameter_covariance(jacobian, residual, n_eff)
     dof = max(float(n_eff) - p, 1.0)
     q = float(student_t.ppf(0.5 + level / 2.0, dof))
     out = {}
