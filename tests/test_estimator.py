@@ -577,6 +577,78 @@ OPTIONS = EstimatorConfig(standstill_speed_kmh=0.5, seat_error_sd_k=0.05)
 """The two options off by default (``docs/estimator.md``: what they gain, what they cost)."""
 
 
+@pytest.fixture(scope="module")
+def dense_runs(
+    rom: ReducedModel, noisy: WagonSeries, fitted: EstimatorNoise
+) -> tuple[ContactEstimate, ContactEstimate]:
+    """The close loop's revision's case (session 16, EST15), Rust and numpy: convection that
+    varies with speed (runs of dense transitions, each stepped by the Rust kernel in the basis
+    of its eigenvectors, the basis changed between them and to and from the nominal
+    convection's), a lag, the seat's error and the power held at standstill, at the default
+    steady tolerances."""
+    config = dataclasses.replace(OPTIONS, noise=fitted)
+    assert config.steady_tolerance > 0 and config.smoother_tolerance > 0
+    effects = EffectSet((ConvectionSpeed(gain=2.0, exponent=0.8), SensorLag(tau_s=30.0)))
+    problem = prepare(rom, WAGON, noisy, effects=effects, config=config)
+    assert problem.lag and problem.q_modes is not None and problem.held is not None
+    dense = ~problem.diagonal[problem.index]
+    changed = problem.index[1:] != problem.index[:-1]
+    dense_to_dense = np.count_nonzero(changed & dense[1:] & dense[:-1])
+    dense_to_diagonal = np.count_nonzero(changed & ~dense[1:] & dense[:-1])
+    stays = np.count_nonzero(~changed & dense[1:])
+    # found: 676 and 5 (speed changes move the convection between dense values; the nominal
+    # convection comes back at standstills)
+    assert dense_to_dense > 300 and dense_to_diagonal > 0, (dense_to_dense, dense_to_diagonal)
+    assert stays > 10 * dense_to_dense, stays
+    fast = estimate([problem], config=config, engine="rust")[0]
+    slow = estimate([problem], config=config, engine="numpy")[0]
+    return fast, slow
+
+
+def test_dense_runs_in_their_own_bases_freeze_numpys_seconds_and_keep_its_temperatures(
+    dense_runs: tuple[ContactEstimate, ContactEstimate],
+) -> None:
+    """The kernel's steady tests decide as numpy's do in the problem's own basis (tested in
+    the rotated basis they froze other seconds and moved the estimates by millikelvins), so
+    the same seconds are frozen, and the temperatures, the innovations and the standard
+    deviations are numpy's to 1e-9 (found: 8.3e-10 K, 1.6e-11 K, 8.9e-12 W)."""
+    fast, slow = dense_runs
+    assert fast.frozen_fraction > 0.03  # found 0.059 (the drag day's manoeuvres)
+    assert fast.frozen_fraction == slow.frozen_fraction
+    for name in (
+        "contact_mean_c",
+        "contact_mean_sd_k",
+        "contact_max_c",
+        "contact_max_sd_k",
+        "unexplained_power_sd_w",
+        "innovation_k",
+        "innovation_var_k2",
+        "predicted_reading_c",
+        "smoothed_contact_mean_c",
+        "smoothed_contact_max_c",
+    ):
+        x, y = getattr(fast, name), getattr(slow, name)
+        assert np.array_equal(np.isnan(x), np.isnan(y)), name
+        excess = np.abs(x - y) - 1e-9 * np.maximum(1.0, np.abs(y))
+        assert np.nanmax(excess) <= 0.0, (name, float(np.nanmax(np.abs(x - y))))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "measured (session 16, EST15): the unexplained power 2.66e-8 W from numpy's (3.3e-9 "
+        "of its size; the dense stepping before: 3.5e-10 W), smoothed 1.87e-8 W; the "
+        "eigendecomposition's rounding, carried into the weakly observed power "
+        "(docs/estimator.md, Speed)"
+    ),
+)
+def test_dense_runs_in_their_own_bases_are_numpy_to_1e_9(
+    dense_runs: tuple[ContactEstimate, ContactEstimate],
+) -> None:
+    """Every output to ``_assert_same``'s 1e-9, the power included."""
+    _assert_same(*dense_runs)
+
+
 def test_rust_is_numpy_with_the_seat_error_and_the_power_held_at_standstill(
     rom: ReducedModel, noisy: WagonSeries, fitted: EstimatorNoise
 ) -> None:

@@ -52,9 +52,23 @@
 //! not grow with the series; its information matrix `Λ` is frozen the same way inside a
 //! steady stretch.
 //!
-//! A dense transition (a convection other than the nominal one mixes the modes) is stepped as
-//! two blocked products on padded matrices (`DenseF`), the second only on the symmetric
-//! result's lower triangle.
+//! A dense transition (a convection other than the nominal one mixes the modes) is symmetric,
+//! `A = Q diag(e) Qᵀ` with Q orthogonal: it is stepped as a diagonal one in the basis of its
+//! eigenvectors (`in_own_basis`; Q block-diagonal over the coordinates A couples, so the
+//! seat's error stays a coordinate of its own), with `γ`, the lag's row, the reading's and the
+//! outputs' rows and the gap's direction rotated once per transition (`Rows`), `w` per step
+//! (`Qᵀw`), and the mode noise `Qᵀ diag(q) Q` (dense only where Q mixes a noisy coordinate).
+//! The state at second t lives in the basis of the transition into t (the prior in the
+//! problem's own): where consecutive steps have different bases the mean and covariance are
+//! rotated once, `T = diag(Q_newᵀ Q_old, I)` (`Rotation`, two blocked products), the
+//! smoother's `λ`, `Λ` back with `Tᵀ`; a run of one dense transition costs what a diagonal
+//! one does. Steady keys, caches and recorded excursions are a transition's, so their
+//! covariances are in its basis; the steady tests decide as in the problem's own basis
+//! (`converged_own`: cheap necessary conditions first, then the element that failed last,
+//! then both matrices rotated), so the freezing, and with it the estimates, are those of the
+//! dense stepping to rounding. A dense transition that is not symmetric is stepped as two
+//! blocked products on padded matrices (`DenseF`), the second only on the symmetric result's
+//! lower triangle.
 
 use std::borrow::Cow;
 
@@ -805,6 +819,29 @@ fn converged(new: &[f64], old: &[f64], n: usize, tol: f64, d: &mut [f64]) -> boo
     true
 }
 
+/// `converged`'s first element that changed by more (row-major order), None: every one.
+#[inline(always)]
+fn first_change(
+    new: &[f64],
+    old: &[f64],
+    n: usize,
+    tol: f64,
+    d: &mut [f64],
+) -> Option<(usize, usize)> {
+    for (i, di) in d.iter_mut().enumerate() {
+        *di = new[i * n + i].abs().sqrt();
+    }
+    for i in 0..n {
+        let bound = tol * d[i];
+        for j in 0..n {
+            if (new[i * n + j] - old[i * n + j]).abs() > bound * d[j] {
+                return Some((i, j));
+            }
+        }
+    }
+    None
+}
+
 // ------------------------------------------------------------------------------------------
 // The transition's structured products
 
@@ -1358,6 +1395,246 @@ impl DenseF {
 }
 
 // ------------------------------------------------------------------------------------------
+// Dense transitions in their own basis
+
+/// The reading's row, the outputs' rows and the gap's direction in one basis of the modal
+/// coordinates: `q` (r x r row-major, its columns the basis vectors in the problem's
+/// coordinates; empty: the problem's own basis). A row `c` on the modes is `Qᵀ c` in it.
+struct Rows {
+    r: usize,
+    q: Vec<f64>,
+    h: Vec<f64>,
+    cm: Vec<f64>,
+    /// (m, r) row-major.
+    c_nodes: Vec<f64>,
+    /// The face nodes' rows transposed (r x m, m padded to a multiple of 4): node values as a
+    /// sum of r scaled rows.
+    cn_t: Vec<f64>,
+    gap_dir: Vec<f64>,
+}
+
+impl Rows {
+    fn new(p: &Problem<'_>, q: Vec<f64>) -> Self {
+        let (r, n, m) = (p.order, p.n_state(), p.n_nodes());
+        let mut h = vec![0.0; n];
+        if p.lag {
+            h[r + 1] = 1.0;
+        } else {
+            h[..r].copy_from_slice(&p.c_probe);
+        }
+        let mut rows = Rows {
+            r,
+            q,
+            h,
+            cm: p.c_mean.clone(),
+            c_nodes: p.c_nodes.clone(),
+            cn_t: Vec::new(),
+            gap_dir: p.gap_dir.clone(),
+        };
+        if !rows.q.is_empty() {
+            let mut tmp = vec![0.0; r];
+            for v in [&mut rows.h, &mut rows.cm, &mut rows.gap_dir] {
+                rotate_t(&rows.q, r, &mut v[..r], &mut tmp);
+            }
+            for c in rows.c_nodes.chunks_exact_mut(r) {
+                rotate_t(&rows.q, r, c, &mut tmp);
+            }
+        }
+        rows.cn_t = transpose(&rows.c_nodes, m, r, m.next_multiple_of(4));
+        rows
+    }
+
+    #[inline(always)]
+    fn node_row(&self, j: usize) -> &[f64] {
+        &self.c_nodes[j * self.r..(j + 1) * self.r]
+    }
+}
+
+/// `v = Qᵀ v` (Q r x r row-major; `tmp`: r scratch).
+fn rotate_t(q: &[f64], r: usize, v: &mut [f64], tmp: &mut [f64]) {
+    tmp.fill(0.0);
+    for (row, &vi) in q.chunks_exact(r).zip(v.iter()) {
+        for (t, &qij) in tmp.iter_mut().zip(row) {
+            *t += qij * vi;
+        }
+    }
+    v.copy_from_slice(tmp);
+}
+
+/// A dense transition as a diagonal one in the basis of its propagator's eigenvectors
+/// (`a = Q diag(e) Qᵀ`, `a` symmetric): Q (r x r row-major, block-diagonal over the
+/// coordinates that `a` couples, so that a coordinate `a` leaves alone, the seat's error,
+/// stays itself), the transition in that basis (`e`, `Qᵀγ`, `Qᵀℓ`) and its mode noise
+/// `Qᵀ diag(q_modes) Q` when that is not diagonal (r x r; empty: it is, and is the
+/// transition's `q_modes`). None where `a` is not symmetric or has no decomposition: the
+/// transition is then stepped dense (`DenseF`).
+fn in_own_basis(tr: &Transition, r: usize) -> Option<(Vec<f64>, Transition, Vec<f64>)> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::evd::{self_adjoint_evd, self_adjoint_evd_scratch, ComputeEigenvectors};
+    let a = &tr.a;
+    let scale = a.iter().fold(0.0f64, |s, v| s.max(v.abs()));
+    for i in 0..r {
+        for j in 0..i {
+            if (a[i * r + j] - a[j * r + i]).abs() > 1e-13 * scale {
+                return None;
+            }
+        }
+    }
+    // the coupled coordinates: connected components of a's pattern
+    let mut comp: Vec<usize> = (0..r).collect();
+    fn root(c: &mut [usize], mut i: usize) -> usize {
+        while c[i] != i {
+            c[i] = c[c[i]];
+            i = c[i];
+        }
+        i
+    }
+    for i in 0..r {
+        for j in 0..i {
+            if a[i * r + j] != 0.0 || a[j * r + i] != 0.0 {
+                let (ri, rj) = (root(&mut comp, i), root(&mut comp, j));
+                comp[ri.max(rj)] = ri.min(rj);
+            }
+        }
+    }
+    let mut q = vec![0.0; r * r];
+    let mut e = vec![0.0; r];
+    for c0 in 0..r {
+        if root(&mut comp, c0) != c0 {
+            continue;
+        }
+        let idx: Vec<usize> = (0..r).filter(|&i| root(&mut comp, i) == c0).collect();
+        let s = idx.len();
+        if s == 1 {
+            q[c0 * r + c0] = 1.0;
+            e[c0] = a[c0 * r + c0];
+            continue;
+        }
+        let sub = faer::Mat::<f64>::from_fn(s, s, |i, j| a[idx[i] * r + idx[j]]);
+        let mut u = faer::Mat::<f64>::zeros(s, s);
+        let mut ev = faer::diag::Diag::<f64>::zeros(s);
+        let par = faer::Par::Seq;
+        let req =
+            self_adjoint_evd_scratch::<f64>(s, ComputeEigenvectors::Yes, par, Default::default());
+        let mut mem = MemBuffer::new(req);
+        self_adjoint_evd(
+            sub.as_ref(),
+            ev.as_mut(),
+            Some(u.as_mut()),
+            par,
+            MemStack::new(&mut mem),
+            Default::default(),
+        )
+        .ok()?;
+        for (k, &ik) in idx.iter().enumerate() {
+            e[ik] = ev.column_vector()[k];
+            for (l, &il) in idx.iter().enumerate() {
+                q[il * r + ik] = u[(l, k)];
+            }
+        }
+    }
+    if e.iter().chain(&q).any(|v| !v.is_finite()) {
+        return None;
+    }
+    let mut tmp = vec![0.0; r];
+    let mut out = tr.clone();
+    out.diagonal = true;
+    out.a = (0..r * r)
+        .map(|ij| if ij / r == ij % r { e[ij / r] } else { 0.0 })
+        .collect();
+    out.e = e;
+    rotate_t(&q, r, &mut out.gamma, &mut tmp);
+    rotate_t(&q, r, &mut out.lag_row, &mut tmp);
+    let mut noise = Vec::new();
+    if tr.q_modes.iter().any(|&v| v != 0.0) {
+        // Qᵀ diag(q) Q
+        let mut m = vec![0.0; r * r];
+        for (k, &qk) in tr.q_modes.iter().enumerate().filter(|(_, v)| **v != 0.0) {
+            let row = &q[k * r..(k + 1) * r];
+            for i in 0..r {
+                for j in 0..r {
+                    m[i * r + j] += qk * row[i] * row[j];
+                }
+            }
+        }
+        let off = (0..r * r).any(|ij| ij / r != ij % r && m[ij] != 0.0);
+        if off {
+            out.q_modes = vec![0.0; r];
+            noise = m;
+        } else {
+            out.q_modes = (0..r).map(|i| m[i * r + i]).collect();
+        }
+    }
+    Some((q, out, noise))
+}
+
+/// `x[..r] = R x[..r]` (R r x r row-major; `tmp`: r scratch).
+#[inline(always)]
+fn rotate_vec<const FMA: bool>(rm: &[f64], r: usize, x: &mut [f64], tmp: &mut [f64]) {
+    for (t, row) in tmp.iter_mut().zip(rm.chunks_exact(r)) {
+        *t = dot::<FMA>(row, &x[..r]);
+    }
+    x[..r].copy_from_slice(&tmp[..r]);
+}
+
+/// The change from one basis of the modal coordinates to another, `T = diag(R, I)` with
+/// `R = Q_newᵀ Q_old` (r x r row-major), and `Rᵀ`; `f`: T for the covariance's products
+/// (`T X Tᵀ` forwards, `Tᵀ Λ T` backwards, the blocked products of a dense transition).
+struct Rotation {
+    r: Vec<f64>,
+    rt: Vec<f64>,
+    f: DenseF,
+}
+
+impl Rotation {
+    fn new(rm: Vec<f64>, d: &Dims) -> Self {
+        let (r, n, p) = (d.r, d.n, padded(d.n));
+        let mut f = vec![0.0; p * p];
+        let mut ft = vec![0.0; p * p];
+        for i in 0..n {
+            for j in 0..n {
+                let v = match (i < r, j < r) {
+                    (true, true) => rm[i * r + j],
+                    (false, false) if i == j => 1.0,
+                    _ => 0.0,
+                };
+                f[i * p + j] = v;
+                ft[j * p + i] = v;
+            }
+        }
+        Rotation {
+            rt: transpose(&rm, r, r, r),
+            r: rm,
+            f: DenseF { f, ft },
+        }
+    }
+
+    /// `out = T X Tᵀ` (out of line: the hot loops stay as they were).
+    #[inline(never)]
+    fn forward_cov<const FMA: bool>(
+        &self,
+        d: &Dims,
+        x: &[f64],
+        out: &mut [f64],
+        pad: &mut [Vec<f64>; 3],
+    ) {
+        self.f.predict_cov::<FMA>(d, x, out, pad, None);
+    }
+
+    /// `out = Tᵀ Λ T` (out of line).
+    #[inline(never)]
+    fn back_cov<const FMA: bool>(
+        &self,
+        d: &Dims,
+        l: &[f64],
+        out: &mut [f64],
+        pad: &mut [Vec<f64>; 3],
+    ) {
+        self.f.back_cov::<FMA>(d, l, &[], None, out, pad);
+    }
+}
+
+// ------------------------------------------------------------------------------------------
 // The filter
 
 /// Step `t`'s covariance mode: computed in full, or the steady cache `id`.
@@ -1527,6 +1804,13 @@ struct Work {
     four: [Vec<f64>; 4],
     /// The dense products' padded matrices (`DenseF`).
     pad: [Vec<f64>; 3],
+    /// A covariance rotated into a transition's basis (n x n).
+    rot: Vec<f64>,
+    /// Two matrices in the problem's own basis (the steady tests', n x n).
+    own: [Vec<f64>; 2],
+    /// The element of the problem's own basis that failed the last steady test made there
+    /// (tried first the next time: it is usually the same one until the test passes).
+    fail: (usize, usize),
 }
 
 impl Work {
@@ -1538,6 +1822,9 @@ impl Work {
             big: vec![0.0; n * n],
             four: [vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]],
             pad: std::array::from_fn(|_| vec![0.0; padded(n) * padded(n)]),
+            rot: vec![0.0; n * n],
+            own: [vec![0.0; n * n], vec![0.0; n * n]],
+            fail: (0, 0),
         }
     }
 }
@@ -1557,11 +1844,19 @@ struct Kernel<'a> {
     /// ... and in the manoeuvre mode.
     tol_manoeuvre: f64,
     tol_back_manoeuvre: f64,
-    h: Vec<f64>,
-    cm: Vec<f64>,
-    /// The face nodes' rows transposed (r x m, m padded to a multiple of 4): node values as a
-    /// sum of r scaled rows.
-    cn_t: Vec<f64>,
+    /// The transitions as stepped: a dense one as a diagonal one in its own basis (module
+    /// docs), the others as given.
+    trs: Vec<Transition>,
+    /// The basis of each transition's result (0: the problem's own; `rows`).
+    basis: Vec<u32>,
+    /// The reading's and the outputs' rows in each basis.
+    rows: Vec<Rows>,
+    /// The rotation between two bases met in a row (`R = Q_newᵀ Q_old` and `Rᵀ`), by
+    /// (old, new).
+    rotations: std::collections::HashMap<(u32, u32), Rotation>,
+    /// Each transition's mode noise in its basis where it is not diagonal (r x r; empty: it
+    /// is, `q_modes`).
+    noise_rot: Vec<Vec<f64>>,
     /// Each transition's dense F (None: diagonal, stepped by its structure).
     dense: Vec<Option<DenseF>>,
     /// Whether each transition adds noise to a mode (`q_modes` not all zero).
@@ -1571,20 +1866,65 @@ struct Kernel<'a> {
 impl<'a> Kernel<'a> {
     fn new(p: &'a Problem<'a>, noise: Noise, settings: &Settings) -> Self {
         let (r, n) = (p.order, p.n_state());
-        let mut h = vec![0.0; n];
-        if p.lag {
-            h[r + 1] = 1.0;
-        } else {
-            h[..r].copy_from_slice(&p.c_probe);
-        }
         let d = Dims {
             r,
             n,
             lag: p.lag,
             brake: p.brake,
         };
-        let dense = p
-            .transitions
+        // a dense transition in the basis of its eigenvectors where it has one
+        let mut rows = vec![Rows::new(p, Vec::new())];
+        let mut trs = Vec::with_capacity(p.transitions.len());
+        let mut basis = Vec::with_capacity(p.transitions.len());
+        let mut noise_rot = Vec::with_capacity(p.transitions.len());
+        for tr in &p.transitions {
+            match (!tr.diagonal).then(|| in_own_basis(tr, r)).flatten() {
+                Some((q, rotated, noise)) => {
+                    basis.push(rows.len() as u32);
+                    rows.push(Rows::new(p, q));
+                    trs.push(rotated);
+                    noise_rot.push(noise);
+                }
+                None => {
+                    basis.push(0);
+                    trs.push(tr.clone());
+                    noise_rot.push(Vec::new());
+                }
+            }
+        }
+        // the rotations between the bases of consecutive steps (and back to the problem's
+        // own at the end)
+        let mut rotations = std::collections::HashMap::new();
+        let mut before = 0u32;
+        // (and from each basis to the problem's own: the steady tests')
+        let back = (1..rows.len() as u32).map(|b| (b, 0));
+        let pairs = p.index.iter().map(|&k| {
+            let now = basis[k as usize];
+            (std::mem::replace(&mut before, now), now)
+        });
+        for (before, now) in pairs.chain(back) {
+            if now != before {
+                rotations.entry((before, now)).or_insert_with(|| {
+                    let (qo, qn) = (&rows[before as usize].q, &rows[now as usize].q);
+                    // R = Q_newᵀ Q_old (Q empty: the identity)
+                    let at = |q: &Vec<f64>, i: usize, j: usize| {
+                        if q.is_empty() {
+                            f64::from(u8::from(i == j))
+                        } else {
+                            q[i * r + j]
+                        }
+                    };
+                    let mut rm = vec![0.0; r * r];
+                    for i in 0..r {
+                        for j in 0..r {
+                            rm[i * r + j] = (0..r).map(|l| at(qn, l, i) * at(qo, l, j)).sum();
+                        }
+                    }
+                    Rotation::new(rm, &d)
+                });
+            }
+        }
+        let dense = trs
             .iter()
             .map(|tr| (!tr.diagonal).then(|| DenseF::new(tr, &d)))
             .collect();
@@ -1613,15 +1953,148 @@ impl<'a> Kernel<'a> {
             tol_back_manoeuvre: settings
                 .manoeuvre_tolerances
                 .map_or(settings.smoother_tolerance, |t| t.1),
-            h,
-            cm: p.c_mean.clone(),
-            cn_t: transpose(&p.c_nodes, p.n_nodes(), r, p.n_nodes().next_multiple_of(4)),
-            dense,
-            mode_noise: p
-                .transitions
+            mode_noise: trs
                 .iter()
-                .map(|tr| tr.q_modes.iter().any(|&q| q != 0.0))
+                .zip(&noise_rot)
+                .map(|(tr, m)| !m.is_empty() || tr.q_modes.iter().any(|&q| q != 0.0))
                 .collect(),
+            trs,
+            basis,
+            rows,
+            rotations,
+            noise_rot,
+            dense,
+        }
+    }
+
+    /// The basis of the state at second `t` (its step's transition's; 0 at the prior).
+    #[inline(always)]
+    fn basis_at(&self, t: usize) -> u32 {
+        if t == 0 {
+            0
+        } else {
+            self.basis[self.p.index[t - 1] as usize]
+        }
+    }
+
+    /// The rows in the basis of the state at second `t`.
+    #[inline(always)]
+    fn rows_at(&self, t: usize) -> &Rows {
+        &self.rows[self.basis_at(t) as usize]
+    }
+
+    /// The rotation from the basis `from` to the basis `to`; None where they are the same.
+    #[inline(always)]
+    fn rotation(&self, from: u32, to: u32) -> Option<&Rotation> {
+        (from != to).then(|| &self.rotations[&(from, to)])
+    }
+
+    /// The rotation into the basis of step `t`'s transition from the state's at `t - 1`.
+    #[inline(always)]
+    fn change(&self, t: usize) -> Option<&Rotation> {
+        self.rotation(self.basis_at(t - 1), self.basis_at(t))
+    }
+
+    /// `converged(new, old)` for two symmetric matrices in basis `b`, as in the problem's own
+    /// basis: the steady tests decide as they would on a transition stepped dense (the
+    /// answer does not depend on the basis a step is made in). First the tests that need
+    /// no rotation, each a consequence of `converged` there (the entries off the modes are
+    /// the same in every basis; the modes' traces, their Frobenius norms and each border
+    /// column's norm too) and the element that failed there the last time (three products
+    /// with an n x n matrix): where one fails, `converged` there fails; else both matrices
+    /// rotated (two blocked products).
+    #[inline(always)]
+    fn converged_own<const FMA: bool>(
+        &self,
+        b: u32,
+        new: &[f64],
+        old: &[f64],
+        tol: f64,
+        w: &mut Work,
+    ) -> bool {
+        let n = self.d.n;
+        match self.rotation(b, 0) {
+            None => converged(new, old, n, tol, &mut w.d),
+            Some(rot) => self.converged_rotated::<FMA>(rot, new, old, tol, w),
+        }
+    }
+
+    /// `converged_own` in a basis of a dense transition (out of line).
+    #[inline(never)]
+    fn converged_rotated<const FMA: bool>(
+        &self,
+        rot: &Rotation,
+        new: &[f64],
+        old: &[f64],
+        tol: f64,
+        w: &mut Work,
+    ) -> bool {
+        let (r, n) = (self.d.r, self.d.n);
+        let diag = |i: usize| new[i * n + i].abs();
+        // the entries off the modes
+        for i in r..n {
+            for j in r..n {
+                let dij = (new[i * n + j] - old[i * n + j]).abs();
+                if dij > tol * diag(i).sqrt() * diag(j).sqrt() {
+                    return false;
+                }
+            }
+        }
+        // |Δ_ii| <= tol Σ_ii on the modes: |tr Δ| <= tol tr Σ; |Δ_ij| <= tol √(Σ_ii Σ_jj):
+        // ‖Δ‖_F <= tol tr Σ on the modes, ‖Δ_mj‖² <= tol² Σ_jj tr Σ for a border column j
+        let trace: f64 = (0..r).map(diag).sum();
+        let trace_d: f64 = (0..r).map(|i| new[i * n + i] - old[i * n + i]).sum();
+        if trace_d.abs() > tol * trace {
+            return false;
+        }
+        // the element that failed last time, alone (three products with n x n), ...
+        let (fi, fj) = w.fail;
+        let [vi, vj, u, ui] = &mut w.four;
+        for (v, i) in [(&mut *vi, fi), (&mut *vj, fj)] {
+            v.fill(0.0);
+            if i < r {
+                v[..r].copy_from_slice(&rot.r[i * r..(i + 1) * r]);
+            } else {
+                v[i] = 1.0;
+            }
+        }
+        self.times::<FMA>(new, vj, u);
+        let (new_ij, d_j) = (dot::<FMA>(vi, u), dot::<FMA>(vj, u));
+        self.times::<FMA>(new, vi, ui);
+        let d_i = dot::<FMA>(vi, ui);
+        self.times::<FMA>(old, vj, u);
+        let old_ij = dot::<FMA>(vi, u);
+        if (new_ij - old_ij).abs() > tol * d_i.abs().sqrt() * d_j.abs().sqrt() {
+            return false;
+        }
+        // ... the norms, then every element
+        let mut frob = 0.0;
+        for i in 0..r {
+            for j in 0..r {
+                let dij = new[i * n + j] - old[i * n + j];
+                frob += dij * dij;
+            }
+        }
+        if frob > tol * tol * trace * trace {
+            return false;
+        }
+        for j in r..n {
+            let col: f64 = (0..r)
+                .map(|i| (new[i * n + j] - old[i * n + j]).powi(2))
+                .sum();
+            if col > tol * tol * diag(j) * trace {
+                return false;
+            }
+        }
+        let [a, c] = &mut w.own;
+        rot.forward_cov::<FMA>(&self.d, new, a, &mut w.pad);
+        rot.forward_cov::<FMA>(&self.d, old, c, &mut w.pad);
+        match first_change(a, c, n, tol, &mut w.d) {
+            Some(ij) => {
+                w.fail = ij;
+                false
+            }
+            None => true,
         }
     }
 
@@ -1714,11 +2187,28 @@ impl<'a> Kernel<'a> {
     #[inline(always)]
     fn predict_mean<const FMA: bool>(&self, t: usize, x: &[f64], out: &mut [f64]) {
         let r = self.d.r;
-        let tr = &self.p.transitions[self.p.index[t - 1] as usize];
-        tr.apply::<FMA>(&self.d, x, out);
+        let idx = self.p.index[t - 1] as usize;
+        let tr = &self.trs[idx];
+        match self.change(t) {
+            Some(rot) => {
+                // the state into the transition's basis first
+                let mut xr = x.to_vec();
+                rotate_vec::<FMA>(&rot.r, r, &mut xr, &mut out[..r]);
+                tr.apply::<FMA>(&self.d, &xr, out);
+            }
+            None => tr.apply::<FMA>(&self.d, x, out),
+        }
         let w = &self.p.w[(t - 1) * r..t * r];
-        for (o, wi) in out[..r].iter_mut().zip(w) {
-            *o += wi;
+        let q = &self.rows[self.basis[idx] as usize].q;
+        if q.is_empty() {
+            for (o, wi) in out[..r].iter_mut().zip(w) {
+                *o += wi;
+            }
+        } else {
+            // Qᵀ w
+            for (row, &wi) in q.chunks_exact(r).zip(w) {
+                axpy::<FMA>(wi, row, &mut out[..r]);
+            }
         }
         if self.d.lag {
             out[r + 1] = madd::<FMA>(tr.lag_b1, dot::<FMA>(&self.p.c_probe, w), out[r + 1]);
@@ -1740,11 +2230,21 @@ impl<'a> Kernel<'a> {
     ) -> f64 {
         let (r, n) = (self.d.r, self.d.n);
         let fused = t > 0 && !self.d.lag;
+        let rows = self.rows_at(t);
         if t > 0 {
             let idx = self.p.index[t - 1] as usize;
-            let tr = &self.p.transitions[idx];
+            let tr = &self.trs[idx];
+            // the covariance into the transition's basis first
+            let mut rotated = std::mem::take(&mut w.rot);
+            let prev: &[f64] = match self.change(t) {
+                Some(rot) => {
+                    rot.forward_cov::<FMA>(&self.d, prev, &mut rotated, &mut w.pad);
+                    &rotated
+                }
+                None => prev,
+            };
             // without a lag, Σh (h on the modes) is summed while the rows are made
-            let acc = fused.then(|| (&self.h[..r], &mut *ph));
+            let acc = fused.then(|| (&rows.h[..r], &mut *ph));
             // the mode rows' share of `q_gap u uᵀ` is added in the diagonal step's pass (the
             // same operations) where no mode noise comes between
             let gap_fused = self.dense[idx].is_none() && tr.q_gap > 0.0 && !self.mode_noise[idx];
@@ -1758,9 +2258,10 @@ impl<'a> Kernel<'a> {
                     &mut w.b,
                     &mut w.big,
                     acc,
-                    gap_fused.then_some(&self.p.gap_dir[..]),
+                    gap_fused.then_some(&rows.gap_dir[..]),
                 ),
             }
+            w.rot = rotated;
             let sw2 = match (manoeuvre, tr.applied) {
                 (true, _) => self.sw2[1],
                 (false, true) => self.sw2[2],
@@ -1776,13 +2277,25 @@ impl<'a> Kernel<'a> {
                     // q e_i e_iᵀ (and its share e_i q h_i of Σh when that was summed above)
                     pred[i * n + i] += q;
                     if fused {
-                        ph[i] = madd::<FMA>(q, self.h[i], ph[i]);
+                        ph[i] = madd::<FMA>(q, rows.h[i], ph[i]);
+                    }
+                }
+            }
+            let noise = &self.noise_rot[idx];
+            if !noise.is_empty() {
+                // the mode noise in the transition's basis, Qᵀ diag(q) Q (and its Σh share)
+                for (i, row) in noise.chunks_exact(r).enumerate() {
+                    for (v, &m) in pred[i * n..i * n + r].iter_mut().zip(row) {
+                        *v += m;
+                    }
+                    if fused {
+                        ph[i] += dot::<FMA>(row, &rows.h[..r]);
                     }
                 }
             }
             if tr.q_gap > 0.0 {
                 // q_gap u uᵀ (and its share u (u·h) of Σh when that was summed above)
-                let u = &self.p.gap_dir;
+                let u = &rows.gap_dir;
                 let done = if gap_fused { r } else { 0 };
                 for (row, &ui) in pred.chunks_exact_mut(n).zip(u).skip(done) {
                     if ui != 0.0 {
@@ -1790,7 +2303,7 @@ impl<'a> Kernel<'a> {
                     }
                 }
                 if fused {
-                    let hu = dot::<FMA>(&self.h[..r], &u[..r]);
+                    let hu = dot::<FMA>(&rows.h[..r], &u[..r]);
                     axpy::<FMA>(tr.q_gap * hu, u, ph);
                 }
             }
@@ -1802,11 +2315,11 @@ impl<'a> Kernel<'a> {
             ph.copy_from_slice(&pred[(r + 1) * n..(r + 2) * n]);
         } else if !fused {
             ph.fill(0.0);
-            for (row, &hi) in pred.chunks_exact(n).zip(&self.h[..r]) {
+            for (row, &hi) in pred.chunks_exact(n).zip(&rows.h[..r]) {
                 axpy::<FMA>(hi, row, ph);
             }
         }
-        dot::<FMA>(&self.h, ph) + self.var_v
+        dot::<FMA>(&rows.h, ph) + self.var_v
     }
 
     /// In place: the predicted covariance becomes the filtered covariance `Σ - K (Σh)ᵀ`;
@@ -1855,13 +2368,14 @@ impl<'a> Kernel<'a> {
     #[inline(always)]
     fn nodes_max<const FMA: bool>(
         &self,
+        rows: &Rows,
         x: &[f64],
         minus: Option<(&[f64], &[f64])>,
         v: &mut [f64],
     ) -> (f64, usize) {
         let (r, m) = (self.d.r, self.m.next_multiple_of(4));
         v.fill(0.0);
-        gemv_rows::<FMA>(&x[..r], 1.0, &self.cn_t, m, &mut v[..m]);
+        gemv_rows::<FMA>(&x[..r], 1.0, &rows.cn_t, m, &mut v[..m]);
         if let Some((s_t, lam)) = minus {
             gemv_rows::<FMA>(lam, -1.0, s_t, m, &mut v[..m]);
         }
@@ -1872,12 +2386,6 @@ impl<'a> Kernel<'a> {
             }
         }
         best
-    }
-
-    #[inline(always)]
-    fn node_row(&self, j: usize) -> &[f64] {
-        let r = self.d.r;
-        &self.p.c_nodes[j * r..(j + 1) * r]
     }
 
     /// `M c` for a symmetric M and `c` on the first entries.
@@ -1905,15 +2413,17 @@ impl<'a> Kernel<'a> {
         smooth: bool,
     ) -> Steady {
         let (r, n) = (self.d.r, self.d.n);
+        // the key's transition's basis
+        let rows = &self.rows[self.basis[key.0 as usize] as usize];
         let mut sig_mean = vec![0.0; n];
-        self.times::<FMA>(cov, &self.cm, &mut sig_mean);
+        self.times::<FMA>(cov, &rows.cm, &mut sig_mean);
         let mut sig_nodes = vec![0.0; self.m * n];
         let mut node_var = Vec::with_capacity(self.m);
         for (j, out) in sig_nodes.chunks_exact_mut(n).enumerate() {
-            self.times::<FMA>(cov, self.node_row(j), out);
-            node_var.push(dot::<FMA>(self.node_row(j), &out[..r]));
+            self.times::<FMA>(cov, rows.node_row(j), out);
+            node_var.push(dot::<FMA>(rows.node_row(j), &out[..r]));
         }
-        let mean_var = dot::<FMA>(&self.cm, &sig_mean[..r]);
+        let mean_var = dot::<FMA>(&rows.cm, &sig_mean[..r]);
         let mut sig_power = vec![0.0; n];
         self.sig_power_into(cov, &mut sig_power);
         if !smooth {
@@ -2129,6 +2639,7 @@ fn forward<const FMA: bool>(
             manoeuvre = f[t];
         }
         let key = k.key(t, manoeuvre);
+        let rows = k.rows_at(t);
         manoeuvre_of[t] = manoeuvre;
         if manoeuvre {
             out.manoeuvre_steps += 1;
@@ -2178,7 +2689,7 @@ fn forward<const FMA: bool>(
                 s_var
             }
         };
-        let predicted = dot::<FMA>(&k.h, &x_prior) + p.t_ref_c;
+        let predicted = dot::<FMA>(&rows.h, &x_prior) + p.t_ref_c;
         let mut nu = f64::NAN;
         if measured {
             nu = p.reading_c[t] - predicted;
@@ -2193,7 +2704,7 @@ fn forward<const FMA: bool>(
             x.copy_from_slice(&x_prior);
         }
         let (top, j) = if settings.outputs {
-            k.nodes_max::<FMA>(&x, None, &mut node_values)
+            k.nodes_max::<FMA>(rows, &x, None, &mut node_values)
         } else {
             (0.0, 0)
         };
@@ -2207,7 +2718,7 @@ fn forward<const FMA: bool>(
                 last = Last::Node(u);
                 steady = memo.nodes[u].steady;
                 if settings.outputs && memo.nodes[u].node_var[j].is_nan() {
-                    let c = k.node_row(j);
+                    let c = rows.node_row(j);
                     k.times::<FMA>(&memo.nodes[u].cov, c, &mut w.a);
                     memo.nodes[u].node_var[j] = dot::<FMA>(c, &w.a[..r]);
                 }
@@ -2224,8 +2735,8 @@ fn forward<const FMA: bool>(
                 let ph = std::mem::take(&mut w.b);
                 if settings.outputs {
                     let accs = [
-                        (&k.cm[..], &mut acc_mean[..]),
-                        (k.node_row(j), &mut acc_node[..]),
+                        (&rows.cm[..], &mut acc_mean[..]),
+                        (rows.node_row(j), &mut acc_node[..]),
                     ];
                     k.filter_cov::<FMA>(&mut cov, &gain, &ph, measured, Some(accs));
                 } else {
@@ -2233,8 +2744,8 @@ fn forward<const FMA: bool>(
                 }
                 w.b = ph;
                 let vars = (
-                    dot::<FMA>(&k.cm, &acc_mean[..r]),
-                    dot::<FMA>(k.node_row(j), &acc_node[..r]),
+                    dot::<FMA>(&rows.cm, &acc_mean[..r]),
+                    dot::<FMA>(rows.node_row(j), &acc_node[..r]),
                     k.power_var_of(&cov),
                     cov[r * n + r],
                 );
@@ -2245,11 +2756,12 @@ fn forward<const FMA: bool>(
                         Last::Node(u) => &memo.nodes[u].cov,
                     };
                     let tol = k.tol_of(key_now);
-                    if key == prev_key && converged(&cov, src, n, tol, &mut w.d) {
+                    let b = k.basis[key_now.0 as usize];
+                    if key == prev_key && k.converged_own::<FMA>(b, &cov, src, tol, &mut w) {
                         // a steady state met before for this key, within the tolerance, is
                         // taken again (so excursions from it are recorded once)
                         let again = caches.iter().position(|c| {
-                            c.key == key_now && converged(&cov, &c.cov, n, tol, &mut w.d)
+                            c.key == key_now && k.converged_own::<FMA>(b, &cov, &c.cov, tol, &mut w)
                         });
                         steady = Some(again.unwrap_or_else(|| {
                             caches.push(k.make_steady::<FMA>(
@@ -2305,7 +2817,7 @@ fn forward<const FMA: bool>(
         }
         if settings.outputs {
             let f = &mut out.filtered;
-            f.mean_c[t] = dot::<FMA>(&k.cm, &x[..r]) + p.t_ref_c;
+            f.mean_c[t] = dot::<FMA>(&rows.cm, &x[..r]) + p.t_ref_c;
             f.mean_sd_k[t] = mean_var.max(0.0).sqrt();
             f.max_c[t] = top + p.t_ref_c;
             f.max_sd_k[t] = node_var.max(0.0).sqrt();
@@ -2340,6 +2852,13 @@ fn forward<const FMA: bool>(
         Last::Cache(c) => caches[c].cov.clone(),
         Last::Node(u) => memo.nodes[u].cov.clone(),
     };
+    if let Some(rot) = k.rotation(k.basis_at(n_t.saturating_sub(1)), 0) {
+        // in the problem's own basis
+        rotate_vec::<FMA>(&rot.r, r, &mut out.final_state, &mut w.a);
+        let mut cov = vec![0.0; n * n];
+        rot.forward_cov::<FMA>(&k.d, &out.final_cov, &mut cov, &mut w.pad);
+        out.final_cov = cov;
+    }
     if settings.outputs {
         out.manoeuvre.clone_from(&manoeuvre_of);
     }
@@ -2448,7 +2967,7 @@ impl Replay {
                 k.filter_cov::<FMA>(cov, gain, &self.ph, measured, None);
                 s_var
             };
-            let predicted = dot::<FMA>(&k.h, &self.x_prior) + k.p.t_ref_c;
+            let predicted = dot::<FMA>(&k.rows_at(t).h, &self.x_prior) + k.p.t_ref_c;
             let x = &mut rest[..n];
             let mut nu = f64::NAN;
             if measured {
@@ -2505,14 +3024,16 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
             let gain = &rep.gains[i * n..(i + 1) * n];
             let x = &rep.xs[i * n..(i + 1) * n];
             let frozen = mode != FULL && back.as_ref().is_some_and(|bs| bs.cache == mode);
+            let rows = k.rows_at(t);
             // the smoothed state's outputs: c x - (Σ c)·λ
             let (top, j, mean, power);
             let (sig_mean, sig_node, sig_power): (&[f64], &[f64], &[f64]);
             if mode != FULL {
                 let c = &caches[mode as usize];
-                mean = dot::<FMA>(&k.cm, &x[..r]) - dot::<FMA>(&c.sig_mean, &lam);
+                mean = dot::<FMA>(&rows.cm, &x[..r]) - dot::<FMA>(&c.sig_mean, &lam);
                 power = k.power_of(x) - dot::<FMA>(&c.sig_power, &lam);
-                (top, j) = k.nodes_max::<FMA>(x, Some((&c.sig_nodes_t, &lam)), &mut node_values);
+                (top, j) =
+                    k.nodes_max::<FMA>(rows, x, Some((&c.sig_nodes_t, &lam)), &mut node_values);
                 sig_mean = &c.sig_mean;
                 sig_node = &c.sig_nodes[j * n..(j + 1) * n];
                 sig_power = &c.sig_power;
@@ -2525,8 +3046,8 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                 sc_node.fill(0.0);
                 gemv_rows3::<FMA>(
                     &lam,
-                    &k.cm[..r],
-                    k.node_row(j_next),
+                    &rows.cm[..r],
+                    rows.node_row(j_next),
                     cov,
                     n,
                     &mut xs_t,
@@ -2536,11 +3057,11 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                 for (v, xi) in xs_t.iter_mut().zip(x) {
                     *v = xi - *v;
                 }
-                mean = dot::<FMA>(&k.cm, &xs_t[..r]);
+                mean = dot::<FMA>(&rows.cm, &xs_t[..r]);
                 power = k.power_of(&xs_t);
-                (top, j) = k.nodes_max::<FMA>(&xs_t, None, &mut node_values);
+                (top, j) = k.nodes_max::<FMA>(rows, &xs_t, None, &mut node_values);
                 if j != j_next {
-                    k.times::<FMA>(cov, k.node_row(j), &mut sc_node);
+                    k.times::<FMA>(cov, rows.node_row(j), &mut sc_node);
                 }
                 sig_mean = &sc_mean;
                 sig_node = &sc_node;
@@ -2570,8 +3091,8 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                         u[row_i] = du;
                     }
                     (
-                        dot::<FMA>(&k.cm, &sig_mean[..r]) - quad[0],
-                        dot::<FMA>(k.node_row(j), &sig_node[..r]) - quad[1],
+                        dot::<FMA>(&rows.cm, &sig_mean[..r]) - quad[0],
+                        dot::<FMA>(rows.node_row(j), &sig_node[..r]) - quad[1],
                         k.power_of(sig_power) - quad[2],
                     )
                 }
@@ -2590,15 +3111,25 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
             if measured {
                 let s_var = rep.s_vars[i];
                 let shift = dot::<FMA>(gain, &lam) + rep.nus[i] / s_var;
-                for ((lt, &l), &hi) in lam_t.iter_mut().zip(&lam).zip(&k.h) {
+                for ((lt, &l), &hi) in lam_t.iter_mut().zip(&lam).zip(&rows.h) {
                     *lt = madd::<FMA>(-hi, shift, l);
                 }
             } else {
                 lam_t.copy_from_slice(&lam);
             }
-            let tr = &p.transitions[p.index[t - 1] as usize];
+            let tr = &k.trs[p.index[t - 1] as usize];
             tr.apply_t::<FMA>(&k.d, &lam_t, &mut lam);
+            // back from the transition's basis into the one of the state at t - 1: Tᵀ λ
+            let change = k.change(t);
+            if let Some(rot) = change {
+                rotate_vec::<FMA>(&rot.rt, r, &mut lam, &mut lam_t);
+            }
             if frozen {
+                if let Some(rot) = change {
+                    // (the steady stretch's first step) Λ stays the steady one: Tᵀ Λ T
+                    rot.back_cov::<FMA>(&k.d, &big, &mut big_new, &mut work.pad);
+                    std::mem::swap(&mut big, &mut big_new);
+                }
                 continue; // Λ stays the steady one
             }
             back = None;
@@ -2609,34 +3140,42 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                 None
             };
             match &k.dense[p.index[t - 1] as usize] {
-                Some(df) => df.back_cov::<FMA>(&k.d, &big, &k.h, corr, &mut big_new, &mut work.pad),
+                Some(df) => {
+                    df.back_cov::<FMA>(&k.d, &big, &rows.h, corr, &mut big_new, &mut work.pad)
+                }
                 None => tr.back_cov::<FMA>(
                     &k.d,
                     &big,
-                    &k.h,
+                    &rows.h,
                     corr,
                     &mut big_new,
                     &mut work.four,
                     &mut work.big,
                 ),
             }
+            if let Some(rot) = change {
+                // Tᵀ Λ T
+                rot.back_cov::<FMA>(&k.d, &big_new, &mut work.big, &mut work.pad);
+                std::mem::swap(&mut big_new, &mut work.big);
+            }
             if mode != FULL
-                && converged(
+                && change.is_none()
+                && k.converged_own::<FMA>(
+                    k.basis_at(t),
                     &big_new,
                     &big,
-                    n,
                     k.tol_back_of(caches[mode as usize].key),
-                    &mut work.d,
+                    &mut work,
                 )
             {
                 let c = &caches[mode as usize];
-                let mean_var = dot::<FMA>(&k.cm, &c.sig_mean[..r])
+                let mean_var = dot::<FMA>(&rows.cm, &c.sig_mean[..r])
                     - k.quad::<FMA>(&big_new, &c.sig_mean, &mut work.a);
                 let mut node_var = Vec::with_capacity(k.m);
                 for jj in 0..k.m {
                     let sn = &c.sig_nodes[jj * n..(jj + 1) * n];
                     node_var.push(
-                        dot::<FMA>(k.node_row(jj), &sn[..r])
+                        dot::<FMA>(rows.node_row(jj), &sn[..r])
                             - k.quad::<FMA>(&big_new, sn, &mut work.a),
                     );
                 }
@@ -3523,6 +4062,95 @@ mod tests {
             }
         }
         assert!(skipped > 0, "no case resumed after its first block");
+    }
+
+    /// `problem` with a second dense transition (3: another mixing of the first two modes,
+    /// the third coordinate left alone with a noise of its own, as the seat's error is) and
+    /// steps that go dense -> dense, dense -> diagonal, diagonal -> dense, into a gap and
+    /// out of it into a dense run long enough to be steady, with missing readings.
+    fn dense_runs_problem(lag: bool, n_t: usize, seed: u64) -> Problem<'static> {
+        let mut p = problem(lag, n_t, seed);
+        let r = p.order;
+        let e: Vec<f64> = [0.004f64, 0.2, 1.5]
+            .iter()
+            .map(|l| (-l).exp() * 0.95)
+            .collect();
+        let (cs, sn) = (0.28f64, 0.96f64);
+        let q = [cs, -sn, 0.0, sn, cs, 0.0, 0.0, 0.0, 1.0];
+        let mut a = vec![0.0; r * r];
+        for i in 0..r {
+            for j in 0..r {
+                for kk in 0..r {
+                    a[i * r + j] += q[i * r + kk] * e[kk] * q[j * r + kk];
+                }
+            }
+        }
+        let mut tr = p.transitions[1].clone();
+        if lag {
+            let (la, b1) = (tr.lag_a, tr.lag_b1);
+            let c = 30.0 * (1.0 - la) - la;
+            tr.lag_row = (0..r)
+                .map(|i| {
+                    b1 * (0..r).map(|kk| a[kk * r + i] * p.c_probe[kk]).sum::<f64>()
+                        + c * p.c_probe[i]
+                })
+                .collect();
+            tr.lag_power = b1 * dot(&p.c_probe, &tr.gamma);
+        }
+        tr.e = (0..r).map(|i| a[i * r + i]).collect();
+        tr.a = a;
+        tr.q_modes = vec![0.0, 0.0, 2e-4];
+        p.transitions.push(tr);
+        let index: Vec<u32> = (0..n_t - 1)
+            .map(|s| match s % 1500 {
+                40..=55 | 71..=75 | 801..=820 => 1,
+                56..=70 | 81..=90 | 600..=800 | 1001..=1100 => 3,
+                80 | 1000 => 2,
+                _ => 0,
+            })
+            .collect();
+        p.index = Cow::Owned(index);
+        p
+    }
+
+    #[test]
+    fn dense_transitions_stepped_in_their_own_basis_are_the_textbook_filter_and_smoother() {
+        for lag in [false, true] {
+            let p = dense_runs_problem(lag, 1600, 17);
+            let k = Kernel::new(&p, NOISE, &settings(0.0, 64));
+            // both dense transitions diagonal in bases of their own; the first one's mode
+            // noise mixed by its basis (a dense noise), the second's not (the third
+            // coordinate is its own)
+            assert!(k.dense.iter().all(Option::is_none));
+            assert_eq!(k.basis[0], 0);
+            assert!(k.basis[1] != 0 && k.basis[3] != 0 && k.basis[1] != k.basis[3]);
+            assert!(!k.noise_rot[1].is_empty() && k.noise_rot[3].is_empty());
+            assert_eq!(k.trs[3].q_modes, vec![0.0, 0.0, 2e-4]);
+            for pair in [
+                (0, k.basis[1]),
+                (k.basis[1], k.basis[3]),
+                (k.basis[3], k.basis[1]),
+            ] {
+                assert!(k.rotations.contains_key(&pair), "{pair:?}");
+            }
+            let reference = naive(&p, NOISE);
+            for (tol, block) in [(0.0, 64), (0.0, 1600), (1e-12, 128)] {
+                let out = run(&p, NOISE, &settings(tol, block)).unwrap();
+                if tol > 0.0 {
+                    assert!(out.frozen_steps > 300, "{} frozen", out.frozen_steps);
+                }
+                assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
+                assert_estimates(
+                    "smoothed",
+                    out.smoothed.as_ref().unwrap(),
+                    &reference.smoothed,
+                    1e-8,
+                );
+                assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
+                let rel = (out.log_likelihood - reference.loglik).abs() / reference.loglik.abs();
+                assert!(rel < 1e-8, "log-likelihood {rel}");
+            }
+        }
     }
 
     #[test]
