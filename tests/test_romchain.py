@@ -10,7 +10,7 @@ import pytest
 
 from fleetbrake import _ext
 from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
-from fleetbrake.model.romchain import simulate_chain_sensor
+from fleetbrake.model.romchain import chain_convection, simulate_chain_sensor
 
 
 def toy_model(order: int = 6) -> ReducedModel:
@@ -106,3 +106,135 @@ def test_each_step_gets_its_own_rounded_convection_and_time_step():
     assert (dh == 0.0).all(axis=1).any()  # the nominal's (off by less than the rounding)
     with pytest.raises(ValueError, match="face sets"):
         _ext.rom_chain_systems(h, np.zeros(3), pieces.dt_s, pieces.step_offsets)
+
+
+def numpy_step_convection(
+    samples: list[list[np.ndarray]], gather: np.ndarray, step_offsets: np.ndarray, quantum: float
+) -> np.ndarray:
+    """The close loop's former numpy path (``fitdata`` before the Rust pass): each source's
+    step means concatenated and gathered, per face set; a face set varying inside a piece
+    rounded to ``quantum`` on that piece."""
+    h = np.column_stack(
+        [np.concatenate([0.5 * (x[:-1] + x[1:]) for x in face])[gather] for face in samples]
+    )
+    starts = step_offsets[:-1]
+    varying = np.maximum.reduceat(h, starts, axis=0) != np.minimum.reduceat(h, starts, axis=0)
+    rows = np.repeat(varying, np.diff(step_offsets), axis=0)
+    return np.where(rows, np.round(h / quantum) * quantum, h)
+
+
+def convection_sources(seed: int) -> tuple[list[list[np.ndarray]], np.ndarray, np.ndarray]:
+    """Two face sets on a fine source of 81 samples and two coarse ones (9 and 5 samples):
+    air varying (a law of a speed, values half way between quanta among them), friction
+    constant but on one coarse source; the chain's 88 steps: fine 0..40, coarse 0..8, fine
+    40..80, coarse 8..12 (four pieces)."""
+    rng = np.random.default_rng(seed)
+    speed = [rng.uniform(0.0, 120.0, size=n) for n in (81, 9, 5)]
+    air = [10.0 * (1.0 + 2.1 * (v / 100.0) ** 0.8) for v in speed]
+    air[0][10:14] = [10.125, 10.125, 10.375, 10.375]  # step means exactly half way
+    air[2][:] = 12.3  # constant on its piece: not rounded
+    friction = [np.zeros(81), np.linspace(0.0, 3.3, 9), np.zeros(5)]
+    gather = np.concatenate(
+        [np.arange(40), 80 + np.arange(8), 40 + np.arange(40), 88 + np.arange(4)]
+    )
+    return [air, friction], gather, np.array([0, 40, 48, 88, 92])
+
+
+def test_the_convection_pass_is_numpys_step_means_gathered_and_rounded_bit_for_bit():
+    model = toy_model()
+    samples, gather, step_offsets = convection_sources(4)
+    piece_dt = np.array([1.0, 10.0, 1.0, 12.0])
+    h, (dh, dt, index) = chain_convection(
+        model,
+        samples,
+        gather=gather,
+        step_offsets=step_offsets,
+        piece_dt_s=piece_dt,
+        quantum_w_m2k=0.25,
+    )
+    expected = numpy_step_convection(samples, gather, step_offsets, 0.25)
+    assert h.shape == (92, 2)
+    assert np.array_equal(h, expected)
+    assert np.array_equal(h[88:, 0], np.full(4, 12.3))  # the constant piece as it is
+    assert h[10, 0] == 10.0 and h[12, 0] == 10.5  # 40.5 -> 40, 41.5 -> 42: half to even
+    # the systems are rom_chain_systems' of that convection
+    ref = _ext.rom_chain_systems(
+        np.ascontiguousarray(expected), model._h_nominal_by_face(), piece_dt, step_offsets
+    )
+    for got, want in zip((dh, dt, index), ref, strict=True):
+        assert np.array_equal(got, want)
+    # a step gathered from its neighbour, or the pieces cut elsewhere, give another
+    # convection: the pass reads both
+    for other_gather, other_offsets in (
+        (np.roll(gather, 1), step_offsets),
+        (gather, np.array([0, 40, 48, 86, 92])),
+    ):
+        moved, _ = chain_convection(
+            model,
+            samples,
+            gather=other_gather,
+            step_offsets=other_offsets,
+            piece_dt_s=piece_dt,
+            quantum_w_m2k=0.25,
+        )
+        assert np.array_equal(
+            moved, numpy_step_convection(samples, other_gather, other_offsets, 0.25)
+        )
+        assert not np.array_equal(moved, h)
+    with pytest.raises(ValueError, match="face sets"):
+        chain_convection(
+            model,
+            samples[:1],
+            gather=gather,
+            step_offsets=step_offsets,
+            piece_dt_s=piece_dt,
+            quantum_w_m2k=0.25,
+        )
+    with pytest.raises(ValueError, match="gather"):
+        chain_convection(
+            model,
+            samples,
+            gather=gather + 10,
+            step_offsets=step_offsets,
+            piece_dt_s=piece_dt,
+            quantum_w_m2k=0.25,
+        )
+
+
+@pytest.mark.parametrize("lag_tau_s", [None, 20.0])
+def test_outputs_only_where_read_are_the_full_runs_bit_for_bit(lag_tau_s):
+    """The window seconds wanted (some in the braking segment, some in its continuation):
+    those of the full run bit for bit, the anchoring the same; without a lag the others NaN
+    but where the anchoring reads the timeline (the 5 s before and the first 5 s of a
+    segment: window seconds 0..4, 35..40); under a lag every output."""
+    model = toy_model()
+    pieces, trusted, air = chain(switching_air(5))
+    rule = ChainRule(5, 3, 10, 1e-3, lag_tau_s)
+    full = simulate_chain_sensor(model, pieces, trusted_c=trusted, ambient_c=air, rule=rule)
+    wanted = np.zeros(60, dtype=bool)
+    wanted[[7, 20, 41, 42, 55, 59]] = True
+    got = simulate_chain_sensor(
+        model, pieces, trusted_c=trusted, ambient_c=air, rule=rule, windows=wanted
+    )
+    assert np.array_equal(got.anchor, full.anchor)
+    assert np.array_equal(got.shift_k, full.shift_k)
+    assert np.array_equal(got.reference_c, full.reference_c)
+    read = wanted.copy()
+    if lag_tau_s is None:
+        read[[0, 1, 2, 3, 4, 35, 36, 37, 38, 39, 40]] = True  # samples 40..44, 75..80
+    else:
+        read[:] = True
+    for name in ("window_sensor_c", "window_mean_c"):
+        ours, theirs = getattr(got, name), getattr(full, name)
+        assert np.array_equal(ours[read], theirs[read]), name
+        assert np.isnan(ours[~read]).all(), name
+    # a mask moved by one second gives NaN where the fit reads
+    moved = simulate_chain_sensor(
+        model, pieces, trusted_c=trusted, ambient_c=air, rule=rule, windows=np.roll(wanted, 1)
+    )
+    if lag_tau_s is None:
+        assert np.isnan(moved.window_sensor_c[[7, 20, 41, 55]]).all()
+    with pytest.raises(ValueError, match="window outputs"):
+        simulate_chain_sensor(
+            model, pieces, trusted_c=trusted, ambient_c=air, rule=rule, windows=wanted[1:]
+        )

@@ -127,7 +127,16 @@ def rom_simulate_chain(
     window_s: int,
     tolerance_k: float,
     lag_tau_s: float | None,
+    windows: NDArray[np.bool_] | None = None,
 ) -> tuple[list[NDArray[np.float64]], NDArray[np.uint8]]: ...
+def rom_chain_convection(
+    samples: list[NDArray[np.float64]],
+    gather: NDArray[np.int64],
+    step_off: NDArray[np.int64],
+    piece_dt: NDArray[np.float64],
+    h_nominal: NDArray[np.float64],
+    quantum: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]: ...
 def rom_chain_systems(
     h: NDArray[np.float64],
     h_nominal: NDArray[np.float64],

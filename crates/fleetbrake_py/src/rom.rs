@@ -5,11 +5,14 @@ use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
     PyReadonlyArray3,
 };
+use std::panic::AssertUnwindSafe;
+
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
 use thermal_core::rom::{
-    exact_propagator, step_systems, AnchorRule, ChainModel, ChainSteps, ModalStepper, Propagators,
+    chain_step_convection_into, exact_propagator, step_systems, step_systems_into, AnchorRule,
+    ChainModel, ChainSteps, ModalStepper, Propagators,
 };
 use thermal_core::ThermalError;
 
@@ -140,9 +143,12 @@ fn optional_indices(values: &[i64], name: &str) -> PyResult<Vec<usize>> {
 /// per step flux, ambient (T), h (T, F), propagator (T); per piece a, b, dt (P), step
 /// offsets (P+1), coarse grid positions `at` with offsets (P+1); per segment the window's
 /// continuation piece (-1: none) and window length (J); per sample trusted readings and
-/// ambient (n); the anchoring rule. Returns (sensor, contact mean, contact max (n), anchor
-/// codes (J), shifts (J), references (J), window sensor, mean, max (sum of lengths)).
+/// ambient (n); the anchoring rule; `windows`: one flag per window output, those wanted
+/// (None: every output; `thermal_core::rom::Propagators::simulate_chain_reading`). Returns
+/// (sensor, contact mean, contact max (n), anchor codes (J), shifts (J), references (J),
+/// window sensor, mean, max (sum of lengths)).
 #[pyfunction]
+#[pyo3(signature = (e, g, q, rotated, b_flux, b_faces, c_out, n_probes, step_flux, step_ambient, step_h, step_prop, piece_a, piece_b, piece_dt, step_off, at, at_off, seg_cont, seg_window, trusted, ambient, anchor_s, anchor_min_readings, window_s, tolerance_k, lag_tau_s, windows=None))]
 #[allow(clippy::too_many_arguments)]
 #[allow(clippy::type_complexity)]
 fn rom_simulate_chain<'py>(
@@ -174,6 +180,7 @@ fn rom_simulate_chain<'py>(
     window_s: usize,
     tolerance_k: f64,
     lag_tau_s: Option<f64>,
+    windows: Option<PyReadonlyArray1<'py, bool>>,
 ) -> PyResult<(Vec<Bound<'py, PyArray1<f64>>>, Bound<'py, PyArray1<u8>>)> {
     let order = b_flux.len()?;
     let (e, g, q) = (
@@ -217,8 +224,9 @@ fn rom_simulate_chain<'py>(
         lag_tau_s,
     };
     let (trusted, ambient) = (trusted.as_slice()?, ambient.as_slice()?);
+    let windows = windows.as_ref().map(|w| w.as_slice()).transpose()?;
     let out = call_detached(py, || {
-        props.simulate_chain(&model, &steps, trusted, ambient, &rule)
+        props.simulate_chain_reading(&model, &steps, trusted, ambient, &rule, windows)
     })?;
     let floats = vec![
         out.sensor_c.into_pyarray(py),
@@ -268,6 +276,65 @@ fn rom_chain_systems<'py>(
     ))
 }
 
+/// A chain's convection per step and its step systems in one pass
+/// (`thermal_core::rom::chain_step_convection`, then `step_systems`): `samples`, each face
+/// set's per-sample convection on each source (face-major, F x S arrays), `gather` (T),
+/// `step_off` (P+1), `piece_dt` (P), `h_nominal` (F), `quantum`. Returns (h (T, F), dh (K,
+/// F), dt (K), each step's system (T)).
+#[pyfunction]
+#[allow(clippy::too_many_arguments)]
+#[allow(clippy::type_complexity)]
+fn rom_chain_convection<'py>(
+    py: Python<'py>,
+    samples: Vec<PyReadonlyArray1<'py, f64>>,
+    gather: PyReadonlyArray1<'py, i64>,
+    step_off: PyReadonlyArray1<'py, i64>,
+    piece_dt: PyReadonlyArray1<'py, f64>,
+    h_nominal: PyReadonlyArray1<'py, f64>,
+    quantum: f64,
+) -> PyResult<(
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray2<f64>>,
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray1<i64>>,
+)> {
+    if !(quantum.is_finite() && quantum > 0.0) {
+        return Err(PyValueError::new_err(format!(
+            "quantum must be finite and > 0, got {quantum}"
+        )));
+    }
+    let faces = h_nominal.len()?;
+    let series = samples
+        .iter()
+        .map(|x| x.as_slice())
+        .collect::<Result<Vec<&[f64]>, _>>()?;
+    let gather = non_negative(gather.as_slice()?, "step gather")?;
+    let step_off = non_negative(step_off.as_slice()?, "step offsets")?;
+    let (h0, dt) = (h_nominal.as_slice()?, piece_dt.as_slice()?);
+    let steps = gather.len();
+    // the outputs in numpy's buffers (large ones on huge pages): a fresh Rust vector of a
+    // span's steps costs more in page faults than the pass itself
+    let h = PyArray2::<f64>::zeros(py, [steps, faces], false);
+    let index = PyArray1::<i64>::zeros(py, steps, false);
+    let (dh, system_dt) = {
+        let (mut h_rw, mut index_rw) = (h.readwrite(), index.readwrite());
+        let h_s = AssertUnwindSafe(h_rw.as_slice_mut()?);
+        let index_s = AssertUnwindSafe(index_rw.as_slice_mut()?);
+        call_detached(py, move || {
+            let (AssertUnwindSafe(h_s), AssertUnwindSafe(index_s)) = (h_s, index_s);
+            chain_step_convection_into(&series, faces, &gather, &step_off, quantum, h_s)?;
+            step_systems_into(h_s, h0, dt, &step_off, index_s)
+        })?
+    };
+    let systems = system_dt.len();
+    Ok((
+        h,
+        dh.into_pyarray(py).reshape([systems, faces])?,
+        system_dt.into_pyarray(py),
+        index,
+    ))
+}
+
 /// Add the reduced model's functions to the module.
 pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rom_simulate_batch, m)?)?;
@@ -275,5 +342,6 @@ pub(crate) fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(rom_exact_propagator, m)?)?;
     m.add_function(wrap_pyfunction!(rom_simulate_chain, m)?)?;
     m.add_function(wrap_pyfunction!(rom_chain_systems, m)?)?;
+    m.add_function(wrap_pyfunction!(rom_chain_convection, m)?)?;
     Ok(())
 }

@@ -648,9 +648,15 @@ impl<'a> BasisRun<'a> {
 
     /// The outputs onto a piece's rows: the sensor (the first probe), the face mean and the
     /// maximum over the face nodes (NaN when the run has no face-node rows), with `t_ref`
-    /// added.
+    /// added; NaN for a row not `wanted` (nothing computed).
     #[inline(always)]
-    fn emit(&mut self, np: usize, t_ref: f64, rows: &mut PieceRows) {
+    fn emit(&mut self, np: usize, t_ref: f64, rows: &mut PieceRows, wanted: bool) {
+        if !wanted {
+            rows.sensor.push(f64::NAN);
+            rows.mean.push(f64::NAN);
+            rows.max.push(f64::NAN);
+            return;
+        }
         self.outputs();
         let top = if self.n_out > np + 1 {
             largest(&self.y[np + 1..self.n_out])
@@ -663,14 +669,14 @@ impl<'a> BasisRun<'a> {
     }
 
     /// A chain's steps `s0 .. s1` from the state as it is, the outputs before the first and
-    /// after each onto `rows`. The inputs are the flux vector then the face sets' (`inputs`
-    /// laid out by [`BasisRun::for_chain`]).
+    /// after each onto `rows` (those `job.need` wants). The inputs are the flux vector then
+    /// the face sets' (`inputs` laid out by [`BasisRun::for_chain`]).
     #[inline(always)]
     fn chain_steps_generic(&mut self, job: &StepsJob, rows: &mut PieceRows) {
         let steps = job.steps;
         let r = self.props.order;
         let n_faces = self.inputs.len() / r - 1;
-        self.emit(job.n_probes, job.t_ref, rows);
+        self.emit(job.n_probes, job.t_ref, rows, job.wants(0));
         for s in job.s0..job.s1 {
             let k = steps.prop[s];
             self.enter(k);
@@ -691,7 +697,7 @@ impl<'a> BasisRun<'a> {
             for (((w, &ei), &gi), &ui) in self.w.iter_mut().zip(e).zip(g).zip(&self.u) {
                 *w = ei * *w + gi * ui;
             }
-            self.emit(job.n_probes, job.t_ref, rows);
+            self.emit(job.n_probes, job.t_ref, rows, job.wants(s + 1 - job.s0));
         }
     }
 
@@ -709,13 +715,23 @@ impl<'a> BasisRun<'a> {
     }
 }
 
-/// The steps of one piece to take: `s0 .. s1` of `steps`, at reference `t_ref`.
+/// The steps of one piece to take: `s0 .. s1` of `steps`, at reference `t_ref`; the output
+/// rows wanted (`need`, one per row: before the first step and after each; `None`: all).
 struct StepsJob<'s, 'a> {
     steps: &'s ChainSteps<'a>,
     s0: usize,
     s1: usize,
     t_ref: f64,
     n_probes: usize,
+    need: Option<&'s [bool]>,
+}
+
+impl StepsJob<'_, '_> {
+    /// Whether output row `i` of the piece is wanted.
+    #[inline(always)]
+    fn wants(&self, i: usize) -> bool {
+        self.need.is_none_or(|need| need[i])
+    }
 }
 
 /// The rows a piece's steps give, one per output time: sensor, face mean, face maximum.
@@ -730,7 +746,8 @@ struct PieceRows {
 /// the former step-by-step rotation as the reference it must equal.
 trait PieceStepper {
     /// The steps of `job` from `xi` (modal coordinates), the state after them left in `xi`;
-    /// the outputs before the first step and after each pushed onto `rows`.
+    /// the outputs before the first step and after each pushed onto `rows` (NaN for a row
+    /// `job` does not want).
     fn run(&mut self, job: &StepsJob, xi: &mut [f64], rows: &mut PieceRows);
 }
 
@@ -856,6 +873,18 @@ struct Piece {
     lag_last: Option<f64>,
 }
 
+/// The output rows of piece `p` wanted into `need`: `wanted(i)` for row `i` (sample
+/// `piece_a[p] + i`) of a 1 s piece, every row of a coarse one (its grid is interpolated).
+fn piece_need(steps: &ChainSteps, p: usize, need: &mut Vec<bool>, wanted: impl Fn(usize) -> bool) {
+    let rows = steps.step_off[p + 1] - steps.step_off[p] + 1;
+    need.clear();
+    if steps.at_off[p + 1] > steps.at_off[p] {
+        need.resize(rows, true);
+    } else {
+        need.extend((0..rows).map(wanted));
+    }
+}
+
 /// `first_order_lag` of `fleetbrake.model.rom`: exact for a signal linear between samples.
 fn lag_filter(x: &mut [f64], dt_s: f64, tau_s: f64, initial: Option<f64>) {
     if tau_s <= 0.0 || x.is_empty() {
@@ -922,6 +951,7 @@ impl Propagators {
         lag_last: Option<f64>,
         rule: &AnchorRule,
         t_first: f64,
+        need: Option<&[bool]>,
         out: &mut Piece,
     ) {
         let (s0, s1) = (steps.step_off[p], steps.step_off[p + 1]);
@@ -938,6 +968,7 @@ impl Propagators {
             s1,
             t_ref,
             n_probes: model.n_probes,
+            need,
         };
         stepper.run(&job, &mut xi, &mut taken);
         let PieceRows {
@@ -986,6 +1017,29 @@ impl Propagators {
         trusted: &[f64],
         ambient: &[f64],
         rule: &AnchorRule,
+    ) -> Result<ChainOutputs> {
+        self.simulate_chain_reading(model, steps, trusted, ambient, rule, None)
+    }
+
+    /// [`Propagators::simulate_chain`] with the outputs computed only where they are read
+    /// (`windows`: one flag per window output, in the order of `window_*`; `None`: every
+    /// output). The state is stepped as by `simulate_chain`; an output is summed only for a
+    /// wanted window second and where the anchoring reads the timeline (the `anchor_s`
+    /// samples before each segment and its first `anchor_s`), or on every step of a piece
+    /// under a sensor lag (the filter runs through them all) and of a coarse piece (its
+    /// grid is interpolated): those outputs are `simulate_chain`'s bit for bit, the others
+    /// NaN (the close loop's fits read the window seconds with a measurement). With
+    /// `windows`, the timeline is the sensor's only, up to the last segment's end (the face
+    /// mean's and maximum's empty): a caller reading the windows reads no timeline, and a
+    /// fresh n-long vector costs more in page faults than the steps it holds.
+    pub fn simulate_chain_reading(
+        &self,
+        model: &ChainModel,
+        steps: &ChainSteps,
+        trusted: &[f64],
+        ambient: &[f64],
+        rule: &AnchorRule,
+        windows: Option<&[bool]>,
     ) -> Result<ChainOutputs> {
         let r = self.order;
         let n = trusted.len();
@@ -1072,11 +1126,19 @@ impl Propagators {
                 });
             }
         }
+        if let Some(w) = windows {
+            let total: usize = steps.seg_window.iter().sum();
+            if w.len() != total {
+                return mismatch("window outputs wanted", total, w.len());
+            }
+        }
         let mut stepper = BasisRun::for_chain(self, model);
-        Ok(self.chain(&mut stepper, model, steps, trusted, ambient, rule))
+        Ok(self.chain(&mut stepper, model, steps, trusted, ambient, rule, windows))
     }
 
-    /// [`Propagators::simulate_chain`] on checked inputs, its pieces stepped by `stepper`.
+    /// [`Propagators::simulate_chain_reading`] on checked inputs, its pieces stepped by
+    /// `stepper`.
+    #[allow(clippy::too_many_arguments)]
     fn chain<S: PieceStepper>(
         &self,
         stepper: &mut S,
@@ -1085,15 +1147,38 @@ impl Propagators {
         trusted: &[f64],
         ambient: &[f64],
         rule: &AnchorRule,
+        windows: Option<&[bool]>,
     ) -> ChainOutputs {
         let r = self.order;
         let n = trusted.len();
         let n_seg = steps.seg_cont.len();
         let nan = f64::NAN;
+        // reading the windows only: the timeline is the sensor's up to the last segment's end
+        // (what the anchoring reads), no face mean or maximum (fresh pages cost a fit's
+        // evaluation more than its steps)
+        let trimmed = windows.is_some();
+        let extent = if trimmed {
+            steps.piece_b[..n_seg].iter().max().map_or(0, |&b| b + 1)
+        } else {
+            n
+        };
+        let timeline = |len: usize| if trimmed { Vec::new() } else { vec![nan; len] };
+        // the samples of the timeline the anchoring reads (None: every output wanted)
+        let windows = windows.filter(|_| rule.lag_tau_s.is_none());
+        let anchored: Option<Vec<bool>> = windows.map(|_| {
+            let mut read = vec![false; n];
+            for j in 0..n_seg {
+                let (a, b) = (steps.piece_a[j], steps.piece_b[j]);
+                read[a.saturating_sub(rule.anchor_s)..(a + rule.anchor_s).min(b + 1)].fill(true);
+            }
+            read
+        });
+        // the rows wanted of the piece about to run (scratch)
+        let mut need: Vec<bool> = Vec::new();
         let mut out = ChainOutputs {
-            sensor_c: vec![nan; n],
-            contact_mean_c: vec![nan; n],
-            contact_max_c: vec![nan; n],
+            sensor_c: vec![nan; extent],
+            contact_mean_c: timeline(n),
+            contact_max_c: timeline(n),
             anchor: vec![ANCHOR_NONE; n_seg],
             shift_k: vec![0.0; n_seg],
             reference_c: vec![nan; n_seg],
@@ -1121,6 +1206,17 @@ impl Propagators {
                     v
                 }
             };
+            let size = steps.seg_window[j];
+            let woff = out.window_sensor_c.len();
+            let seg_need = match (windows, &anchored) {
+                (Some(w), Some(read)) => {
+                    piece_need(steps, j, &mut need, |i| {
+                        read[a + i] || (i < size && w[woff + i])
+                    });
+                    Some(need.as_slice())
+                }
+                _ => None,
+            };
             let lo = a.saturating_sub(rule.anchor_s);
             let back = mean_difference(
                 &trusted[lo..a],
@@ -1132,11 +1228,13 @@ impl Propagators {
                 reference += shift;
                 anchor = ANCHOR_BEFORE;
                 self.run_piece(
-                    stepper, model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                    stepper, model, steps, j, reference, &xi, lag_last, rule, t_first, seg_need,
+                    &mut piece,
                 );
             } else {
                 self.run_piece(
-                    stepper, model, steps, j, reference, &xi, lag_last, rule, t_first, &mut piece,
+                    stepper, model, steps, j, reference, &xi, lag_last, rule, t_first, seg_need,
+                    &mut piece,
                 );
                 let length = rule.anchor_s.min(piece.sensor.len());
                 let own = mean_difference(
@@ -1152,7 +1250,7 @@ impl Propagators {
                     }
                     self.run_piece(
                         stepper, model, steps, j, reference, &xi, lag_last, rule, t_first,
-                        &mut piece,
+                        seg_need, &mut piece,
                     );
                 }
             }
@@ -1160,7 +1258,6 @@ impl Propagators {
             out.anchor[j] = anchor;
             out.shift_k[j] = shift;
             out.reference_c[j] = reference;
-            let size = steps.seg_window[j];
             if size > 0 {
                 let own = size.min(piece.sensor.len());
                 out.window_sensor_c.extend_from_slice(&piece.sensor[..own]);
@@ -1168,6 +1265,13 @@ impl Propagators {
                 out.window_max_c.extend_from_slice(&piece.max[..own]);
                 let c = steps.seg_cont[j];
                 if own < size && c != usize::MAX {
+                    // its row i is the window's second own + i - 1 (row 0: the segment's end)
+                    let more_need = windows.map(|w| {
+                        piece_need(steps, c, &mut need, |i| {
+                            i >= 1 && own + i - 1 < size && w[woff + own + i - 1]
+                        });
+                        need.as_slice()
+                    });
                     self.run_piece(
                         stepper,
                         model,
@@ -1178,6 +1282,7 @@ impl Propagators {
                         piece.lag_last,
                         rule,
                         t_first,
+                        more_need,
                         &mut more,
                     );
                     let rest = (size - own).min(more.sensor.len() - 1);
@@ -1190,8 +1295,10 @@ impl Propagators {
             std::mem::swap(&mut xi, &mut piece.xi);
             lag_last = piece.lag_last;
             out.sensor_c[a..=b].copy_from_slice(&piece.sensor);
-            out.contact_mean_c[a..=b].copy_from_slice(&piece.mean);
-            out.contact_max_c[a..=b].copy_from_slice(&piece.max);
+            if !trimmed {
+                out.contact_mean_c[a..=b].copy_from_slice(&piece.mean);
+                out.contact_max_c[a..=b].copy_from_slice(&piece.max);
+            }
         }
         out
     }
@@ -1209,10 +1316,26 @@ pub struct StepSystems {
     pub index: Vec<usize>,
 }
 
+/// `rint(x)` (numpy's rounding: to the nearest integer, half way to even) without a call:
+/// `f64::round_ties_even` is a library call on a CPU baseline without SSE4.1, this the
+/// classic `2^52` sum (exact: below `2^52` the sum's rounding is the integer's, from `2^52`
+/// on every float is an integer), the sign kept (`-0.3` gives `-0.0`), NaN and infinities as
+/// they are.
+#[inline(always)]
+fn rint(x: f64) -> f64 {
+    const TWO_52: f64 = 4_503_599_627_370_496.0;
+    let a = x.abs();
+    if a < TWO_52 {
+        ((a + TWO_52) - TWO_52).copysign(x)
+    } else {
+        x
+    }
+}
+
 /// `numpy.round(x, 12)`: `rint(x 1e12) / 1e12`, as numpy computes it.
 #[inline(always)]
 fn round_12(x: f64) -> f64 {
-    (x * 1e12).round_ties_even() / 1e12
+    rint(x * 1e12) / 1e12
 }
 
 /// The step systems of a chain's steps, as `fleetbrake.model.rom.ReducedModel.simulate_chain`
@@ -1229,6 +1352,41 @@ pub fn step_systems(
     piece_dt: &[f64],
     step_off: &[usize],
 ) -> Result<StepSystems> {
+    let t = step_off.last().copied().unwrap_or(0);
+    let mut index = vec![0; t];
+    let (dh, dt_s) = systems_with(h, h_nominal, piece_dt, step_off, |s, k| index[s] = k)?;
+    Ok(StepSystems { dh, dt_s, index })
+}
+
+/// [`step_systems`] with each step's system written into `index` (T, as the int64 Python
+/// reads; the caller's buffer: no fresh pages); the distinct (dh, dt) returned.
+pub fn step_systems_into(
+    h: &[f64],
+    h_nominal: &[f64],
+    piece_dt: &[f64],
+    step_off: &[usize],
+    index: &mut [i64],
+) -> Result<(Vec<f64>, Vec<f64>)> {
+    let t = step_off.last().copied().unwrap_or(0);
+    if index.len() != t {
+        return Err(ThermalError::LengthMismatch {
+            name: "step system index".into(),
+            expected: t,
+            got: index.len(),
+        });
+    }
+    systems_with(h, h_nominal, piece_dt, step_off, |s, k| index[s] = k as i64)
+}
+
+/// [`step_systems`]' pass: each step's system handed to `set(step, system)`; the distinct
+/// (dh (K, F), dt (K)) returned.
+fn systems_with(
+    h: &[f64],
+    h_nominal: &[f64],
+    piece_dt: &[f64],
+    step_off: &[usize],
+    mut set: impl FnMut(usize, usize),
+) -> Result<(Vec<f64>, Vec<f64>)> {
     use std::collections::HashMap;
     let f = h_nominal.len();
     let t = step_off.last().copied().unwrap_or(0);
@@ -1253,10 +1411,7 @@ pub fn step_systems(
             got: h.len(),
         });
     }
-    let mut out = StepSystems {
-        index: vec![0; t],
-        ..Default::default()
-    };
+    let mut out = StepSystems::default();
     let mut seen: HashMap<Vec<u64>, usize> = HashMap::new();
     let mut key = vec![0u64; f + 1];
     let mut row = vec![0.0; f];
@@ -1273,7 +1428,7 @@ pub fn step_systems(
                         .zip(&h[prev * f..(prev + 1) * f])
                         .all(|(a, b)| a.to_bits() == b.to_bits());
                 if same {
-                    out.index[s] = k;
+                    set(s, k);
                     before = Some((s, dt_bits, k));
                     continue;
                 }
@@ -1297,11 +1452,130 @@ pub fn step_systems(
                     k
                 }
             };
-            out.index[s] = k;
+            set(s, k);
             before = Some((s, dt_bits, k));
         }
     }
-    Ok(out)
+    Ok((out.dh, out.dt_s))
+}
+
+/// A chain's convection per step (T, F) row-major from the per-sample convection of its
+/// sources (`fleetbrake.closeloop.fitdata`: the fine samples, then each coarse grid), as
+/// `ReducedModel.simulate_chain`'s callers form it: each source's step means `0.5 (h_k +
+/// h_k+1)` concatenated, the chain's step `t` taking step `gather[t]` of them, and on every
+/// piece (steps `step_off[p] .. step_off[p+1]`) where a face set's convection varies, that
+/// face's steps rounded to `quantum` (`round(h / quantum) quantum`, numpy's rounding, half to
+/// even); bit for bit numpy's. `samples[f * S + i]`: face set `f`'s series on source `i` (S
+/// sources, each face's the same lengths).
+pub fn chain_step_convection(
+    samples: &[&[f64]],
+    n_faces: usize,
+    gather: &[usize],
+    step_off: &[usize],
+    quantum: f64,
+) -> Result<Vec<f64>> {
+    let mut h = vec![0.0; gather.len() * n_faces];
+    chain_step_convection_into(samples, n_faces, gather, step_off, quantum, &mut h)?;
+    Ok(h)
+}
+
+/// [`chain_step_convection`] into the caller's `h` (T, F) row-major (a buffer whose pages
+/// are there already: a fresh vector's cost the kernel's time in page faults).
+pub fn chain_step_convection_into(
+    samples: &[&[f64]],
+    n_faces: usize,
+    gather: &[usize],
+    step_off: &[usize],
+    quantum: f64,
+    h: &mut [f64],
+) -> Result<()> {
+    let sources = samples.len().checked_div(n_faces).unwrap_or(0);
+    if sources * n_faces != samples.len() {
+        return Err(ThermalError::LengthMismatch {
+            name: "convection series (faces x sources)".into(),
+            expected: sources * n_faces,
+            got: samples.len(),
+        });
+    }
+    let lengths: Vec<usize> = samples[..sources].iter().map(|x| x.len()).collect();
+    for (f, face) in samples.chunks_exact(sources.max(1)).enumerate() {
+        if let Some(i) = (0..sources).find(|&i| face[i].len() != lengths[i]) {
+            return Err(ThermalError::LengthMismatch {
+                name: format!("convection of face set {f} on source {i}"),
+                expected: lengths[i],
+                got: face[i].len(),
+            });
+        }
+    }
+    if let Some(i) = lengths.iter().position(|&len| len < 2) {
+        return Err(ThermalError::InvalidParameter {
+            name: "convection source".into(),
+            value: i as f64,
+            reason: "needs two samples or more".into(),
+        });
+    }
+    let t = gather.len();
+    let total: usize = lengths.iter().map(|len| len - 1).sum();
+    if step_off.first().is_some_and(|&s| s != 0)
+        || step_off.last().is_some_and(|&s| s != t)
+        || step_off.windows(2).any(|w| w[1] < w[0])
+    {
+        return Err(ThermalError::InvalidParameter {
+            name: "step offsets".into(),
+            value: t as f64,
+            reason: "must rise from 0 to the number of steps".into(),
+        });
+    }
+    if let Some(&bad) = gather.iter().find(|&&g| g >= total) {
+        return Err(ThermalError::InvalidParameter {
+            name: "step gather".into(),
+            value: bad as f64,
+            reason: format!("only {total} source steps"),
+        });
+    }
+    // each source's first step among the concatenated ones
+    let mut first_step = Vec::with_capacity(sources + 1);
+    first_step.push(0);
+    for len in &lengths {
+        first_step.push(first_step.last().copied().unwrap_or(0) + len - 1);
+    }
+    if h.len() != t * n_faces {
+        return Err(ThermalError::LengthMismatch {
+            name: "step convection".into(),
+            expected: t * n_faces,
+            got: h.len(),
+        });
+    }
+    let mut i = 0; // the source of the step before (the gather runs through a source in order)
+    for (row, &g) in h.chunks_exact_mut(n_faces.max(1)).zip(gather) {
+        if !(first_step[i] <= g && g < first_step[i + 1]) {
+            i = first_step.partition_point(|&s| s <= g) - 1;
+        }
+        let k = g - first_step[i];
+        for (f, v) in row.iter_mut().enumerate() {
+            let x = samples[f * sources + i];
+            *v = 0.5 * (x[k] + x[k + 1]);
+        }
+    }
+    for piece in step_off.windows(2) {
+        let (s0, s1) = (piece[0], piece[1]);
+        if s1 == s0 {
+            continue;
+        }
+        let rows = &mut h[s0 * n_faces..s1 * n_faces];
+        for f in 0..n_faces {
+            let first = rows[f];
+            // numpy's max != min over the piece: NaN counts as varying
+            let varying =
+                first.is_nan() || rows.iter().skip(f).step_by(n_faces).any(|&v| v != first);
+            if varying {
+                for v in rows.iter_mut().skip(f).step_by(n_faces) {
+                    *v = rint(*v / quantum) * quantum;
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -1359,7 +1633,13 @@ mod tests {
             let np = model.n_probes;
             let (mut w, mut v, mut u) = (vec![0.0; r], vec![0.0; r], vec![0.0; r]);
             let mut y = vec![0.0; n_out];
-            let mut emit = |xi: &[f64]| {
+            let mut emit = |xi: &[f64], wanted: bool| {
+                if !wanted {
+                    rows.sensor.push(f64::NAN);
+                    rows.mean.push(f64::NAN);
+                    rows.max.push(f64::NAN);
+                    return;
+                }
                 for (yo, row) in y.iter_mut().zip(model.c.chunks_exact(r)) {
                     *yo = row.iter().zip(xi).map(|(a, b)| a * b).sum();
                 }
@@ -1368,7 +1648,7 @@ mod tests {
                 rows.mean.push(y[np] + t_ref);
                 rows.max.push(top + t_ref);
             };
-            emit(xi);
+            emit(xi, job.wants(0));
             for s in job.s0..job.s1 {
                 let q = steps.flux[s];
                 let air = steps.ambient[s] - t_ref;
@@ -1382,7 +1662,7 @@ mod tests {
                     }
                 }
                 apply_step_by_step(props, steps.prop[s], xi, &u, &mut w, &mut v);
-                emit(xi);
+                emit(xi, job.wants(s + 1 - job.s0));
             }
         }
     }
@@ -1521,7 +1801,7 @@ mod tests {
             props: &props,
             model,
         };
-        let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule);
+        let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule, None);
         // the chain exercises what it should: a start, a shift from before, one from after,
         // a window continued past its segment
         assert_eq!(
@@ -1583,6 +1863,61 @@ mod tests {
         assert!(few.contact_max_c.iter().all(|v| v.is_nan()));
         assert!(few.window_max_c.iter().all(|v| v.is_nan()));
         assert_eq!(few.window_max_c.len(), kept.window_max_c.len());
+        // the outputs only where they are read: the wanted window seconds (in the braking
+        // segment and in its continuation) bit for bit, the others NaN; the anchoring (from
+        // the seconds before the second segment, from the first ones of the first) the same
+        let wanted: Vec<bool> = (0..60).map(|i| i % 7 == 2 || i == 0 || i == 59).collect();
+        for lag in [None, Some(20.0)] {
+            let rule = AnchorRule {
+                lag_tau_s: lag,
+                ..rule
+            };
+            let full = props
+                .simulate_chain(&two, &steps, &trusted, &air, &rule)
+                .unwrap();
+            let read = props
+                .simulate_chain_reading(&two, &steps, &trusted, &air, &rule, Some(&wanted))
+                .unwrap();
+            assert_eq!(read.anchor, full.anchor);
+            assert_eq!(bits(&read.shift_k), bits(&full.shift_k));
+            assert_eq!(bits(&read.reference_c), bits(&full.reference_c));
+            for (i, &w) in wanted.iter().enumerate() {
+                for (a, b) in [
+                    (read.window_sensor_c[i], full.window_sensor_c[i]),
+                    (read.window_mean_c[i], full.window_mean_c[i]),
+                ] {
+                    // under a lag every output is computed (the filter runs through them);
+                    // without, the wanted ones and those the anchoring reads: window second
+                    // i is sample 40 + i, of the second segment up to 40, of its
+                    // continuation after
+                    let anchoring = i <= 40 && (35..45).chain(75..85).any(|k| k == 40 + i);
+                    if w || anchoring || lag.is_some() {
+                        assert_eq!(a.to_bits(), b.to_bits(), "window second {i}");
+                    } else {
+                        assert!(a.is_nan(), "window second {i} not wanted: {a}");
+                    }
+                }
+            }
+            assert!(read.contact_mean_c.is_empty() && read.contact_max_c.is_empty());
+            assert_eq!(read.sensor_c.len(), n);
+            if lag.is_none() {
+                // the timeline where the anchoring reads it, at the wanted window seconds
+                // and on the coarse piece (80 ..= 120) only
+                for (k, v) in read.sensor_c.iter().enumerate() {
+                    let window = (40..=80).contains(&k) && wanted[k - 40];
+                    let expected = k < 5 || (35..45).contains(&k) || k >= 75 || window;
+                    assert_eq!(v.is_finite(), expected, "sample {k}: {v}");
+                }
+                for k in 35..40 {
+                    assert_eq!(read.sensor_c[k].to_bits(), full.sensor_c[k].to_bits());
+                }
+            } else {
+                assert_eq!(bits(&read.sensor_c), bits(&full.sensor_c));
+            }
+        }
+        assert!(props
+            .simulate_chain_reading(&two, &steps, &trusted, &air, &rule, Some(&wanted[1..]))
+            .is_err());
         // nominal steps are the former ones operation for operation: bit for bit
         let nominal: Vec<usize> = prop.iter().map(|&k| if k < 3 { 0 } else { 4 }).collect();
         let steps = ChainSteps {
@@ -1592,8 +1927,92 @@ mod tests {
         let kept = props
             .simulate_chain(&model, &steps, &trusted, &air, &rule)
             .unwrap();
-        let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule);
+        let reference = props.chain(&mut by_formula, &model, &steps, &trusted, &air, &rule, None);
         assert_eq!(kept, reference);
+    }
+
+    #[test]
+    fn rint_is_round_ties_even() {
+        let mut x = 0.123_f64;
+        let mut values = vec![
+            0.0,
+            -0.0,
+            0.5,
+            1.5,
+            2.5,
+            -0.5,
+            -1.5,
+            -2.5,
+            0.49999999999999994,
+            -0.3,
+            4_503_599_627_370_495.5,
+            4_503_599_627_370_497.0,
+            1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::MIN_POSITIVE,
+            5e-324,
+        ];
+        for _ in 0..20_000 {
+            x = (x * 3.7 + 0.31).fract();
+            values.push((x - 0.5) * 1e3);
+            values.push(((x - 0.5) * 1e3).floor() + 0.5);
+            values.push((x - 0.5) * 1e17);
+        }
+        for v in values {
+            assert_eq!(rint(v).to_bits(), v.round_ties_even().to_bits(), "{v:e}");
+        }
+        assert!(rint(f64::NAN).is_nan());
+    }
+
+    #[test]
+    fn step_convection_is_the_sources_step_means_gathered_and_rounded_where_it_varies() {
+        // two face sets on a fine source (7 samples) and a coarse one (4): the chain's steps
+        // take the fine steps 0..3, the coarse 0..2 (a piece of their own), the fine 3..5
+        let fine_air = [10.0, 10.3, 10.9, 11.0, 10.25, 10.0, 10.0];
+        let fine_friction = [0.0; 7];
+        let coarse_air = [12.1, 12.1, 12.1, 12.1];
+        let coarse_friction = [1.0, 2.0, 3.0, 3.6];
+        let samples: [&[f64]; 4] = [&fine_air, &coarse_air, &fine_friction, &coarse_friction];
+        let gather = [0usize, 1, 2, 6, 7, 8, 3, 4, 5];
+        let step_off = [0usize, 3, 6, 9];
+        let h = chain_step_convection(&samples, 2, &gather, &step_off, 0.25).unwrap();
+        let air: Vec<f64> = h.iter().step_by(2).copied().collect();
+        let friction: Vec<f64> = h.iter().skip(1).step_by(2).copied().collect();
+        // numpy: 0.5 (h_k + h_k+1), np.round(h / 0.25) * 0.25 on a piece where it varies
+        let round = |v: f64| (v / 0.25).round_ties_even() * 0.25;
+        let mean = |x: &[f64], k: usize| 0.5 * (x[k] + x[k + 1]);
+        let expect_air: Vec<f64> = [
+            round(mean(&fine_air, 0)),
+            round(mean(&fine_air, 1)),
+            round(mean(&fine_air, 2)),
+            mean(&coarse_air, 0), // constant on its piece: as it is (12.1, not rounded)
+            mean(&coarse_air, 1),
+            mean(&coarse_air, 2),
+            round(mean(&fine_air, 3)),
+            round(mean(&fine_air, 4)),
+            round(mean(&fine_air, 5)),
+        ]
+        .to_vec();
+        assert_eq!(air, expect_air);
+        assert_eq!(air[3], 12.1);
+        // half way rounds to even: 10.625 / 0.25 = 42.5 -> 42, 10.125 / 0.25 = 40.5 -> 40
+        assert_eq!((air[6], air[7]), (10.5, 10.0));
+        assert_eq!(&friction[..3], &[0.0; 3]);
+        assert_eq!(&friction[3..6], &[1.5, 2.5, 3.25]);
+        // a step gathered from the wrong source step, or pieces cut elsewhere, differ
+        let shifted = [1usize, 2, 3, 6, 7, 8, 3, 4, 5];
+        assert_ne!(
+            chain_step_convection(&samples, 2, &shifted, &step_off, 0.25).unwrap(),
+            h
+        );
+        let merged = [0usize, 6, 9];
+        assert_ne!(
+            chain_step_convection(&samples, 2, &gather, &merged, 0.25).unwrap(),
+            h
+        );
+        assert!(chain_step_convection(&samples, 2, &[0, 9], &[0, 2], 0.25).is_err());
+        assert!(chain_step_convection(&samples[..3], 2, &gather, &step_off, 0.25).is_err());
     }
 
     #[test]

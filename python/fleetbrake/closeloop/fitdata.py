@@ -17,12 +17,15 @@ speed, the pieces of the chain (segments, coarse gap grids, window continuations
 declared loading of every sample before the effects
 (:func:`fleetbrake.model.timeline.drive_inputs`: pointwise in the samples, so the effects can
 be applied to the cached inputs). An evaluation applies the effects to those inputs in numpy,
-forms each step's flux, air and convection (a convection varying inside a piece rounded to
-``H_QUANTUM_W_M2K``, piece by piece, vectorised), and runs each span's chain in one call of the
-reduced model's chain kernel with the two output rows it reads, the sensor and the face mean
-(:func:`~fleetbrake.model.romchain.simulate_chain_sensor`: those of
-:meth:`~fleetbrake.model.rom.ReducedModel.simulate_chain` bit for bit, the steps' propagators
-keyed in Rust); the windows' sensor predictions are read at the cached seconds. An input the
+forms each step's flux and air, has each step's convection and step system made in one Rust
+pass (:func:`~fleetbrake.model.romchain.chain_convection`: the step means gathered, a
+convection varying inside a piece rounded to ``H_QUANTUM_W_M2K``, piece by piece), and runs
+each span's chain in one call of the reduced model's chain kernel with the two output rows it
+reads, the sensor and the face mean, summed only at the seconds read (the fit seconds and
+those the anchoring reads; every second for a state-dependent effect, whose next pass reads
+the face mean): :func:`~fleetbrake.model.romchain.simulate_chain_sensor`, those of
+:meth:`~fleetbrake.model.rom.ReducedModel.simulate_chain` bit for bit at those seconds; the
+windows' sensor predictions are read at the cached seconds. An input the
 effects leave as declared (the flux and the air under a convection law; every input of the
 declared model) is turned into steps once per span and reused. No database, no polars frame, no
 Python per event: equal to :func:`~fleetbrake.simulation.predictions.predict_wagon` to rounding
@@ -69,7 +72,7 @@ from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.effects import DriveInputs, EffectSet
 from fleetbrake.model.estimator import noise_from_second_differences
 from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
-from fleetbrake.model.romchain import simulate_chain_sensor
+from fleetbrake.model.romchain import chain_convection, simulate_chain_sensor
 from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
 from fleetbrake.simulation.chains import (
     ANCHOR_TOLERANCE_K,
@@ -169,9 +172,9 @@ def _steps_of(
     name: str,
     get: Callable[[DriveInputs], FloatArray | None],
 ) -> FloatArray:
-    """One input of the kernel per step (``get`` of each source's loading: the step means,
-    the sources' steps concatenated and gathered into the chain's; a face set the loading
-    has no convection for: zeros), for the span's loading with the effects ``applied`` (the
+    """One input of the kernel per step, the flux or the air (``get`` of each source's
+    loading: the step means, the sources' steps concatenated and gathered into the chain's;
+    None: zeros), for the span's loading with the effects ``applied`` (the
     fine samples', then each coarse piece's). Where every source's array is the declared
     one itself (the effects left it as it was), the span's declared steps, made once."""
     declared = [span.fine, *span.coarse]
@@ -189,15 +192,6 @@ def _steps_of(
     if unchanged:
         span.declared_steps[name] = steps
     return steps
-
-
-def _convection_of(face: str) -> Callable[[DriveInputs], FloatArray | None]:
-    """The loading's convection on ``face`` (None: none given)."""
-
-    def get(inputs: DriveInputs) -> FloatArray | None:
-        return inputs.h_w_m2k.get(face)
-
-    return get
 
 
 @dataclass
@@ -231,7 +225,7 @@ class _Span:
     contact: FloatArray | None = None
     """The face temperature of the last state-dependent fixed point (a warm start)."""
     declared_steps: dict[str, FloatArray] = field(default_factory=dict, repr=False)
-    """The kernel's per-step inputs (``flux``, ``air``, ``h:<face>``) of the declared loading,
+    """The kernel's per-step inputs (``flux``, ``air``) of the declared loading,
     made the first time an evaluation's effects leave that input as declared (the same
     arrays: an effect that does not change an input returns it as it was given), and reused
     by later evaluations that leave it so; not pickled (a worker makes its own)."""
@@ -716,15 +710,23 @@ class FitData:
         applied = [block.apply_to_inputs(fine), *(block.apply_to_inputs(c) for c in coarse)]
         flux = _steps_of(span, applied, "flux", lambda x: x.flux_w_m2)
         air = _steps_of(span, applied, "air", lambda x: x.ambient_c)
-        h = np.column_stack(
-            [_steps_of(span, applied, f"h:{face}", _convection_of(face)) for face in faces]
-        ).reshape(flux.size, len(faces))
-        # a convection varying inside a piece is rounded, piece by piece (simulate_timeline's)
-        starts = span.step_offsets[:-1]
-        varying = np.maximum.reduceat(h, starts, axis=0) != np.minimum.reduceat(h, starts, axis=0)
-        if varying.any():
-            rows = np.repeat(varying, np.diff(span.step_offsets), axis=0)
-            h = np.where(rows, np.round(h / H_QUANTUM_W_M2K) * H_QUANTUM_W_M2K, h)
+        # the convection per step and its systems in one Rust pass: the step means gathered,
+        # a convection varying inside a piece rounded, piece by piece (simulate_timeline's);
+        # a face set the loading has no convection for: zeros
+        h, systems = chain_convection(
+            model,
+            [
+                [
+                    np.zeros(x.flux_w_m2.size) if x.h_w_m2k.get(face) is None else x.h_w_m2k[face]
+                    for x in applied
+                ]
+                for face in faces
+            ],
+            gather=span.gather,
+            step_offsets=span.step_offsets,
+            piece_dt_s=span.piece_dt,
+            quantum_w_m2k=H_QUANTUM_W_M2K,
+        )
         pieces = ChainPieces(
             a=span.piece_a,
             b=span.piece_b,
@@ -747,9 +749,20 @@ class FitData:
             lag_tau_s=None if lag is None else float(getattr(lag, "tau_s", 0.0)),
         )
         # the sensor and the face mean only (what an evaluation reads): the same as
-        # ``model.simulate_chain``'s, bit for bit
+        # ``model.simulate_chain``'s, bit for bit; summed at the seconds read only (the face
+        # mean of every second for a state-dependent effect's next pass)
+        windows = None
+        if not effects.state_dependent:
+            windows = np.zeros(int(span.length.sum()), dtype=bool)
+            windows[span.select] = True
         run = simulate_chain_sensor(
-            model, pieces, trusted_c=span.trusted_c, ambient_c=span.ambient_c, rule=rule
+            model,
+            pieces,
+            trusted_c=span.trusted_c,
+            ambient_c=span.ambient_c,
+            rule=rule,
+            systems=systems,
+            windows=windows,
         )
         _count(1)
         values = np.asarray(run.window_sensor_c, dtype=np.float64)[span.select]
