@@ -1838,12 +1838,9 @@ struct Kernel<'a> {
     /// applied.
     sw2: [f64; 3],
     switching: Option<Switching>,
-    /// The steady tests' tolerances, the filter's and the smoother's, in the quiet mode ...
-    tol: f64,
-    tol_back: f64,
-    /// ... and in the manoeuvre mode.
-    tol_manoeuvre: f64,
-    tol_back_manoeuvre: f64,
+    /// The steady tests' tolerances, (the filter's, the smoother's), in the quiet mode and in
+    /// the manoeuvre mode (indexed by the key's mode).
+    tols: [(f64, f64); 2],
     /// The transitions as stepped: a dense one as a diagonal one in its own basis (module
     /// docs), the others as given.
     trs: Vec<Transition>,
@@ -1945,14 +1942,10 @@ impl<'a> Kernel<'a> {
                     .powi(2),
             ],
             switching: noise.switching,
-            tol: settings.steady_tolerance,
-            tol_back: settings.smoother_tolerance,
-            tol_manoeuvre: settings
-                .manoeuvre_tolerances
-                .map_or(settings.steady_tolerance, |t| t.0),
-            tol_back_manoeuvre: settings
-                .manoeuvre_tolerances
-                .map_or(settings.smoother_tolerance, |t| t.1),
+            tols: {
+                let quiet = (settings.steady_tolerance, settings.smoother_tolerance);
+                [quiet, settings.manoeuvre_tolerances.unwrap_or(quiet)]
+            },
             mode_noise: trs
                 .iter()
                 .zip(&noise_rot)
@@ -2110,24 +2103,11 @@ impl<'a> Kernel<'a> {
         })
     }
 
-    /// The filter's steady test's tolerance for a step with `key`.
+    /// The steady tests' tolerances (the filter's, the smoother's inside the filter's steady
+    /// state) for a step with `key`.
     #[inline(always)]
-    fn tol_of(&self, key: Key) -> f64 {
-        if key.2 {
-            self.tol_manoeuvre
-        } else {
-            self.tol
-        }
-    }
-
-    /// The smoother's steady test's tolerance inside the filter's steady state `key`.
-    #[inline(always)]
-    fn tol_back_of(&self, key: Key) -> f64 {
-        if key.2 {
-            self.tol_back_manoeuvre
-        } else {
-            self.tol_back
-        }
+    fn tols_of(&self, key: Key) -> (f64, f64) {
+        self.tols[usize::from(key.2)]
     }
 
     /// `(g P_declared)²` of the step into `t` (t > 0), W²/s.
@@ -2755,7 +2735,7 @@ fn forward<const FMA: bool>(
                         Last::Cache(c) => &caches[c].cov,
                         Last::Node(u) => &memo.nodes[u].cov,
                     };
-                    let tol = k.tol_of(key_now);
+                    let tol = k.tols_of(key_now).0;
                     let b = k.basis[key_now.0 as usize];
                     if key == prev_key && k.converged_own::<FMA>(b, &cov, src, tol, &mut w) {
                         // a steady state met before for this key, within the tolerance, is
@@ -3164,7 +3144,7 @@ fn smooth<const FMA: bool>(k: &Kernel, pass: &Forward, settings: &Settings) -> (
                     k.basis_at(t),
                     &big_new,
                     &big,
-                    k.tol_back_of(caches[mode as usize].key),
+                    k.tols_of(caches[mode as usize].key).1,
                     &mut work,
                 )
             {

@@ -222,6 +222,9 @@ class _Span:
     select: np.ndarray
     """Positions in the window output of this span's seconds (in :attr:`FitData.seconds`
     order)."""
+    read: np.ndarray = field(init=False, repr=False)
+    """One flag per window output (``length.sum()``), set where :attr:`select` reads it: the
+    chain kernel's ``windows`` (made once, not per evaluation)."""
     contact: FloatArray | None = None
     """The face temperature of the last state-dependent fixed point (a warm start)."""
     declared_steps: dict[str, FloatArray] = field(default_factory=dict, repr=False)
@@ -229,6 +232,10 @@ class _Span:
     made the first time an evaluation's effects leave that input as declared (the same
     arrays: an effect that does not change an input returns it as it was given), and reused
     by later evaluations that leave it so; not pickled (a worker makes its own)."""
+
+    def __post_init__(self) -> None:
+        self.read = np.zeros(int(self.length.sum()), dtype=np.bool_)
+        self.read[self.select] = True
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -751,10 +758,6 @@ class FitData:
         # the sensor and the face mean only (what an evaluation reads): the same as
         # ``model.simulate_chain``'s, bit for bit; summed at the seconds read only (the face
         # mean of every second for a state-dependent effect's next pass)
-        windows = None
-        if not effects.state_dependent:
-            windows = np.zeros(int(span.length.sum()), dtype=bool)
-            windows[span.select] = True
         run = simulate_chain_sensor(
             model,
             pieces,
@@ -762,7 +765,7 @@ class FitData:
             ambient_c=span.ambient_c,
             rule=rule,
             systems=systems,
-            windows=windows,
+            windows=None if effects.state_dependent else span.read,
         )
         _count(1)
         values = np.asarray(run.window_sensor_c, dtype=np.float64)[span.select]
