@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from fleetbrake.engine import EngineConfigError, LocalEngine, PartitionError, make_engine
+from fleetbrake.engine.ray import SYSTEM_RETRIES
 from fleetbrake.errors import ConfigError
 from fleetgen import snapshot
 from test_run_engine import WALL_CLOCK, _run
@@ -97,6 +98,29 @@ def test_a_failing_partition_is_named_and_keeps_its_exit_code(ray_cluster: Any) 
             list(engine.map_unordered(_square, [("k8", 8)]))
         assert failed.value.exit_code == 1
         assert list(engine.map(_square, [2, 3])) == [4, 9]  # still serves after a failure
+
+
+def _dies_first(marker: str) -> int:
+    """Kills its worker process on the first run (no exception: the process is gone), then
+    returns the number of runs before this one."""
+    path = Path(marker)
+    runs = int(path.read_text()) if path.exists() else 0
+    path.write_text(str(runs + 1))
+    if runs == 0 or marker.endswith("always"):
+        os._exit(1)
+    return runs
+
+
+def test_a_task_whose_worker_dies_is_run_again_and_one_that_always_dies_is_named(
+    ray_cluster: Any, tmp_path: Path
+) -> None:
+    once, always = tmp_path / "once", tmp_path / "always"
+    with make_engine("ray", 2) as engine:
+        assert list(engine.map(_dies_first, [str(once)])) == [1]
+        with pytest.raises(PartitionError, match=r"partition k1: \w*(Crashed|Died)\w*Error"):
+            list(engine.map_unordered(_dies_first, [("k1", str(always))]))
+        assert always.read_text() == str(1 + SYSTEM_RETRIES)  # ran, then retried, no more
+        assert list(engine.map(_square, [2, 3])) == [4, 9]
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,12 @@ version). Results come back to the caller, the single writer of the warehouse, i
 of the items (``map``) or as they finish (``map_unordered``), at most ``in_flight`` tasks
 submitted but not yet handed over (``ray.wait``). A task's exception is re-raised as a
 :class:`~fleetbrake.engine.base.PartitionError` naming the partition, as the local engine
-does; the remaining tasks are cancelled. :meth:`RayEngine.close` shuts down only a cluster
-the engine started itself.
+does; the remaining tasks are cancelled without killing their workers (a task already
+running finishes and its result is dropped), so a cancel never reaches a task submitted
+after it. A task whose worker process dies (killed, out of memory, its node lost) is run
+again, up to :data:`SYSTEM_RETRIES` times: a partition is a pure function of its item, the
+writer commits only what comes back. :meth:`RayEngine.close` shuts down only a cluster the
+engine started itself.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from fleetbrake.engine.base import (
 )
 from fleetbrake.engine.local import WORKER_THREAD_ENV
 
-__all__ = ["RAY_MISSING", "RayEngine", "import_ray"]
+__all__ = ["RAY_MISSING", "SYSTEM_RETRIES", "RayEngine", "import_ray"]
 
 logger = logging.getLogger(__name__)
 
@@ -41,6 +45,10 @@ K = TypeVar("K")
 
 RAY_MISSING = '--engine ray needs Ray: pip install "fleetbrake[ray]"'
 """The one line said when Ray is not installed."""
+
+SYSTEM_RETRIES = 2
+"""Runs more of a task whose worker died (Ray's ``max_retries``: system failures only; an
+exception the partition raises is never retried)."""
 
 _PASSED_ENV = ("FLEETBRAKE_CACHE_DIR",)
 """Variables of the caller's environment the tasks see too (the only one the library reads)."""
@@ -110,7 +118,7 @@ class RayEngine:
         env = dict(WORKER_THREAD_ENV)
         env.update({k: os.environ[k] for k in _PASSED_ENV if k in os.environ})
         self._remote = ray.remote(call_in_worker).options(
-            num_cpus=1, max_retries=0, runtime_env={"env_vars": env}
+            num_cpus=1, max_retries=SYSTEM_RETRIES, runtime_env={"env_vars": env}
         )
         logger.info("ray engine: %d workers, %s", self._workers, self.address or "local cluster")
 
@@ -120,7 +128,9 @@ class RayEngine:
     def _cancel(self, refs: Iterable[Any]) -> None:
         for ref in refs:
             try:
-                self._ray.cancel(ref, force=True)
+                # not force=True: that kills the worker process, and Ray may already have
+                # handed it the next task (seen as that task's WorkerCrashedError)
+                self._ray.cancel(ref)
             except Exception:  # already finished, or the cluster is gone
                 pass
 
