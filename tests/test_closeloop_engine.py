@@ -195,6 +195,12 @@ def test_local_and_inline_engines_close_the_loop_alike(fleet: Fleet, tmp_path: P
     # the evaluations per phase are counted where they run (workers' fits from their results)
     assert inline["cost"]["evaluations"] == local["cost"]["evaluations"]
     assert local["cost"]["evaluations"]["screen"] >= 3 * 2  # 3 candidates, start + Jacobian
+    # the Markdown report and its plots (drawn on a worker by the local engine) for both
+    for engine in ("inline", "local"):
+        text = (tmp_path / f"{engine}.md").read_text(encoding="utf-8")
+        for plot in ("by-wagon", "by-phase"):
+            assert f"]({engine}-{plot}.png)" in text
+            assert (tmp_path / f"{engine}-{plot}.png").read_bytes().startswith(b"\x89PNG")
 
 
 def report_differences(

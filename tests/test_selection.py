@@ -5,10 +5,20 @@ leftover driven by a known input; and the Markdown report's verdict line
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import polars as pl
 import pytest
 
-from fleetbrake.closeloop.report import render_markdown, verdict
+from fleetbrake.closeloop.report import (
+    MarkdownReport,
+    ResidualPlots,
+    plot_residual_by_phase,
+    plot_residual_by_wagon,
+    render_markdown,
+    verdict,
+)
 from fleetbrake.closeloop.selection import (
     EFFECT_NULLS,
     SelectionError,
@@ -544,6 +554,45 @@ def test_report_first_line_is_the_verdict():
     for key in ("parameter_intervals", "noise_k", "adequate", "unexplained"):
         del old[key]
     assert render_markdown(old).splitlines()[0].startswith("found: convection_speed")
+
+
+def test_the_residual_plots_drawn_on_a_worker_are_those_drawn_here(tmp_path: Path) -> None:
+    """``close-loop`` draws the report's plots on one of its engine's workers (while the
+    warehouse closes): the residuals cross to it as an Arrow table (one large enough to be
+    shipped as a file) and the images are the bytes drawn in this process; the report's
+    text is written, and links them."""
+    from fleetbrake.engine import LocalEngine
+    from fleetbrake.engine.local import SHIPPED_MIN_BYTES
+
+    rng = np.random.default_rng(11)
+    n = 60_000
+    frame = pl.DataFrame(
+        {
+            "wagon_id": rng.choice(["W-3", "W-1", "W-2"], n),
+            "model_revision": np.repeat(["declared", "r1-convection_speed"], n // 2),
+            "phase": rng.choice(["heating", "cooling"], n),
+            "residual_k": rng.normal(-1.0, 2.0, n),
+        }
+    )
+    assert frame.to_arrow().nbytes >= SHIPPED_MIN_BYTES
+
+    def plots(name: str) -> ResidualPlots:
+        return ResidualPlots(
+            frame.to_arrow(), tmp_path / f"{name}-by-wagon.png", tmp_path / f"{name}-by-phase.png"
+        )
+
+    here, there = plots("here"), plots("there")
+    plot_residual_by_wagon(frame, here.by_wagon)
+    plot_residual_by_phase(frame, here.by_phase)
+    text = render_markdown(report_dict(), there)
+    with LocalEngine(1) as engine:
+        MarkdownReport(tmp_path / "there.md", text, there).write(engine)
+    for drawn, reference in ((there.by_wagon, here.by_wagon), (there.by_phase, here.by_phase)):
+        assert drawn.read_bytes() == reference.read_bytes(), drawn.name
+    written = (tmp_path / "there.md").read_text(encoding="utf-8")
+    assert written == text
+    assert "](there-by-wagon.png)" in written and "](there-by-phase.png)" in written
+    assert "png" not in render_markdown(report_dict())
 
 
 def test_report_names_the_law_the_refusals_and_the_figure_judged():

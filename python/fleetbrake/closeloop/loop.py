@@ -91,6 +91,7 @@ import polars as pl
 
 from fleetbrake.closeloop import fitdata
 from fleetbrake.closeloop.fitdata import FitData
+from fleetbrake.closeloop.report import MarkdownReport, read_markdown_report
 from fleetbrake.closeloop.selection import (
     EFFECT_NULLS,
     GCI_ORDER,
@@ -2275,15 +2276,29 @@ def run_close_loop(
     ``ray`` (at ``address``, or a local instance of ``workers`` CPUs)."""
     config = config or CloseLoopConfig(holdout_from=holdout_from)
     pool = _make_engine(engine, workers, address)  # refused before the database is opened
-    with pool, open_warehouse(db_path, wait_s=wait_s) as wh:
-        # the workers start and import the close loop while the wagons are loaded, not at
-        # the screening's first fit (about a processor-second each)
-        pool.start()
-        report = close_loop(wh, config, None if isinstance(pool, InlineEngine) else pool)
-        json_out = Path(json_out)
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(report, indent=2, default=str) + "\n", encoding="utf-8")
-        from fleetbrake.closeloop.report import write_markdown_report
-
-        write_markdown_report(wh, report, json_out.with_suffix(".md"))
+    with pool, ThreadPoolExecutor(max_workers=1, thread_name_prefix="closeloop-report") as side:
+        with open_warehouse(db_path, wait_s=wait_s) as wh:
+            # the workers start and import the close loop while the wagons are loaded, not at
+            # the screening's first fit (about a processor-second each)
+            pool.start()
+            report = close_loop(wh, config, None if isinstance(pool, InlineEngine) else pool)
+            json_out = Path(json_out)
+            json_out.parent.mkdir(parents=True, exist_ok=True)
+            text = json.dumps(report, indent=2, default=str) + "\n"
+            json_out.write_text(text, encoding="utf-8")
+            markdown = read_markdown_report(wh, report, json_out.with_suffix(".md"))
+            # the Markdown report's plots are drawn on a worker, and the workers stopped,
+            # while the warehouse closes (DuckDB's checkpoint merges the new revision's row
+            # groups: about 1.5 processor-s of its own)
+            written = side.submit(_write_and_stop, markdown, pool)
+        written.result()
     return report
+
+
+def _write_and_stop(markdown: MarkdownReport, engine: Engine) -> None:
+    """Write the Markdown report (its plots drawn on one of ``engine``'s workers), then stop
+    the engine's workers: it has no more work."""
+    try:
+        markdown.write(engine)
+    finally:
+        engine.close()

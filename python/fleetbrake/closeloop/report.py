@@ -2,16 +2,23 @@
 wagon, per phase), written beside the JSON report. Its first line is the verdict
 (:func:`verdict`): ``found: ...``, ``partly explained: ...`` or ``nothing added ...``; then the
 sensor noise, whether the new revision is adequate and what is left unexplained, and each
-fitted parameter with its 95 % interval (``parameter_intervals``)."""
+fitted parameter with its 95 % interval (``parameter_intervals``).
+
+The report is read from the warehouse (:func:`read_markdown_report`: its residuals) and
+written apart (:meth:`MarkdownReport.write`), so that ``close-loop`` writes it, its plots
+drawn on one of the engine's workers, while the warehouse closes (DuckDB's checkpoint)."""
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import polars as pl
 
+from fleetbrake.engine import Engine
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 
@@ -132,12 +139,10 @@ def verdict(report: Mapping[str, Any]) -> str:
     return line
 
 
-def render_markdown(
-    report: Mapping[str, Any], frame: pl.DataFrame | None = None, stem: Path | None = None
-) -> str:
+def render_markdown(report: Mapping[str, Any], plots: ResidualPlots | None = None) -> str:
     """The Markdown report of a JSON report dict (keys as in ``interface.md``), its first line
-    the :func:`verdict`. With ``frame`` (the residuals of the baseline and new revision) and
-    ``stem`` (the report's path without suffix), the residual plots are drawn beside it."""
+    the :func:`verdict`. With ``plots``, it shows the residual plots (drawn apart:
+    :func:`draw_residual_plots`)."""
     lines = [
         verdict(report),
         "",
@@ -230,28 +235,71 @@ def render_markdown(
     if report.get("selection"):
         lines += ["", report["selection"]]
     lines.append("")
-    if frame is not None and frame.height and stem is not None:
-        by_wagon = stem.parent / f"{stem.name}-by-wagon.png"
-        by_phase = stem.parent / f"{stem.name}-by-phase.png"
-        plot_residual_by_wagon(frame, by_wagon)
-        plot_residual_by_phase(frame, by_phase)
+    if plots is not None:
         lines += [
             "## Residual per wagon",
             "",
-            f"![residual per wagon]({by_wagon.name})",
+            f"![residual per wagon]({plots.by_wagon.name})",
             "",
             "## Residual per phase",
             "",
-            f"![residual per phase]({by_phase.name})",
+            f"![residual per phase]({plots.by_phase.name})",
             "",
         ]
     return "\n".join(lines)
 
 
-def write_markdown_report(wh: Warehouse, report: dict[str, Any], path: Path) -> None:
+@dataclass(frozen=True)
+class ResidualPlots:
+    """The residual plots of a report: the residuals they show (``q_closeloop_residuals``'s
+    columns, as an Arrow table: what an engine ships to a worker) and their files."""
+
+    residuals: Any  # pyarrow.Table (pyarrow ships no type information)
+    by_wagon: Path
+    by_phase: Path
+
+
+def draw_residual_plots(plots: ResidualPlots) -> None:
+    """Draw the residual plots into their files (in a worker: matplotlib is imported there)."""
+    frame = pl.DataFrame(plots.residuals)
+    plot_residual_by_wagon(frame, plots.by_wagon)
+    plot_residual_by_phase(frame, plots.by_phase)
+
+
+@dataclass(frozen=True)
+class MarkdownReport:
+    """A Markdown report read from the warehouse and not yet written: its text and, when
+    there are residuals, its plots."""
+
+    path: Path
+    text: str
+    plots: ResidualPlots | None
+
+    def write(self, engine: Engine) -> None:
+        """Draw the plots (on one of ``engine``'s workers: in this process for the inline
+        engine), then write the text."""
+        if self.plots is not None:
+            deque(engine.map(draw_residual_plots, [self.plots], name=_plots_name), maxlen=0)
+        self.path.write_text(self.text, encoding="utf-8")
+
+
+def _plots_name(plots: ResidualPlots) -> str:
+    return f"the residual plots {plots.by_wagon.name}, {plots.by_phase.name}"
+
+
+def read_markdown_report(wh: Warehouse, report: Mapping[str, Any], path: Path) -> MarkdownReport:
+    """The Markdown report of ``report`` at ``path`` (its plots beside it, named after it),
+    its residuals (the baseline and the new revision's) read from ``wh`` now."""
     revisions = [report["baseline_revision"]]
     if report.get("new_revision"):
         revisions.append(report["new_revision"])
     frame = _residuals(wh, revisions)
-    text = render_markdown(report, frame, path.with_suffix(""))
-    path.write_text(text, encoding="utf-8")
+    plots = None
+    if frame.height:
+        stem = path.with_suffix("")
+        plots = ResidualPlots(
+            frame.to_arrow(),
+            stem.parent / f"{stem.name}-by-wagon.png",
+            stem.parent / f"{stem.name}-by-phase.png",
+        )
+    return MarkdownReport(path, render_markdown(report, plots), plots)
