@@ -9,7 +9,7 @@ use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
 
 use thermal_core::estimator::{
-    run_many, Estimates, Noise, Outputs, Problem, Settings, Switching, Transition,
+    run_many, Eigen, Estimates, Noise, Outputs, Problem, Settings, Switching, Transition,
 };
 
 use crate::errors::call_detached;
@@ -84,7 +84,14 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
             .collect(),
         _ => Vec::new(),
     };
+    // per transition, a = Q diag(e) Qᵀ as `prepare` made it (absent or None: the kernel
+    // steps a dense transition dense)
+    let (eigenvectors, eigenvalues) = (optional("eigenvectors")?, optional("eigenvalues")?);
     let sizes = [
+        eigenvectors.as_ref().is_none_or(|v| v.len() == k * r * r),
+        eigenvalues
+            .as_ref()
+            .map_or(eigenvectors.is_none(), |v| v.len() == k * r),
         q_modes.is_empty() || q_modes.len() == k * r,
         a.len() == k * r * r,
         gamma.len() == k * r,
@@ -127,6 +134,13 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
                 applied: applied.get(t).copied().unwrap_or(false),
                 brake_phi: brake_phi.as_ref().map_or(1.0, |v| v[t]),
                 brake_q: brake_q.as_ref().map_or(0.0, |v| v[t]),
+                eigen: match (&eigenvectors, &eigenvalues) {
+                    (Some(q), Some(e)) if !diagonal[t] => Some(Eigen {
+                        q: q[t * r * r..(t + 1) * r * r].to_vec(),
+                        e: e[t * r..(t + 1) * r].to_vec(),
+                    }),
+                    _ => None,
+                },
             }
         })
         .collect();

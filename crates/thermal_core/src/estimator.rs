@@ -53,22 +53,23 @@
 //! steady stretch.
 //!
 //! A dense transition (a convection other than the nominal one mixes the modes) is symmetric,
-//! `A = Q diag(e) Qᵀ` with Q orthogonal: it is stepped as a diagonal one in the basis of its
-//! eigenvectors (`in_own_basis`; Q block-diagonal over the coordinates A couples, so the
-//! seat's error stays a coordinate of its own), with `γ`, the lag's row, the reading's and the
-//! outputs' rows and the gap's direction rotated once per transition (`Rows`), `w` per step
-//! (`Qᵀw`), and the mode noise `Qᵀ diag(q) Q` (dense only where Q mixes a noisy coordinate).
-//! The state at second t lives in the basis of the transition into t (the prior in the
-//! problem's own): where consecutive steps have different bases the mean and covariance are
-//! rotated once, `T = diag(Q_newᵀ Q_old, I)` (`Rotation`, two blocked products), the
-//! smoother's `λ`, `Λ` back with `Tᵀ`; a run of one dense transition costs what a diagonal
-//! one does. Steady keys, caches and recorded excursions are a transition's, so their
-//! covariances are in its basis; the steady tests decide as in the problem's own basis
-//! (`converged_own`: cheap necessary conditions first, then the element that failed last,
-//! then both matrices rotated), so the freezing, and with it the estimates, are those of the
-//! dense stepping to rounding. A dense transition that is not symmetric is stepped as two
-//! blocked products on padded matrices (`DenseF`), the second only on the symmetric result's
-//! lower triangle.
+//! `A = Q diag(e) Qᵀ` with Q orthogonal. Given that decomposition (`Transition::eigen`: the
+//! one `A` was made of, `prepare`'s `eigh` of the convection's operator, so the kernel steps
+//! the numpy reference's numbers) it is stepped as a diagonal one in the basis of its
+//! eigenvectors (`in_own_basis`; Q leaves the seat's error a coordinate of its own), with
+//! `γ`, the lag's row, the reading's and the outputs' rows and the gap's direction rotated
+//! once per transition (`Rows`), `w` per step (`Qᵀw`), and the mode noise `Qᵀ diag(q) Q`
+//! (dense only where Q mixes a noisy coordinate). The state at second t lives in the basis
+//! of the transition into t (the prior in the problem's own): where consecutive steps have
+//! different bases the mean and covariance are rotated once, `T = diag(Q_newᵀ Q_old, I)`
+//! (`Rotation`, two blocked products), the smoother's `λ`, `Λ` back with `Tᵀ`; a run of one
+//! dense transition costs what a diagonal one does. Steady keys, caches and recorded
+//! excursions are a transition's, so their covariances are in its basis; the steady tests
+//! decide as in the problem's own basis (`converged_own`: cheap necessary conditions first,
+//! then the element that failed last, then both matrices rotated), so the freezing, and with
+//! it the estimates, are those of the dense stepping to rounding. A dense transition without
+//! a decomposition is stepped as two blocked products on padded matrices (`DenseF`), the
+//! second only on the symmetric result's lower triangle.
 
 use std::borrow::Cow;
 
@@ -113,6 +114,19 @@ pub struct Transition {
     pub brake_phi: f64,
     /// Variance (W²) added to `P_b` over the step.
     pub brake_q: f64,
+    /// A dense `a`'s eigendecomposition as its maker computed it (`a = Q diag(e) Qᵀ`; the
+    /// numpy peer's `prepare`: the `eigh` that `a` is made of): the transition is stepped as
+    /// a diagonal one in that basis. None (or not finite): it is stepped dense (`DenseF`).
+    pub eigen: Option<Eigen>,
+}
+
+/// The eigenvectors and eigenvalues of a symmetric modal propagator, `a = Q diag(e) Qᵀ`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Eigen {
+    /// Q, r x r row-major: its columns the eigenvectors (orthonormal).
+    pub q: Vec<f64>,
+    /// The eigenvalues (r), in the order of Q's columns.
+    pub e: Vec<f64>,
 }
 
 /// One wagon's filtering problem.
@@ -1462,89 +1476,27 @@ fn rotate_t(q: &[f64], r: usize, v: &mut [f64], tmp: &mut [f64]) {
 }
 
 /// A dense transition as a diagonal one in the basis of its propagator's eigenvectors
-/// (`a = Q diag(e) Qᵀ`, `a` symmetric): Q (r x r row-major, block-diagonal over the
-/// coordinates that `a` couples, so that a coordinate `a` leaves alone, the seat's error,
-/// stays itself), the transition in that basis (`e`, `Qᵀγ`, `Qᵀℓ`) and its mode noise
-/// `Qᵀ diag(q_modes) Q` when that is not diagonal (r x r; empty: it is, and is the
-/// transition's `q_modes`). None where `a` is not symmetric or has no decomposition: the
-/// transition is then stepped dense (`DenseF`).
+/// (`tr.eigen`: `a = Q diag(e) Qᵀ` as its maker computed it; a Q that leaves a coordinate
+/// alone, the seat's error, keeps its noise diagonal): Q (r x r row-major), the transition in
+/// that basis (`e`, `Qᵀγ`, `Qᵀℓ`) and its mode noise `Qᵀ diag(q_modes) Q` when that is not
+/// diagonal (r x r; empty: it is, and is the transition's `q_modes`). None where the
+/// transition has no basis or a basis with a value that is not finite: it is then stepped
+/// dense (`DenseF`).
 fn in_own_basis(tr: &Transition, r: usize) -> Option<(Vec<f64>, Transition, Vec<f64>)> {
-    use faer::dyn_stack::{MemBuffer, MemStack};
-    use faer::linalg::evd::{self_adjoint_evd, self_adjoint_evd_scratch, ComputeEigenvectors};
-    let a = &tr.a;
-    let scale = a.iter().fold(0.0f64, |s, v| s.max(v.abs()));
-    for i in 0..r {
-        for j in 0..i {
-            if (a[i * r + j] - a[j * r + i]).abs() > 1e-13 * scale {
-                return None;
-            }
-        }
-    }
-    // the coupled coordinates: connected components of a's pattern
-    let mut comp: Vec<usize> = (0..r).collect();
-    fn root(c: &mut [usize], mut i: usize) -> usize {
-        while c[i] != i {
-            c[i] = c[c[i]];
-            i = c[i];
-        }
-        i
-    }
-    for i in 0..r {
-        for j in 0..i {
-            if a[i * r + j] != 0.0 || a[j * r + i] != 0.0 {
-                let (ri, rj) = (root(&mut comp, i), root(&mut comp, j));
-                comp[ri.max(rj)] = ri.min(rj);
-            }
-        }
-    }
-    let mut q = vec![0.0; r * r];
-    let mut e = vec![0.0; r];
-    for c0 in 0..r {
-        if root(&mut comp, c0) != c0 {
-            continue;
-        }
-        let idx: Vec<usize> = (0..r).filter(|&i| root(&mut comp, i) == c0).collect();
-        let s = idx.len();
-        if s == 1 {
-            q[c0 * r + c0] = 1.0;
-            e[c0] = a[c0 * r + c0];
-            continue;
-        }
-        let sub = faer::Mat::<f64>::from_fn(s, s, |i, j| a[idx[i] * r + idx[j]]);
-        let mut u = faer::Mat::<f64>::zeros(s, s);
-        let mut ev = faer::diag::Diag::<f64>::zeros(s);
-        let par = faer::Par::Seq;
-        let req =
-            self_adjoint_evd_scratch::<f64>(s, ComputeEigenvectors::Yes, par, Default::default());
-        let mut mem = MemBuffer::new(req);
-        self_adjoint_evd(
-            sub.as_ref(),
-            ev.as_mut(),
-            Some(u.as_mut()),
-            par,
-            MemStack::new(&mut mem),
-            Default::default(),
-        )
-        .ok()?;
-        for (k, &ik) in idx.iter().enumerate() {
-            e[ik] = ev.column_vector()[k];
-            for (l, &il) in idx.iter().enumerate() {
-                q[il * r + ik] = u[(l, k)];
-            }
-        }
-    }
-    if e.iter().chain(&q).any(|v| !v.is_finite()) {
+    let Eigen { q, e } = tr.eigen.as_ref()?;
+    if q.len() != r * r || e.len() != r || e.iter().chain(q).any(|v| !v.is_finite()) {
         return None;
     }
     let mut tmp = vec![0.0; r];
     let mut out = tr.clone();
     out.diagonal = true;
+    out.eigen = None;
     out.a = (0..r * r)
         .map(|ij| if ij / r == ij % r { e[ij / r] } else { 0.0 })
         .collect();
-    out.e = e;
-    rotate_t(&q, r, &mut out.gamma, &mut tmp);
-    rotate_t(&q, r, &mut out.lag_row, &mut tmp);
+    out.e = e.clone();
+    rotate_t(q, r, &mut out.gamma, &mut tmp);
+    rotate_t(q, r, &mut out.lag_row, &mut tmp);
     let mut noise = Vec::new();
     if tr.q_modes.iter().any(|&v| v != 0.0) {
         // Qᵀ diag(q) Q
@@ -1565,7 +1517,7 @@ fn in_own_basis(tr: &Transition, r: usize) -> Option<(Vec<f64>, Transition, Vec<
             out.q_modes = (0..r).map(|i| m[i * r + i]).collect();
         }
     }
-    Some((q, out, noise))
+    Some((q.clone(), out, noise))
 }
 
 /// `x[..r] = R x[..r]` (R r x r row-major; `tmp`: r scratch).
@@ -3350,6 +3302,7 @@ mod tests {
                 applied: false,
                 brake_phi: 1.0,
                 brake_q: 0.0,
+                eigen: None,
             }
         };
         let e: Vec<f64> = lam.iter().map(|l: &f64| (-l).exp()).collect();
@@ -3378,6 +3331,10 @@ mod tests {
                 phi.powi(3),
             ),
         ];
+        transitions[1].eigen = Some(Eigen {
+            q: q.to_vec(),
+            e: e.iter().map(|v| v * 0.97).collect(),
+        });
         transitions[2].q_gap = 0.4; // the "gap" transition: the block's offset uncertain
         for t in &mut transitions[..2] {
             t.q_modes = vec![0.0, 3e-4, 0.0]; // a coordinate with noise of its own
@@ -4079,6 +4036,7 @@ mod tests {
         }
         tr.e = (0..r).map(|i| a[i * r + i]).collect();
         tr.a = a;
+        tr.eigen = Some(Eigen { q: q.to_vec(), e });
         tr.q_modes = vec![0.0, 0.0, 2e-4];
         p.transitions.push(tr);
         let index: Vec<u32> = (0..n_t - 1)
@@ -4114,21 +4072,32 @@ mod tests {
                 assert!(k.rotations.contains_key(&pair), "{pair:?}");
             }
             let reference = naive(&p, NOISE);
-            for (tol, block) in [(0.0, 64), (0.0, 1600), (1e-12, 128)] {
-                let out = run(&p, NOISE, &settings(tol, block)).unwrap();
-                if tol > 0.0 {
-                    assert!(out.frozen_steps > 300, "{} frozen", out.frozen_steps);
+            // without their bases (or with one not finite) the dense transitions are stepped
+            // dense, to the same textbook results
+            let mut plain = p.clone();
+            plain.transitions[1].eigen = None;
+            plain.transitions[3].eigen.as_mut().unwrap().q[4] = f64::NAN;
+            let k = Kernel::new(&plain, NOISE, &settings(0.0, 64));
+            assert!(k.dense[1].is_some() && k.dense[3].is_some());
+            assert!(k.basis.iter().all(|&b| b == 0) && k.rotations.is_empty());
+            for q in [&p, &plain] {
+                for (tol, block) in [(0.0, 64), (0.0, 1600), (1e-12, 128)] {
+                    let out = run(q, NOISE, &settings(tol, block)).unwrap();
+                    if tol > 0.0 {
+                        assert!(out.frozen_steps > 300, "{} frozen", out.frozen_steps);
+                    }
+                    assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
+                    assert_estimates(
+                        "smoothed",
+                        out.smoothed.as_ref().unwrap(),
+                        &reference.smoothed,
+                        1e-8,
+                    );
+                    assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
+                    let rel =
+                        (out.log_likelihood - reference.loglik).abs() / reference.loglik.abs();
+                    assert!(rel < 1e-8, "log-likelihood {rel}");
                 }
-                assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
-                assert_estimates(
-                    "smoothed",
-                    out.smoothed.as_ref().unwrap(),
-                    &reference.smoothed,
-                    1e-8,
-                );
-                assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
-                let rel = (out.log_likelihood - reference.loglik).abs() / reference.loglik.abs();
-                assert!(rel < 1e-8, "log-likelihood {rel}");
             }
         }
     }
@@ -4490,6 +4459,7 @@ mod tests {
                 applied: false,
                 brake_phi: 1.0,
                 brake_q: 0.0,
+                eigen: None,
             };
             let d = Dims {
                 r,
@@ -4563,6 +4533,7 @@ mod tests {
                 applied: false,
                 brake_phi: 0.9,
                 brake_q: 0.0,
+                eigen: None,
             };
             let d = Dims {
                 r,

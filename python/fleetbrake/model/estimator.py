@@ -600,6 +600,14 @@ class EstimatorProblem:
     through ``gamma[k]`` as ``P`` does."""
     brake_q: FloatArray | None = None
     """(K): the variance transition k adds to ``P_b``, W² (``σ_b² L`` braking, 0 otherwise)."""
+    eigenvectors: FloatArray | None = None
+    """(K, r, r): ``a[k] = Q diag(eigenvalues[k]) Qᵀ`` with Q this (its columns the
+    eigenvectors): a dense transition's from ``prepare``'s own ``eigh`` of the convection's
+    operator (what ``a[k]`` is made of), a diagonal one's the identity. The Rust kernel steps
+    a dense transition as a diagonal one in this basis. None: no dense transition, or none
+    given (the Rust kernel then steps a dense one dense)."""
+    eigenvalues: FloatArray | None = None
+    """(K, r): the eigenvalues that go with ``eigenvectors`` (None with it)."""
 
     @property
     def brake(self) -> bool:
@@ -809,6 +817,9 @@ class _Transitions:
     applied: list[bool] = field(default_factory=list)
     braking: list[bool] = field(default_factory=list)
     length_s: list[float] = field(default_factory=list)
+    eigen: list[tuple[FloatArray, FloatArray] | None] = field(default_factory=list)
+    """Per transition, where it is dense, ``(Q, e)`` with ``a = (Q e) Qᵀ`` as made (the
+    convection's operator's ``eigh``); None where it is diagonal."""
 
     @property
     def seat_error(self) -> bool:
@@ -844,17 +855,20 @@ class _Transitions:
             e, g = _ext.rom_exact_propagator(np.ascontiguousarray(lam), float(length_s))
             a = (q * e) @ q.T
             gmat: FloatArray | None = (q * g) @ q.T
+            eigen: tuple[FloatArray, FloatArray] | None = (q, e)
             diagonal = False
         else:
             e, g = _ext.rom_exact_propagator(np.ascontiguousarray(rom.lam), float(length_s))
             a = np.diag(e)
             gmat = None
+            eigen = None
             diagonal = True
         q_modes = np.zeros(r + int(self.seat_error))
         if self.seat_error:  # the seat error's coordinate: decays, no input, its own noise
             e_b = math.exp(-length_s / self.seat_tau_s)
             a = _pad(a, e_b)
             gmat = None if gmat is None else _pad(gmat, 0.0)
+            eigen = None if eigen is None else (_pad(eigen[0], 1.0), np.append(eigen[1], e_b))
             g = np.append(g, 0.0)
             q_modes[r] = self.seat_sd_k**2 * -math.expm1(-2.0 * length_s / self.seat_tau_s)
             r += 1
@@ -893,7 +907,19 @@ class _Transitions:
         self.applied.append(applied)
         self.braking.append(braking)
         self.length_s.append(length_s)
+        self.eigen.append(eigen)
         return self.keys[key]
+
+    def eigen_arrays(self) -> tuple[FloatArray, FloatArray] | None:
+        """``EstimatorProblem.eigenvectors`` and ``eigenvalues`` of the table (None without a
+        dense transition): each dense transition's ``(Q, e)``, a diagonal one's the identity
+        and its diagonal."""
+        if all(v is None for v in self.eigen):
+            return None
+        r = self.a[0].shape[0]
+        q = np.stack([np.eye(r) if v is None else v[0] for v in self.eigen])
+        e = np.stack([np.diag(a) if v is None else v[1] for a, v in zip(self.a, self.eigen)])
+        return q, e
 
 
 def _pad(a: FloatArray, corner: float) -> FloatArray:
@@ -1164,6 +1190,7 @@ def prepare(
     if seat_error:
         cov0[r - 1, r - 1] = config.seat_error_sd_k**2
     lag_rows = table.lag
+    eigen = table.eigen_arrays()
     # the declared braking power of each step (W into the block), its share of the noise
     # (none at all with the option off: no array of zeros per wagon-second to build and ship)
     gain = config.declared_power_noise_per_sqrt_s
@@ -1216,6 +1243,8 @@ def prepare(
         power_noise=power_noise,
         brake_phi=brake_phi,
         brake_q=brake_q,
+        eigenvectors=None if eigen is None else eigen[0],
+        eigenvalues=None if eigen is None else eigen[1],
     )
 
 
@@ -1662,6 +1691,8 @@ def _as_kernel_args(p: EstimatorProblem) -> dict[str, object]:
         "power_noise": None if p.power_noise is None else c(p.power_noise, dtype=np.float64),
         "brake_phi": None if p.brake_phi is None else c(p.brake_phi, dtype=np.float64),
         "brake_q": None if p.brake_q is None else c(p.brake_q, dtype=np.float64),
+        "eigenvectors": None if p.eigenvectors is None else c(p.eigenvectors.reshape(-1)),
+        "eigenvalues": None if p.eigenvalues is None else c(p.eigenvalues.reshape(-1)),
     }
 
 
