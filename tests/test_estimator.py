@@ -46,7 +46,7 @@ from fleetbrake.model.physics import (
     frictional_flux_w_m2,
 )
 from fleetbrake.model.rom import ReducedModel, first_order_lag
-from fleetbrake.model.thermal import BlockModel, LengthMismatchError
+from fleetbrake.model.thermal import BlockModel, InvalidParameterError, LengthMismatchError
 from fleetbrake.model.timeline import simulate_timeline
 from fleetbrake.synth.operation import operate, sessions
 
@@ -659,7 +659,7 @@ def test_the_kernel_is_given_the_eigendecomposition_the_dense_transitions_are_ma
     transition's propagator is ``Q diag(e) Qᵀ`` of its eigenvectors and eigenvalues, Q
     orthonormal and leaving the seat's error (the last coordinate) alone; a diagonal one's
     are the identity and its diagonal; the declared model has none. Eigenvectors of the
-    wrong size are the binding's error, not the kernel's panic."""
+    wrong size or not finite are errors (the binding's, the kernel's), not a panic."""
     dense, config = dense_problem
     q, e = dense.eigenvectors, dense.eigenvalues
     assert q is not None and e is not None
@@ -677,6 +677,11 @@ def test_the_kernel_is_given_the_eigendecomposition_the_dense_transitions_are_ma
     short = dataclasses.replace(dense, eigenvectors=q[:-1])
     with pytest.raises(LengthMismatchError, match=f"{k} transitions of order {r}"):
         estimate([short], config=config, engine="rust")
+    first = int(np.flatnonzero(~dense.diagonal)[0])
+    broken = q.copy()
+    broken[first, 0, 0] = np.nan
+    with pytest.raises(InvalidParameterError, match=f"eigendecomposition of transition {first}"):
+        estimate([dataclasses.replace(dense, eigenvectors=broken)], config=config, engine="rust")
 
 
 def test_rust_is_numpy_with_the_seat_error_and_the_power_held_at_standstill(

@@ -88,10 +88,9 @@ fn problem<'a>(d: &Bound<'_, PyDict>, series: &'a SeriesArrays<'_>) -> PyResult<
     // steps a dense transition dense)
     let (eigenvectors, eigenvalues) = (optional("eigenvectors")?, optional("eigenvalues")?);
     let sizes = [
+        eigenvectors.is_some() == eigenvalues.is_some(),
         eigenvectors.as_ref().is_none_or(|v| v.len() == k * r * r),
-        eigenvalues
-            .as_ref()
-            .map_or(eigenvectors.is_none(), |v| v.len() == k * r),
+        eigenvalues.as_ref().is_none_or(|v| v.len() == k * r),
         q_modes.is_empty() || q_modes.len() == k * r,
         a.len() == k * r * r,
         gamma.len() == k * r,

@@ -116,7 +116,7 @@ pub struct Transition {
     pub brake_q: f64,
     /// A dense `a`'s eigendecomposition as its maker computed it (`a = Q diag(e) Qᵀ`; the
     /// numpy peer's `prepare`: the `eigh` that `a` is made of): the transition is stepped as
-    /// a diagonal one in that basis. None (or not finite): it is stepped dense (`DenseF`).
+    /// a diagonal one in that basis. None: it is stepped dense (`DenseF`).
     pub eigen: Option<Eigen>,
 }
 
@@ -339,6 +339,23 @@ impl Problem<'_> {
             ] {
                 if len != expected {
                     return mismatch(&format!("{name} of transition {k}"), expected, len);
+                }
+            }
+            if let Some(Eigen { q, e }) = &t.eigen {
+                for (name, len, expected) in [
+                    ("transition eigenvectors", q.len(), r * r),
+                    ("transition eigenvalues", e.len(), r),
+                ] {
+                    if len != expected {
+                        return mismatch(&format!("{name} of transition {k}"), expected, len);
+                    }
+                }
+                if let Some(&bad) = q.iter().chain(e).find(|v| !v.is_finite()) {
+                    return Err(ThermalError::InvalidParameter {
+                        name: format!("estimator eigendecomposition of transition {k}"),
+                        value: bad,
+                        reason: "must be finite".to_string(),
+                    });
                 }
             }
             if !(t.q_modes.is_empty() || t.q_modes.len() == r) {
@@ -1480,13 +1497,10 @@ fn rotate_t(q: &[f64], r: usize, v: &mut [f64], tmp: &mut [f64]) {
 /// alone, the seat's error, keeps its noise diagonal): Q (r x r row-major), the transition in
 /// that basis (`e`, `Qᵀγ`, `Qᵀℓ`) and its mode noise `Qᵀ diag(q_modes) Q` when that is not
 /// diagonal (r x r; empty: it is, and is the transition's `q_modes`). None where the
-/// transition has no basis or a basis with a value that is not finite: it is then stepped
-/// dense (`DenseF`).
+/// transition has no decomposition: it is then stepped dense (`DenseF`). (`Problem::validate`
+/// checked its sizes and that it is finite.)
 fn in_own_basis(tr: &Transition, r: usize) -> Option<(Vec<f64>, Transition, Vec<f64>)> {
     let Eigen { q, e } = tr.eigen.as_ref()?;
-    if q.len() != r * r || e.len() != r || e.iter().chain(q).any(|v| !v.is_finite()) {
-        return None;
-    }
     let mut tmp = vec![0.0; r];
     let mut out = tr.clone();
     out.diagonal = true;
@@ -4072,11 +4086,18 @@ mod tests {
                 assert!(k.rotations.contains_key(&pair), "{pair:?}");
             }
             let reference = naive(&p, NOISE);
-            // without their bases (or with one not finite) the dense transitions are stepped
-            // dense, to the same textbook results
+            // without their decompositions the dense transitions are stepped dense, to the
+            // same textbook results; one not finite or of the wrong size is an error
             let mut plain = p.clone();
             plain.transitions[1].eigen = None;
-            plain.transitions[3].eigen.as_mut().unwrap().q[4] = f64::NAN;
+            plain.transitions[3].eigen = None;
+            let mut bad = p.clone();
+            bad.transitions[3].eigen.as_mut().unwrap().q[4] = f64::NAN;
+            let err = run(&bad, NOISE, &settings(0.0, 64)).unwrap_err();
+            assert!(err.to_string().contains("transition 3"), "{err}");
+            bad.transitions[3].eigen.as_mut().unwrap().e.pop();
+            let err = run(&bad, NOISE, &settings(0.0, 64)).unwrap_err();
+            assert!(err.to_string().contains("eigenvalues of transition 3"), "{err}");
             let k = Kernel::new(&plain, NOISE, &settings(0.0, 64));
             assert!(k.dense[1].is_some() && k.dense[3].is_some());
             assert!(k.basis.iter().all(|&b| b == 0) && k.rotations.is_empty());
