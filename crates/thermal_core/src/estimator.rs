@@ -3622,6 +3622,17 @@ mod tests {
         );
     }
 
+    /// `out` is the textbook filter's and smoother's `reference`: the filtered estimates and
+    /// the innovations to 1e-9, the smoothed estimates and the log-likelihood to 1e-8.
+    fn assert_textbook(out: &Outputs, reference: &Naive) {
+        assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
+        let smoothed = out.smoothed.as_ref().unwrap();
+        assert_estimates("smoothed", smoothed, &reference.smoothed, 1e-8);
+        assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
+        let rel = (out.log_likelihood - reference.loglik).abs() / reference.loglik.abs();
+        assert!(rel < 1e-8, "log-likelihood {rel}");
+    }
+
     const NOISE: Noise = Noise {
         measurement_k: 0.05,
         power_w_per_sqrt_s: 0.3,
@@ -3662,15 +3673,7 @@ mod tests {
             let p = problem(lag, 400, 7);
             let reference = naive(&p, NOISE);
             let out = run(&p, NOISE, &settings(0.0, 64)).unwrap();
-            assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
-            assert_estimates(
-                "smoothed",
-                out.smoothed.as_ref().unwrap(),
-                &reference.smoothed,
-                1e-8,
-            );
-            assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
-            assert!((out.log_likelihood - reference.loglik).abs() < 1e-8 * reference.loglik.abs());
+            assert_textbook(&out, &reference);
             assert!(out.updates > 300);
         }
     }
@@ -4097,7 +4100,10 @@ mod tests {
             assert!(err.to_string().contains("transition 3"), "{err}");
             bad.transitions[3].eigen.as_mut().unwrap().e.pop();
             let err = run(&bad, NOISE, &settings(0.0, 64)).unwrap_err();
-            assert!(err.to_string().contains("eigenvalues of transition 3"), "{err}");
+            assert!(
+                err.to_string().contains("eigenvalues of transition 3"),
+                "{err}"
+            );
             let k = Kernel::new(&plain, NOISE, &settings(0.0, 64));
             assert!(k.dense[1].is_some() && k.dense[3].is_some());
             assert!(k.basis.iter().all(|&b| b == 0) && k.rotations.is_empty());
@@ -4107,17 +4113,7 @@ mod tests {
                     if tol > 0.0 {
                         assert!(out.frozen_steps > 300, "{} frozen", out.frozen_steps);
                     }
-                    assert_estimates("filtered", &out.filtered, &reference.filtered, 1e-9);
-                    assert_estimates(
-                        "smoothed",
-                        out.smoothed.as_ref().unwrap(),
-                        &reference.smoothed,
-                        1e-8,
-                    );
-                    assert_close("innovation", &out.innovation_k, &reference.innovation, 1e-9);
-                    let rel =
-                        (out.log_likelihood - reference.loglik).abs() / reference.loglik.abs();
-                    assert!(rel < 1e-8, "log-likelihood {rel}");
+                    assert_textbook(&out, &reference);
                 }
             }
         }

@@ -918,7 +918,9 @@ class _Transitions:
             return None
         r = self.a[0].shape[0]
         q = np.stack([np.eye(r) if v is None else v[0] for v in self.eigen])
-        e = np.stack([np.diag(a) if v is None else v[1] for a, v in zip(self.a, self.eigen)])
+        e = np.stack(
+            [np.diag(a) if v is None else v[1] for a, v in zip(self.a, self.eigen, strict=True)]
+        )
         return q, e
 
 
