@@ -54,10 +54,14 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fleetbrake.app.progress import generation_bar
 from fleetbrake.bench import BenchConfigError, require_extra
+
+if TYPE_CHECKING:
+    from fleetbrake.synth.config import SynthConfig
+    from fleetbrake.synth.truth import FleetTruth
 
 __all__ = ["CHILDREN_EVERY", "SAMPLE_S", "bench_fleet", "print_figures"]
 
@@ -172,7 +176,7 @@ def _peak_rss_self_mb(reset: bool) -> float:
 
 def _generate(
     fleet_dir: Path, wagons: int, days: int, seed: int, refinement: float, show: bool
-) -> Any:
+) -> FleetTruth:
     from fleetbrake.synth.generator import SynthConfig, load_truth
 
     if (fleet_dir / "fleet.toml").is_file() and (fleet_dir / "truth").is_dir():
@@ -193,8 +197,8 @@ def _generate(
     return load_truth(fleet_dir)
 
 
-def _generate_here(fleet_dir: Path, config: Any, show: bool) -> None:
-    """Write the fleet of ``config`` (a ``SynthConfig``) into ``fleet_dir``, with its bar."""
+def _generate_here(fleet_dir: Path, config: SynthConfig, show: bool) -> None:
+    """Write the fleet of ``config`` into ``fleet_dir``, with its bar."""
     from fleetbrake.synth.generator import generate_fleet
 
     total = config.wagons + int(config.unregistered_wagon) + int(config.bad_registry_entry)
