@@ -37,14 +37,15 @@ import numpy as np
 import polars as pl
 
 from fleetbrake.app.run import run_fleet
-from fleetbrake.closeloop.loop import CloseLoopConfig, run_close_loop
+from fleetbrake.closeloop.config import CloseLoopConfig
+from fleetbrake.closeloop.loop import run_close_loop
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.effects import LAWS, Effect, EffectSet, effect_from_dict
-from fleetbrake.model.rom import FullModelRunner
-from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.model.fullmodel import FullModelRunner
+from fleetbrake.simulation.config import SimulationConfig
+from fleetbrake.synth.block import BlockSimulator
 from fleetbrake.synth.config import draw_effect
 from fleetbrake.synth.generator import (
-    BlockSimulator,
     FleetTruth,
     SynthConfig,
     generate_fleet,
@@ -171,9 +172,12 @@ WRITER_SOURCES: tuple[str, ...] = (
     "python/fleetbrake/synth",
     "python/fleetbrake/fleet",
     "python/fleetbrake/model/__init__.py",
-    "python/fleetbrake/model/effects.py",
+    "python/fleetbrake/model/chaintypes.py",
+    "python/fleetbrake/model/effects",
+    "python/fleetbrake/model/fullmodel.py",
     "python/fleetbrake/model/physics.py",
     "python/fleetbrake/model/rom.py",
+    "python/fleetbrake/model/rombasis.py",
     "python/fleetbrake/model/thermal.py",
     "python/fleetbrake/model/timeline.py",
     "crates/thermal_core/src",
@@ -398,8 +402,9 @@ def refit_through_meshes(
     each of ``meshes`` a reduced model's refinement (``"0.4"``) or ``"full<refinement>"``
     (the full FE model, slow): mesh -> ``effect.parameter`` -> value. A diagnostic of the
     numerical term (docs/closeloop.md), on a kept fleet (:func:`outcome_in`)."""
-    from fleetbrake.closeloop import loop
+    from fleetbrake.closeloop.evidence import event_sets, load_wagons
     from fleetbrake.closeloop.fitdata import FitData
+    from fleetbrake.closeloop.leastsquares import FitTask, fit_task
     from fleetbrake.simulation.predictions import revision, stored_wagons
     from fleetbrake.warehouse.connection import open_warehouse, sql
 
@@ -413,12 +418,12 @@ def refit_through_meshes(
         base = revision(wh, report["baseline_revision"])
         sim = outcome.loop.simulation
         events = wh.con.sql(sql("q_closeloop_events")).pl()
-        loaded = loop._load_wagons(wh, wagons, events, sim)
-        fit, _, _ = loop._event_sets(wh, base.name, outcome.loop, unknown)
+        loaded = load_wagons(wh, wagons, events, sim)
+        fit, _, _ = event_sets(wh, base.name, outcome.loop, unknown)
         for mesh in meshes:
             solver, refinement = ("full", mesh[4:]) if mesh.startswith("full") else ("rom", mesh)
             other = dataclasses.replace(base, solver=solver, refinement=float(refinement))
-            task = loop.FitTask(
+            task = FitTask(
                 FitData.build(loaded, fit, sim, other),
                 base.effects,
                 tuple(type(e) for e in added),
@@ -427,7 +432,7 @@ def refit_through_meshes(
                 outcome.loop.diff_step,
                 excluded,
             )
-            fitted = loop.fit_task(task)
+            fitted = fit_task(task)
             out[mesh] = dict(zip(fitted.names, map(float, fitted.x), strict=True))
     return out
 

@@ -70,7 +70,7 @@ it (the modules that generate such fleets say ``FE_REFINEMENT = 0.2`` too)."""
 def full_model_for() -> Callable[..., object]:
     """``full_model_for(wagon)``: the full finite-element model of the wagon's block at
     ``FE_REFINEMENT``, assembled once per block for the session."""
-    from fleetbrake.model.rom import FullModelRunner
+    from fleetbrake.model.fullmodel import FullModelRunner
 
     models: dict[tuple[object, ...], FullModelRunner] = {}
 
@@ -142,7 +142,7 @@ def convection_fleet(
     Tests that write to it work on a copy."""
     from fleetbrake.app.run import run_fleet
     from fleetbrake.model.effects import ConvectionSpeed, EffectSet
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     with pytest.MonkeyPatch.context() as mp:

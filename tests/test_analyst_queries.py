@@ -84,7 +84,7 @@ def fleet_db(
 ) -> Iterator[Path]:
     """2 wagons x 2 days with anomalies, through ``run_fleet``."""
     from fleetbrake.app.run import run_fleet
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     out = tmp_path_factory.mktemp("analyst")

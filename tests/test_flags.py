@@ -750,8 +750,8 @@ def run_fleet(
     declared model, raise flags; memoised per arguments."""
     from conftest import TEST_REFINEMENT
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.simulation.predictions import (
-        SimulationConfig,
         current_revision,
         simulate_events,
     )

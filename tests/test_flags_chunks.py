@@ -1,4 +1,4 @@
-"""The flags' partitions read by chunks (fleetbrake.flags.judge): a chunk's tables, read with
+"""The flags' partitions read by chunks (fleetbrake.flags.partition): a chunk's tables, read with
 each wagon's position instead of its name (``q_flags_chunk_*.sql``) and cut in the worker,
 give each wagon the tables its own queries read, the estimates included; and the braking
 statistics (``event_stats``) are the same whether the predictions come sorted (the stage's
@@ -13,9 +13,10 @@ from pathlib import Path
 import polars as pl
 import pytest
 
-from fleetbrake.flags import judge
+from fleetbrake.flags import judge, partition
 from fleetbrake.flags.config import FlagConfig
 from fleetbrake.flags.stats import _by_event_and_time, event_stats
+from fleetbrake.simulation.store import arrow_frame
 from fleetbrake.warehouse.connection import Warehouse
 
 pytestmark = pytest.mark.usefixtures("rom_cache_dir")
@@ -31,7 +32,7 @@ def estimated_fleet(
     the estimation stages: timelines, predictions and estimates stored."""
     from conftest import TEST_REFINEMENT
     from fleetbrake.app.run import run_fleet
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     root = tmp_path_factory.mktemp("flag-chunks")
@@ -49,15 +50,15 @@ def estimated_fleet(
     return root
 
 
-def _heads(wh: Warehouse, fleet_dir: Path, revision_name: str) -> list[judge._FlagHead]:
+def _heads(wh: Warehouse, fleet_dir: Path, revision_name: str) -> list[partition.FlagHead]:
     from fleetbrake.ingest.files import load_fleet_registry
     from fleetbrake.simulation.store import data_keys, simulated_wagons
 
     registry = load_fleet_registry(fleet_dir)
     keys, done = data_keys(wh), simulated_wagons(wh, revision_name)
-    estimated = judge._current_estimates(wh, revision_name)
+    estimated = judge.current_estimates(wh, revision_name)
     return [
-        judge._FlagHead(
+        partition.FlagHead(
             w,
             7.0,
             None,
@@ -82,10 +83,10 @@ def test_a_chunks_tables_cut_in_the_worker_are_each_wagons_own(estimated_fleet: 
         heads = _heads(wh, estimated_fleet / "fleet", rev.name)
         assert len(heads) >= 2 and all(h.estimated for h in heads if h.data_key is not None)
         config = FlagConfig()
-        chunk = judge.flag_chunk(wh, heads, rev.name, config, rev)
-        backwards = judge.flag_chunk(wh, heads[::-1], rev.name, config, rev)
+        chunk = partition.flag_chunk(wh, heads, rev.name, config, rev)
+        backwards = partition.flag_chunk(wh, heads[::-1], rev.name, config, rev)
         alone = {
-            h.wagon_id: judge.flag_task(
+            h.wagon_id: partition.flag_task(
                 wh,
                 h.wagon_id,
                 rev.name,
@@ -101,7 +102,7 @@ def test_a_chunks_tables_cut_in_the_worker_are_each_wagons_own(estimated_fleet: 
         }
     assert "wagon_ix" in chunk.timeline.column_names  # not the names: the test's premise
     tables = ("samples", "events", "segments", "timeline", "predictions", "estimates")
-    for tasks in (judge.chunk_tasks(chunk), judge.chunk_tasks(backwards)[::-1]):
+    for tasks in (partition.chunk_tasks(chunk), partition.chunk_tasks(backwards)[::-1]):
         assert [t.wagon_id for t in tasks] == [h.wagon_id for h in heads]
         for task in tasks:
             theirs = alone[task.wagon_id]
@@ -121,11 +122,11 @@ def test_braking_statistics_do_not_depend_on_the_predictions_order(
 
     with open_warehouse(estimated_fleet / "fleet.duckdb", read_only=True) as wh:
         heads = [h for h in _heads(wh, estimated_fleet / "fleet", "declared") if h.data_key]
-        chunk = judge.flag_chunk(wh, heads, "declared", FlagConfig(), None)
+        chunk = partition.flag_chunk(wh, heads, "declared", FlagConfig(), None)
     judged = 0
-    for task in judge.chunk_tasks(chunk):
+    for task in partition.chunk_tasks(chunk):
         assert task.predictions is not None
-        predictions, events = judge._frame(task.predictions), judge._frame(task.events)
+        predictions, events = arrow_frame(task.predictions), arrow_frame(task.events)
         if predictions.height < 2:
             continue
         shuffled = predictions.sample(fraction=1.0, shuffle=True, seed=3)

@@ -10,7 +10,7 @@ import polars as pl
 import pytest
 
 from fleetbrake.flags import raise_flags, wagon_residual_spread
-from fleetbrake.flags.judge import RESIDUAL_MIN_READINGS
+from fleetbrake.flags.wagon import RESIDUAL_MIN_READINGS
 
 
 def _windows(rms_by_event: dict[int, float], readings: int) -> pl.DataFrame:
@@ -45,8 +45,8 @@ def test_another_wagons_residual_leaves_a_wagons_flags_byte_identical(
 ) -> None:
     from conftest import TEST_REFINEMENT
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.simulation.predictions import (
-        SimulationConfig,
         current_revision,
         simulate_events,
     )

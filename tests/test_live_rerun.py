@@ -30,7 +30,7 @@ from rerun.chunk import RrdReader
 
 from fleetbrake.app.watch.service import FileOutcome, WatchConfig, watch_fleet
 from fleetbrake.fleet.logfile import log_relpath, write_log
-from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.viz.live import (
     APPLICATION_ID,
     LiveAddressError,

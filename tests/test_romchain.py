@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from fleetbrake import _ext
-from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
+from fleetbrake.model.chaintypes import ChainPieces, ChainRule
+from fleetbrake.model.rom import ReducedModel
 from fleetbrake.model.romchain import chain_convection, simulate_chain_sensor
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from fleetbrake.app.run import run_fleet
 from fleetbrake.engine import InlineEngine, LocalEngine
-from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.simulation.config import SimulationConfig
 from fleetgen import snapshot
 
 WALL_CLOCK = (

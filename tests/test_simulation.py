@@ -94,7 +94,7 @@ def test_chain_params_name_a_bad_key() -> None:
 def test_the_gap_that_cuts_a_simulation_is_the_one_that_ends_an_event() -> None:
     """One gap rule for events and simulation: a 12 s hole (too short to end an event) does
     not cut an event's window, nor start a ``gap`` segment; a 20 s one does both."""
-    from fleetbrake.ingest.events import EventConfig
+    from fleetbrake.ingest.config import EventConfig
 
     assert ChainParams().max_gap_s == EventConfig().max_gap_s
     n = 1500
@@ -231,7 +231,7 @@ def fleet(
     events detected; the simulation stage not yet run."""
     from conftest import TEST_REFINEMENT
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     with pytest.MonkeyPatch.context() as mp:
@@ -402,7 +402,7 @@ def test_close_loop_candidates_are_simulated_as_the_stage_stores_predictions(
 
 
 def test_reflag_simulates_the_new_revision_then_judges_from_it(fleet: Fleet) -> None:
-    from fleetbrake.closeloop.loop import _reflag
+    from fleetbrake.closeloop.revision import reflag
     from fleetbrake.simulation.predictions import (
         Revision,
         current_revision,
@@ -427,7 +427,7 @@ def test_reflag_simulates_the_new_revision_then_judges_from_it(fleet: Fleet) -> 
         )
         new = Revision("r1-test", effects, base.solver, base.refinement)
         wh.con.execute("DELETE FROM flags")
-        _reflag(wh, stored_wagons(wh), new, fleet.config)
+        reflag(wh, stored_wagons(wh), new, fleet.config)
         counts = _counts(wh, "r1-test")
         assert counts["timeline"] > 0 and counts["predictions"] > 0
         ((flags,),) = wh.con.execute("SELECT count(*) FROM flags").fetchall()
@@ -694,13 +694,8 @@ def test_the_prediction_rows_are_built_as_one_row_per_window_second(fleet: Fleet
     equals the rows written out one by one from the event windows: every column, every
     value, the nulls where a reading is missing."""
     from fleetbrake.simulation.batched import simulate_span_batched
-    from fleetbrake.simulation.predictions import (
-        _PREDICTION_SCHEMA,
-        Revision,
-        _prediction_frame,
-        load_wagon,
-        model_for,
-    )
+    from fleetbrake.simulation.frames import PREDICTION_SCHEMA, prediction_frame
+    from fleetbrake.simulation.predictions import Revision, load_wagon, model_for
     from fleetbrake.warehouse.connection import open_warehouse
 
     rev = Revision("rows-test")
@@ -738,8 +733,8 @@ def test_the_prediction_rows_are_built_as_one_row_per_window_second(fleet: Fleet
                             "flux_w_m2": float(w.flux_w_m2[i]),
                         }
                     )
-            want = pl.DataFrame(rows, schema=_PREDICTION_SCHEMA)
-            got = _prediction_frame(wagon.wagon_id, rev.name, windows)
+            want = pl.DataFrame(rows, schema=PREDICTION_SCHEMA)
+            got = prediction_frame(wagon.wagon_id, rev.name, windows)
             assert got.schema == want.schema
             assert got.equals(want)
             assert got["measured_sensor_c"].null_count() == want["measured_sensor_c"].null_count()
@@ -798,7 +793,7 @@ def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
     """The simulation's and the flags' chunks (one query per table for several wagons) cut
     into the very tables the per-wagon queries read (``wagon_task``, ``flag_task``), and
     the flags judged by chunks of one wagon or of all are the same."""
-    from fleetbrake.flags import judge
+    from fleetbrake.flags import judge, partition
     from fleetbrake.flags.config import FlagConfig
     from fleetbrake.simulation import predictions as p
     from fleetbrake.simulation.store import data_keys, simulated_wagons
@@ -819,7 +814,7 @@ def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
             assert task.samples.equals(alone.samples) and task.events.equals(alone.events)
         ids = sorted(keys)  # the unregistered wagon too: its readings alone
         heads = [
-            judge._FlagHead(
+            partition.FlagHead(
                 w,
                 7.0,
                 None,
@@ -830,9 +825,9 @@ def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
             for w in ids
         ]
         config = FlagConfig()
-        flag_chunk = judge.flag_chunk(wh, heads, rev.name, config, rev)
-        for task, head in zip(judge.chunk_tasks(flag_chunk), heads, strict=True):
-            alone = judge.flag_task(
+        flag_chunk = partition.flag_chunk(wh, heads, rev.name, config, rev)
+        for task, head in zip(partition.chunk_tasks(flag_chunk), heads, strict=True):
+            alone = partition.flag_task(
                 wh,
                 head.wagon_id,
                 rev.name,

@@ -32,6 +32,7 @@ from fleetbrake.model.effects import (
     SensorLag,
 )
 from fleetbrake.model.physics import block_force_n
+from fleetbrake.synth.block import solar_rise_k
 from fleetbrake.synth.config import draw_effect
 from fleetbrake.synth.generator import (
     SENSOR_FAULT_SUBTYPES,
@@ -39,7 +40,6 @@ from fleetbrake.synth.generator import (
     SynthConfig,
     generate_fleet,
     load_truth,
-    solar_rise_k,
     summary,
 )
 
@@ -647,7 +647,7 @@ def test_a_fleet_made_by_the_full_model(tmp_path, reduced_model_for, monkeypatch
     only (well below the sensor's noise), and the truth says which model made it. While the
     unit sleeps the full model takes ``ASLEEP_STEP_S`` steps: what is logged is as a 1 Hz
     run gives it."""
-    import fleetbrake.synth.generator as generator
+    import fleetbrake.synth.block as block
 
     base = SynthConfig.clean(wagons=1, days=1, seed=6, effects=EffectSet((SensorLag(tau_s=60.0),)))
     reduced = generate_fleet(tmp_path / "rom", base, rom=reduced_model_for)
@@ -663,7 +663,7 @@ def test_a_fleet_made_by_the_full_model(tmp_path, reduced_model_for, monkeypatch
     assert 1e-3 < float(np.sqrt(np.mean(difference**2))) < 0.05
     assert float(np.abs(difference).max()) < 0.3
     # the sleeping steps: against the full model at 1 Hz throughout
-    monkeypatch.setattr(generator, "ASLEEP_MIN_S", 10**9)
+    monkeypatch.setattr(block, "ASLEEP_MIN_S", 10**9)
     every_second = generate_fleet(tmp_path / "full-1hz", full_config).series("SGG-0001")
     awake = b["awake"].to_numpy()
     assert 0.2 < awake.mean() < 0.9

@@ -225,7 +225,7 @@ def _reference_run(
 ) -> Any:
     """``run_fleet`` in this process over ``fleet`` into ``db`` (the session's model)."""
     from fleetbrake.app.run import run_fleet
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
 
     monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(cache_dir))
     return run_fleet(fleet, db, simulation=SimulationConfig(refinement=refinement), progress=False)

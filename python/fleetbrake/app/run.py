@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fleetbrake.engine import Engine, make_engine
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.simulation.estimates import EstimationConfig, EstimationReport, estimate_wagons
 from fleetbrake.simulation.predictions import (
-    SimulationConfig,
     SimulationReport,
     current_revision,
     simulate_events,
@@ -199,13 +199,13 @@ def _wagons_to_judge(
     """The wagons whose flags a run (a whole ``run`` or a unit of ``fleetbrake watch``) must
     judge: those of its ingested files, those the simulation and the estimation recomputed,
     and any whose stored flags are out of date otherwise
-    (:func:`fleetbrake.flags.judge.stale_wagons`: never judged, judged before their data,
+    (:func:`fleetbrake.flags.storage.stale_wagons`: never judged, judged before their data,
     timeline or estimates were last written (a run stopped before its flags), with another
     revision or other thresholds than ``flag_config``, or their flags removed since). A
     wagon's flags depend only on its own data, its registry entry (a changed one
     re-simulates the wagon; a removed one is not seen: ``docs/flags.md``), the revision and
     the thresholds: no detector compares wagons, so the others' stored flags stand."""
-    from fleetbrake.flags.judge import stale_wagons
+    from fleetbrake.flags.storage import stale_wagons
 
     wagons = {r.wagon_id for r in ingest.ingested if r.wagon_id is not None}
     wagons |= set(sim.wagons_simulated) | set(estimated.wagons_estimated)
@@ -229,7 +229,7 @@ def _stages(
     import duckdb
 
     from fleetbrake.flags import raise_flags
-    from fleetbrake.flags.judge import stored_flags
+    from fleetbrake.flags.storage import stored_flags
     from fleetbrake.ingest.events import update_events
     from fleetbrake.ingest.files import ingest_fleet
     from fleetbrake.warehouse.connection import WarehouseError

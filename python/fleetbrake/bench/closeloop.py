@@ -56,7 +56,7 @@ def bench_close_loop(
     figures."""
     from fleetbrake.app.run import run_fleet
     from fleetbrake.model.effects import EffectSet, parse_effect
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     if wagons < 1 or days < 2:

@@ -235,7 +235,7 @@ def bench_fleet(
     from fleetbrake.app.run import run_fleet
     from fleetbrake.fleet.registry import WagonConfig
     from fleetbrake.model.rom import ReducedModel
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
 
     show = sys.stdout.isatty() if progress is None else progress
     tmp = Path(tempfile.mkdtemp(prefix="fleetbrake-bench-fleet-", dir=workdir))

@@ -8,8 +8,11 @@ simulate. One module per concern: :mod:`~fleetbrake.flags.config` (thresholds, t
 :mod:`~fleetbrake.flags.brakes` and :mod:`~fleetbrake.flags.overheating`, the virtual
 sensor's opinion :mod:`~fleetbrake.flags.estimated` (brakes from the unexplained heat power,
 sensor faults dated by the innovations), and
-:mod:`~fleetbrake.flags.judge` (a wagon judged, its flags stored: :func:`raise_flags`; each
-wagon a partition the parent reads, :func:`judge_task` a pure function an engine runs).
+:mod:`~fleetbrake.flags.judge` (the stage: :func:`raise_flags`), with
+:mod:`~fleetbrake.flags.wagon` (a wagon judged from its arrays: :func:`judge_wagon`),
+:mod:`~fleetbrake.flags.partition` (each wagon a partition the parent reads,
+:func:`judge_task` a pure function an engine runs) and :mod:`~fleetbrake.flags.storage`
+(its flags stored).
 """
 
 from fleetbrake.flags.brakes import find_dragging, find_weak
@@ -31,17 +34,9 @@ from fleetbrake.flags.estimated import (
     find_innovation_faults,
     find_weak_estimated,
 )
-from fleetbrake.flags.judge import (
-    FlagOutcome,
-    FlagTask,
-    flag_ids,
-    flag_task,
-    judge_task,
-    judge_wagon,
-    raise_flags,
-    wagon_residual_spread,
-)
+from fleetbrake.flags.judge import raise_flags
 from fleetbrake.flags.overheating import find_overheating
+from fleetbrake.flags.partition import FlagOutcome, FlagTask, flag_task, judge_task
 from fleetbrake.flags.records import Finding, Flag, FlagReport
 from fleetbrake.flags.sensor import (
     find_drift,
@@ -61,6 +56,8 @@ from fleetbrake.flags.stats import (
     segment_stats,
     unsure_mask,
 )
+from fleetbrake.flags.storage import flag_ids
+from fleetbrake.flags.wagon import judge_wagon, wagon_residual_spread
 
 __all__ = [
     "CONFIG_KEYS",

@@ -43,7 +43,7 @@ import hashlib
 import json
 import os
 import secrets
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
 from typing import Literal
@@ -54,6 +54,14 @@ from numpy.typing import ArrayLike, NDArray
 from fleetbrake import _ext
 from fleetbrake.fleet.block import DEFAULT_AMBIENT_C, DEFAULT_CONVECTION_W_M2K
 from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.chaintypes import ChainPieces, ChainRule, ChainRun
+from fleetbrake.model.rombasis import (
+    TRAINING_INITIAL_C,
+    face_max_cover,
+    m_orthonormalise,
+    shift_sequence,
+    training_loading,
+)
 from fleetbrake.model.thermal import (
     AIR_FACES,
     BlockModel,
@@ -65,19 +73,13 @@ from fleetbrake.model.thermal import (
 
 __all__ = [
     "CACHE_DIR_ENV",
-    "CHAIN_ANCHORS",
     "DEFAULT_REFINEMENT",
     "ROM_VERSION",
-    "ChainPieces",
-    "ChainRule",
-    "ChainRun",
-    "FullModelRunner",
     "ReducedModel",
     "RomBatch",
     "RomSimulation",
     "default_cache_dir",
     "first_order_lag",
-    "training_loading",
 ]
 
 ROM_VERSION = 3
@@ -91,8 +93,6 @@ CACHE_DIR_ENV = "FLEETBRAKE_CACHE_DIR"
 """The environment variable naming the directory of built reduced models (documented; the
 only one the package reads)."""
 
-TRAINING_INITIAL_C = 23.0
-"""Uniform start of the training run (manoeuvre A's block temperature)."""
 
 RomScheme = Literal["exact", "crank-nicolson"]
 
@@ -142,83 +142,6 @@ class RomBatch:
     probe_c: NDArray[np.float64]
     face_mean_c: NDArray[np.float64]
     face_max_c: NDArray[np.float64]
-
-
-CHAIN_ANCHORS: tuple[str, ...] = ("none", "start", "before", "after")
-"""How a segment of a chain was anchored, by the code :meth:`ReducedModel.simulate_chain`
-returns."""
-
-
-@dataclass(frozen=True)
-class ChainPieces:
-    """The pieces of one span's chain, for :meth:`ReducedModel.simulate_chain`.
-
-    A piece is samples ``a .. b`` (inclusive) run from a carried state at one reference
-    temperature. Pieces ``0 .. J-1`` are the timeline's segments, in order; the others
-    continue event windows past their braking segments (un-anchored). Piece ``p``'s steps
-    are ``step_offsets[p] .. step_offsets[p+1]`` of the step arrays (T); a 1 s piece has
-    ``b - a`` of them, a coarse piece (a long gap, on a grid of its own) has its grid
-    positions in ``at[at_offsets[p] : at_offsets[p+1]]`` (from ``a`` to ``b``), its outputs
-    interpolated to the seconds.
-    """
-
-    a: NDArray[np.int64]
-    b: NDArray[np.int64]
-    dt_s: NDArray[np.float64]
-    """(P) each piece's time step."""
-    step_offsets: NDArray[np.int64]
-    at: NDArray[np.float64]
-    at_offsets: NDArray[np.int64]
-    flux_w_m2: NDArray[np.float64]
-    """(T) flux of each step (effects applied)."""
-    ambient_c: NDArray[np.float64]
-    """(T) air temperature of each step."""
-    h_w_m2k: NDArray[np.float64]
-    """(T, F) convection of each step, per face set in ``face_names`` order."""
-    window_continuation: NDArray[np.int64]
-    """(J) the piece continuing the window that starts at segment j, -1 if none."""
-    window_length: NDArray[np.int64]
-    """(J) samples of the window starting at segment j, 0 if none."""
-
-
-@dataclass(frozen=True)
-class ChainRule:
-    """The re-anchoring rule (``fleetbrake.simulation.chains.ChainParams``)."""
-
-    anchor_s: int
-    anchor_min_readings: int
-    window_s: int
-    tolerance_k: float
-    lag_tau_s: float | None
-    """A sensor lag's time constant (acting on the block, not on the shifts); None: none."""
-
-
-@dataclass(frozen=True)
-class ChainRun:
-    """A span's chain simulated: the timeline (n, NaN where not simulated), the segments'
-    anchoring (code into :data:`CHAIN_ANCHORS`, shift, reference temperature), and the event
-    windows concatenated in segment order."""
-
-    sensor_c: NDArray[np.float64]
-    contact_mean_c: NDArray[np.float64]
-    contact_max_c: NDArray[np.float64]
-    anchor: NDArray[np.uint8]
-    shift_k: NDArray[np.float64]
-    reference_c: NDArray[np.float64]
-    window_sensor_c: NDArray[np.float64]
-    window_mean_c: NDArray[np.float64]
-    window_max_c: NDArray[np.float64]
-
-
-def training_loading(n_steps: int = 900) -> dict[str, NDArray[np.float64]]:
-    """A braking (paper A's flux), a pause, a drag application and cooling, with the ambient
-    changing: the loading the a-posteriori check runs."""
-    t = np.arange(n_steps, dtype=np.float64)
-    flux = np.where(t < 47, 44_526.0, 0.0)
-    flux = np.where((t >= 200) & (t < 230), 60_000.0 * (1.0 - (t - 200) / 40.0), flux)
-    flux = np.where((t >= 400) & (t < 600), 6_000.0, flux)
-    ambient = 10.0 + 3.0 * np.sin(t / 150.0)
-    return {"flux_w_m2": flux, "ambient_c": ambient}
 
 
 def first_order_lag(
@@ -318,7 +241,7 @@ class ReducedModel:
             field_every=1,
         )
         face_nodes = friction_nodes[
-            _face_max_cover(full.fields_c[:, friction_nodes], 0.1 * tol_face_k)
+            face_max_cover(full.fields_c[:, friction_nodes], 0.1 * tol_face_k)
         ]
         meta: dict[str, object] = {
             "face_names": faces,
@@ -331,12 +254,12 @@ class ReducedModel:
         }
         blocks = [np.ones((n, 1))]
         rom: ReducedModel | None = None
-        for count, shift in enumerate(_shift_sequence(max_shifts), start=1):
+        for count, shift in enumerate(shift_sequence(max_shifts), start=1):
             y = core.solve_shifted(shift, h0, inputs)
             blocks += [y, core.solve_shifted(shift, h0, core.apply(1.0, 0.0, {}, y))]
             if count < 3:
                 continue
-            basis = _m_orthonormalise(core, np.column_stack(blocks))
+            basis = m_orthonormalise(core, np.column_stack(blocks))
             k0 = basis.T @ core.apply(0.0, 1.0, h0, basis)
             lam, w = np.linalg.eigh(0.5 * (k0 + k0.T))
             phi = basis @ w  # (n, r) modes, M-orthonormal
@@ -349,7 +272,7 @@ class ReducedModel:
                     [c_probe @ phi, (loads["friction"] @ phi)[None, :] / area, phi[face_nodes]]
                 ),
             }
-            rom = cls(arrays, {**meta, "shifts_per_s": [float(v) for v in _shift_sequence(count)]})
+            rom = cls(arrays, {**meta, "shifts_per_s": [float(v) for v in shift_sequence(count)]})
             errors = rom._check(full, loading)
             passed = (
                 errors["max_error_sensor_k"] <= tol_sensor_k
@@ -723,72 +646,6 @@ class ReducedModel:
         return e, g, q
 
 
-class FullModelRunner:
-    """The full finite-element model behind the reduced model's ``simulate`` interface, so
-    that ``fleetbrake run --solver full`` is one option away. The state it hands on is
-    ``θ = T - T_ref`` (the whole nodal field), as the reduced model's is, so continuation and
-    re-anchoring mean the same."""
-
-    def __init__(
-        self,
-        model: BlockModel,
-        probe_m: Sequence[float],
-        h_nominal: Mapping[str, float] | None = None,
-    ):
-        self.model = model
-        self.probe_m = [tuple(float(v) for v in probe_m)]
-        self.h_nominal: dict[str, float] = dict(
-            h_nominal
-            if h_nominal is not None
-            else dict.fromkeys(AIR_FACES, DEFAULT_CONVECTION_W_M2K)
-        )
-
-    @classmethod
-    def for_wagon(
-        cls, wagon: WagonConfig, *, refinement: float = DEFAULT_REFINEMENT
-    ) -> FullModelRunner:
-        """The full model of a wagon's block on the mesh of ``refinement``, its sensor seat
-        the one probe."""
-        model = BlockModel(
-            wagon.geometry,
-            wagon.block_material,
-            refinement=refinement,
-            sensor_m=wagon.sensor_point_m,
-        )
-        return cls(model, wagon.sensor_point_m)
-
-    def simulate(
-        self,
-        *,
-        dt_s: float,
-        flux_w_m2: ArrayLike,
-        initial_c: float,
-        ambient_c: float | ArrayLike = DEFAULT_AMBIENT_C,
-        h_w_m2k: Mapping[str, float | ArrayLike] | None = None,
-        initial_state: ArrayLike | None = None,
-    ) -> RomSimulation:
-        start = (
-            float(initial_c)
-            if initial_state is None
-            else np.asarray(initial_state, dtype=np.float64) + float(initial_c)
-        )
-        res = self.model.simulate(
-            dt_s=dt_s,
-            flux_w_m2=flux_w_m2,
-            initial_c=start,
-            ambient_c=ambient_c,
-            h_w_m2k=self.h_nominal if h_w_m2k is None else h_w_m2k,
-            probes_m=self.probe_m,
-        )
-        return RomSimulation(
-            time_s=res.time_s,
-            probe_c=res.probe_c,
-            face_mean_c=res.face_mean_c,
-            face_max_c=res.face_max_c,
-            final_state=res.final_c - float(initial_c),
-        )
-
-
 def _series(name: str, value: float | ArrayLike, n_steps: int) -> NDArray[np.float64]:
     arr = np.asarray(value, dtype=np.float64).reshape(-1)
     if arr.size == 1:
@@ -825,72 +682,3 @@ def _damped_mask(
             mask[jumps] = True
     return mask
 
-
-def _m_orthonormalise(
-    core: object, x: NDArray[np.float64], tol: float = 1e-9
-) -> NDArray[np.float64]:
-    """M-orthonormal basis of the columns of ``x`` (two passes of block Gram-Schmidt with
-    deflation of columns that add nothing new)."""
-    apply = core.apply  # type: ignore[attr-defined]
-    basis: list[NDArray[np.float64]] = []
-    mb: list[NDArray[np.float64]] = []
-    for j in range(x.shape[1]):
-        v = x[:, j].copy()
-        norm0 = float(np.sqrt(v @ apply(1.0, 0.0, {}, v[:, None])[:, 0]))
-        if norm0 == 0.0:
-            continue
-        for _ in range(2):
-            if basis:
-                b = np.column_stack(basis)
-                mbm = np.column_stack(mb)
-                v -= b @ (mbm.T @ v)
-        mv = apply(1.0, 0.0, {}, v[:, None])[:, 0]
-        norm = float(np.sqrt(max(v @ mv, 0.0)))
-        if norm <= tol * norm0:
-            continue
-        basis.append(v / norm)
-        mb.append(mv / norm)
-    return np.column_stack(basis)
-
-
-def _face_max_cover(face_fields: NDArray[np.float64], tol_k: float) -> NDArray[np.int64]:
-    """Fewest friction-face nodes (greedy) whose maximum stays within ``tol_k`` of the whole
-    face's maximum at every time of the training run."""
-    true_max = face_fields.max(axis=1)
-    best = np.full(true_max.shape, -np.inf)
-    chosen: list[int] = []
-    while True:
-        shortfall = true_max - best
-        if shortfall.max() <= tol_k:
-            break
-        # the node that most reduces the worst remaining shortfall
-        gain = true_max[:, None] - np.maximum(best[:, None], face_fields)
-        j = int(np.argmin(gain.max(axis=0)))
-        if j in chosen:
-            break
-        chosen.append(j)
-        best = np.maximum(best, face_fields[:, j])
-    return np.array(sorted(chosen), dtype=np.int64)
-
-
-def _shift_sequence(count: int) -> list[float]:
-    """0, then log10 s over [-4, 1] by bisection: 10, 1e-4, ~0.03, ~0.003, ~0.6, ..."""
-    points = [0.0, 1.0, -4.0]
-    intervals = [(-4.0, 1.0)]
-    while len(points) < count:
-        a, b = intervals.pop(0)
-        m = 0.5 * (a + b)
-        points.append(m)
-        intervals += [(a, m), (m, b)]
-    return [0.0] + [10.0**p for p in points[1:count]]
-
-
-def full_result_as_rom(result: SimulationResult) -> RomSimulation:
-    """View a full-model result with the reduced model's fields (for side-by-side checks)."""
-    return RomSimulation(
-        time_s=result.time_s,
-        probe_c=result.probe_c,
-        face_mean_c=result.face_mean_c,
-        face_max_c=result.face_max_c,
-        final_state=result.final_c,
-    )

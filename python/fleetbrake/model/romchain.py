@@ -38,7 +38,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fleetbrake import _ext
-from fleetbrake.model.rom import ChainPieces, ChainRule, ChainRun, ReducedModel
+from fleetbrake.model.chaintypes import ChainPieces, ChainRule, ChainRun
+from fleetbrake.model.rom import ReducedModel
 
 __all__ = ["StepSystems", "chain_convection", "simulate_chain_sensor"]
 

@@ -36,8 +36,9 @@ from collections.abc import Collection
 import numpy as np
 
 from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.chaintypes import CHAIN_ANCHORS, ChainPieces, ChainRule
 from fleetbrake.model.effects import EffectSet
-from fleetbrake.model.rom import CHAIN_ANCHORS, ChainPieces, ChainRule, ReducedModel
+from fleetbrake.model.rom import ReducedModel
 from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
 from fleetbrake.simulation.chains import (
     ANCHOR_TOLERANCE_K,

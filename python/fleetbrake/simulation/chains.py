@@ -55,9 +55,10 @@ import numpy as np
 
 from fleetbrake.errors import ConfigError
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.ingest.events import EventConfig
+from fleetbrake.ingest.config import EventConfig
 from fleetbrake.model.effects import EffectSet
-from fleetbrake.model.rom import FullModelRunner, ReducedModel, first_order_lag
+from fleetbrake.model.fullmodel import FullModelRunner
+from fleetbrake.model.rom import ReducedModel, first_order_lag
 from fleetbrake.model.timeline import TimelineResult, simulate_timeline
 from fleetbrake.simulation.series import (
     FloatArray,

@@ -4,7 +4,8 @@ with the current model revision, and what the next stages need is stored (contra
 
 ::
 
-    from fleetbrake.simulation.predictions import SimulationConfig, current_revision, simulate_events
+    from fleetbrake.simulation.config import SimulationConfig
+    from fleetbrake.simulation.predictions import current_revision, simulate_events
 
     rev = current_revision(wh)
     report = simulate_events(wh, registry, rev, SimulationConfig())
@@ -47,19 +48,17 @@ import logging
 import os
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Literal
 
-import numpy as np
 import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.errors import UnknownKeyError
 from fleetbrake.fleet.registry import Registry, WagonConfig
 from fleetbrake.model.effects import EffectSet
-from fleetbrake.model.rom import DEFAULT_REFINEMENT, FullModelRunner, ReducedModel
+from fleetbrake.model.fullmodel import FullModelRunner
+from fleetbrake.model.rom import DEFAULT_REFINEMENT, ReducedModel
 from fleetbrake.simulation.batched import simulate_span_batched
 from fleetbrake.simulation.chains import (
-    ChainParams,
     EventWindow,
     Model,
     SpanResult,
@@ -67,11 +66,14 @@ from fleetbrake.simulation.chains import (
     simulate_span,
     uniform_windows,
 )
+from fleetbrake.simulation.config import SimulationConfig
+from fleetbrake.simulation.frames import prediction_frame, segment_frame, timeline_frame
 from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
 from fleetbrake.simulation.store import (
     Mapper,
     WagonRows,
     WagonWrite,
+    arrow_frame,
     chunk_name,
     chunk_pipeline,
     chunk_table,
@@ -92,7 +94,6 @@ __all__ = [
     "DECLARED",
     "Mapper",
     "Revision",
-    "SimulationConfig",
     "SimulationReport",
     "UnknownRevisionError",
     "WagonChunk",
@@ -135,34 +136,6 @@ class Revision:
     refinement: float = DEFAULT_REFINEMENT
     """The mesh refinement of its model: a revision's predictions all come from one mesh, and
     a closed loop's child keeps its parent's (as it keeps the solver)."""
-
-
-@dataclass(frozen=True)
-class SimulationConfig:
-    initial_state: Literal["carried", "uniform"] = "carried"
-    """How an event window starts: the chain carried to the activation and re-anchored
-    there, or a uniform block at the reading at activation (the paper's)."""
-    chain: ChainParams = field(default_factory=ChainParams)
-    """The chain/re-anchor algorithm's numbers (shared with the flags' timeline and the
-    close loop)."""
-    refinement: float = DEFAULT_REFINEMENT
-    """Mesh refinement of a new ``declared`` revision's model (1.0: the default mesh). A
-    revision keeps the refinement it was made with (``model_revisions.refinement``)."""
-    solver: Literal["rom", "full"] = "rom"
-    """What a new ``declared`` revision predicts with: the reduced model (default), or the
-    full finite-element model (the reference; a thousand times slower). A revision keeps the
-    solver it was made with."""
-    batch_rows: int = 1_000_000
-    """The stage writes several wagons per transaction, up to about this many rows (of
-    ``predictions``, ``timeline`` and ``timeline_segments``) in each; a wagon is never split
-    (a larger one is written alone), so each stays whole-old or whole-new. 1: one wagon per
-    transaction. Changes no row. DuckDB's writer spends about half the processor time per
-    row on transactions of 0.7 M rows and more as on transactions of 0.2 M
-    (``docs/benchmarks.md``)."""
-    chunk_rows: int = 200_000
-    """The parent reads the wagons' samples and events a chunk of wagons at a time, about
-    this many samples (one query per table and chunk, :class:`WagonChunk`), and a worker
-    simulates the chunk's wagons one by one. Changes no row."""
 
 
 @dataclass
@@ -373,161 +346,12 @@ def predict_wagon(
         for e in sorted((held if wanted is None else wanted) - predicted)
     ]
     return WagonPrediction(
-        predictions=_prediction_frame(data.wagon.wagon_id, rev.name, windows),
-        timeline=_timeline_frame(data.wagon.wagon_id, rev.name, spans),
-        segments=_segment_frame(data.wagon.wagon_id, rev.name, spans),
+        predictions=prediction_frame(data.wagon.wagon_id, rev.name, windows),
+        timeline=timeline_frame(data.wagon.wagon_id, rev.name, spans),
+        segments=segment_frame(data.wagon.wagon_id, rev.name, spans),
         events=len(windows),
         skipped=skipped,
     )
-
-
-def _times(series: WagonSeries, k: np.ndarray) -> np.ndarray:
-    return np.datetime64(series.t0, "us") + (k.astype(np.int64) * 1_000_000).astype(
-        "timedelta64[us]"
-    )
-
-
-_PREDICTION_SCHEMA = pl.Schema(
-    {
-        "event_id": pl.String(),
-        "wagon_id": pl.String(),
-        "time_utc": pl.Datetime("us"),
-        "model_revision": pl.String(),
-        "phase": pl.String(),
-        "measured_sensor_c": pl.Float64(),
-        "predicted_sensor_c": pl.Float64(),
-        "predicted_contact_mean_c": pl.Float64(),
-        "predicted_contact_max_c": pl.Float64(),
-        "speed_kmh": pl.Float64(),
-        "brake_pressure_bar": pl.Float64(),
-        "ambient_c": pl.Float64(),
-        "flux_w_m2": pl.Float64(),
-    }
-)
-
-
-def _prediction_frame(
-    wagon_id: str, rev: str, windows: list[tuple[WagonSeries, EventWindow, FloatArray]]
-) -> pl.DataFrame:
-    """The windows as rows of ``predictions`` (built column by column, in bulk)."""
-    if not windows:
-        return pl.DataFrame(schema=_PREDICTION_SCHEMA)
-    columns: dict[str, list[np.ndarray]] = {name: [] for name in _PREDICTION_SCHEMA}
-    window_of: list[np.ndarray] = []  # each row's window (index into ``windows``)
-    heating: list[np.ndarray] = []
-    for i, (series, w, speed) in enumerate(windows):
-        k = np.arange(w.start, w.stop + 1)
-        assert w.sensor_c is not None and w.contact_mean_c is not None
-        assert w.contact_max_c is not None and w.flux_w_m2 is not None
-        window_of.append(np.full(k.size, i, dtype=np.uint32))
-        heating.append(k <= w.release)
-        columns["time_utc"].append(_times(series, k))
-        columns["measured_sensor_c"].append(series.measured_c[k])
-        columns["predicted_sensor_c"].append(w.sensor_c)
-        columns["predicted_contact_mean_c"].append(w.contact_mean_c)
-        columns["predicted_contact_max_c"].append(w.contact_max_c)
-        columns["speed_kmh"].append(speed[k])
-        columns["brake_pressure_bar"].append(series.pressure_bar[k])
-        columns["ambient_c"].append(series.ambient_c[k])
-        columns["flux_w_m2"].append(w.flux_w_m2)
-    # the strings made by polars from one value per window, not one Python object per row
-    event_ids = pl.Series("event_id", [w.event_id for _, w, _ in windows], dtype=pl.String)
-    strings = {
-        "event_id": event_ids.gather(np.concatenate(window_of)),
-        "phase": pl.Series("phase", ["cooling", "heating"], dtype=pl.String).gather(
-            np.concatenate(heating).astype(np.uint32)
-        ),
-    }
-    constant = {"wagon_id": wagon_id, "model_revision": rev}
-    frame = pl.DataFrame(
-        [
-            *strings.values(),
-            *(
-                pl.Series(name, np.concatenate(parts), dtype=_PREDICTION_SCHEMA[name])
-                for name, parts in columns.items()
-                if parts
-            ),
-        ]
-    )
-    return frame.with_columns(
-        *(pl.lit(value, dtype=pl.String).alias(name) for name, value in constant.items()),
-        pl.col("measured_sensor_c").fill_nan(None),
-    ).select(list(_PREDICTION_SCHEMA))
-
-
-_TIMELINE_SCHEMA = pl.Schema(
-    {
-        "wagon_id": pl.String(),
-        "model_revision": pl.String(),
-        "time_utc": pl.Datetime("us"),
-        "predicted_sensor_c": pl.Float64(),
-        "predicted_contact_mean_c": pl.Float64(),
-        "predicted_contact_max_c": pl.Float64(),
-    }
-)
-
-
-def _timeline_frame(
-    wagon_id: str, rev: str, spans: list[tuple[WagonSeries, SpanResult]]
-) -> pl.DataFrame:
-    """The timeline at every logged second of the spans."""
-    parts = []
-    for series, result in spans:
-        k = np.flatnonzero(series.present & np.isfinite(result.sensor_c))
-        parts.append(
-            pl.DataFrame(
-                {
-                    "wagon_id": wagon_id,
-                    "model_revision": rev,
-                    "time_utc": _times(series, k),
-                    "predicted_sensor_c": result.sensor_c[k],
-                    "predicted_contact_mean_c": result.contact_mean_c[k],
-                    "predicted_contact_max_c": result.contact_max_c[k],
-                },
-                schema=_TIMELINE_SCHEMA,
-            )
-        )
-    return pl.concat(parts) if parts else pl.DataFrame(schema=_TIMELINE_SCHEMA)
-
-
-_SEGMENT_SCHEMA = pl.Schema(
-    {
-        "wagon_id": pl.String(),
-        "model_revision": pl.String(),
-        "span_start_utc": pl.Datetime("us"),
-        "span_end_utc": pl.Datetime("us"),
-        "start_utc": pl.Datetime("us"),
-        "stop_utc": pl.Datetime("us"),
-        "kind": pl.String(),
-        "event_id": pl.String(),
-        "anchor": pl.String(),
-        "shift_k": pl.Float64(),
-        "reference_c": pl.Float64(),
-    }
-)
-
-
-def _segment_frame(
-    wagon_id: str, rev: str, spans: list[tuple[WagonSeries, SpanResult]]
-) -> pl.DataFrame:
-    rows = [
-        {
-            "wagon_id": wagon_id,
-            "model_revision": rev,
-            "span_start_utc": series.t0,
-            "span_end_utc": series.utc(series.n - 1),
-            "start_utc": series.utc(s.start),
-            "stop_utc": series.utc(s.stop),
-            "kind": s.kind,
-            "event_id": s.event_id,
-            "anchor": s.anchor,
-            "shift_k": s.shift_k,
-            "reference_c": s.reference_c,
-        }
-        for series, result in spans
-        for s in result.segments
-    ]
-    return pl.DataFrame(rows, schema=_SEGMENT_SCHEMA)
 
 
 # --------------------------------------------------------------------------------------------
@@ -600,12 +424,6 @@ class WagonResult:
         return int(self.predictions.num_rows + self.timeline.num_rows + self.segments.num_rows)
 
 
-def _frame(table: pa.Table) -> pl.DataFrame:
-    frame = pl.from_arrow(table)
-    assert isinstance(frame, pl.DataFrame)
-    return frame
-
-
 def wagon_task(
     wh: Warehouse,
     wagon: WagonConfig,
@@ -638,10 +456,10 @@ def simulate_wagon(task: WagonTask) -> WagonResult:
     wagon, config = task.wagon, task.config
     spans = WagonSeries.spans_from_frame(
         wagon.wagon_id,
-        _frame(task.samples),
+        arrow_frame(task.samples),
         ambient_default_c=float(wagon.ambient_temp_c),
         bridge_max_s=config.chain.bridge_max_s,
-        events=_frame(task.events),
+        events=arrow_frame(task.events),
     )
     model = _process_model(wagon, task.rev.solver, task.rev.refinement)
     result = predict_wagon(

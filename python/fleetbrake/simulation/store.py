@@ -38,6 +38,7 @@ __all__ = [
     "WagonRows",
     "WagonWrite",
     "WriteBehind",
+    "arrow_frame",
     "chunk_pipeline",
     "chunk_table",
     "data_keys",
@@ -126,6 +127,13 @@ class SimulatedWagon:
     model_key: str
     events: int
     simulated_utc: dt.datetime
+
+
+def arrow_frame(table: pa.Table) -> pl.DataFrame:
+    """An Arrow table of a partition as a polars frame (what a worker computes on)."""
+    frame = pl.from_arrow(table)
+    assert isinstance(frame, pl.DataFrame)
+    return frame
 
 
 def table_rows(table: pl.DataFrame | pa.Table) -> int:
