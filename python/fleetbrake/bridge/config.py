@@ -114,7 +114,10 @@ def _topic_levels(topic: str) -> list[str]:
 
 @dataclass(frozen=True)
 class BridgeConfig:
-    """Everything ``fleetbrake bridge mqtt`` needs; see ``docs/operations.md``."""
+    """Everything ``fleetbrake bridge mqtt`` needs; see ``docs/operations.md``.
+
+    Read by: ``fleetbrake bridge mqtt``.
+    """
 
     broker: str
     """Broker URL, ``mqtt://[user[:password]@]host[:port]`` or ``mqtts://...`` for TLS."""
@@ -127,6 +130,7 @@ class BridgeConfig:
     client_id: str = DEFAULT_CLIENT_ID
     """MQTT client id, the name of the persistent session: the same across restarts."""
     protocol: MqttProtocol = MqttProtocol.V5
+    """MQTT protocol version spoken to the broker: ``5`` or ``3.1.1``."""
     password_file: Path | None = None
     """A file whose first line is the broker password (instead of one in the URL, which
     other users of the machine can read in the process list)."""
@@ -134,6 +138,7 @@ class BridgeConfig:
     """MQTT 5: how long the broker keeps the session (and queues messages) while the bridge
     is away."""
     keepalive_s: int = 60
+    """MQTT keep-alive: the longest silence towards the broker before a ping."""
     gap_s: float = 300.0
     """A sample more than this after the last one of a wagon's open session ends the session."""
     max_file_s: float = 3600.0
@@ -152,9 +157,11 @@ class BridgeConfig:
     """How far before a session's first sample the wagon's files already landed are read to
     drop samples they hold (a file of the format spans at most 48 h)."""
     max_payload_bytes: int = 16 * 1024 * 1024
+    """A larger message is dropped (logged with its topic) and acknowledged."""
     reconnect_min_s: float = 1.0
     """First wait before connecting again after the broker was lost; doubled at each failure."""
     reconnect_max_s: float = 60.0
+    """Longest wait between two attempts to connect again."""
     health_every_s: float = 60.0
     """Seconds between two health lines in the log (level INFO)."""
     tick_s: float = 0.2

@@ -8,9 +8,10 @@ TOML file a fleet engineer sets them in (``fleetbrake run --flag-config FILE``).
     config = load_flag_config("flags.toml")     # the defaults, with the keys the file sets
     config = FlagConfig(contact_limit_c=380.0)  # or in code
 
-``docs/flags.md`` explains each key. How the timeline the detectors judge is cut and anchored
-is not a flag threshold but the simulation's (``fleetbrake.simulation.chains.ChainParams``):
-the keys that used to be here for it are refused with a message saying where they went.
+``docs/flags.md`` explains each key, ``docs/configuration.md`` lists them. How the timeline
+the detectors judge is cut and anchored is not a flag threshold but the simulation's
+(``fleetbrake.simulation.chains.ChainParams``): a file setting one of those keys is refused
+with a message naming the field that holds it (:data:`MOVED_KEYS`).
 """
 
 from __future__ import annotations
@@ -48,72 +49,74 @@ class FlagConfigError(ConfigError):
 
 @dataclass(frozen=True)
 class FlagConfig:
-    """Every threshold of the flags, with its unit. ``docs/flags.md`` explains each.
+    """Every threshold of the flags, its unit in its name. ``docs/flags.md`` explains each.
 
     A TOML file for :func:`load_flag_config` sets any of these by name, at the top level::
 
         contact_limit_c = 380.0
         weak_ratio = 0.7
+
+    Read by: ``fleetbrake run``, ``fleetbrake watch``, ``fleetbrake demo``.
     """
 
     # ---- data handling (all kinds)
     p_quiet_bar: float = 0.05
-    """bar: cylinder pressure at or below which the brake counts as released (the events'
+    """Cylinder pressure at or below which the brake counts as released (the events'
     baseline)."""
     min_segment_s: int = 120
-    """s: a segment shorter than this is simulated but not judged."""
+    """A segment shorter than this is simulated but not judged."""
     edge_s: int = 30
-    """s: the readings averaged at each end of a segment for its start and end values."""
+    """The readings averaged at each end of a segment for its start and end values."""
     settle_s: int = 900
-    """s: after a data gap in which the wagon may have braked, or a braking with frozen GPS
+    """After a data gap in which the wagon may have braked, or a braking with frozen GPS
     speed, segments and brakings starting within this are not judged (the simulated block is
     unsure)."""
     gap_moving_speed_kmh: float = 5.0
-    """km/h: a data gap longer than the simulation's ``max_gap_s`` whose rows on either side
+    """A data gap longer than the simulation's ``max_gap_s`` whose rows on either side
     show the wagon faster than this (or braking) may hide brakings: the block is unsure for
     ``settle_s`` after it (below it the wagon stood, and nothing heated the block)."""
     speed_frozen_s: int = 10
-    """s: GPS speed repeating one value at least this long while moving is frozen (a braking
+    """GPS speed repeating one value at least this long while moving is frozen (a braking
     over it has an unknown heat input) ..."""
     speed_frozen_min_kmh: float = 1.0
-    """km/h: ... moving meaning faster than this (a standing wagon's speed repeats anyway)."""
+    """... moving meaning faster than this (a standing wagon's speed repeats anyway)."""
     smooth_s: int = 15
-    """s: the measured peak of a braking is taken after a running mean over this many seconds."""
+    """The measured peak of a braking is taken after a running mean over this many seconds."""
 
     # ---- sensor_fault
     fault_merge_gap_s: int = 600
-    """s: sensor faults of one wagon closer than this are one flag (out-of-range runs closer
+    """Sensor faults of one wagon closer than this are one flag (out-of-range runs closer
     than this are one run)."""
     frozen_min_s: int = 120
-    """s: a reading unchanged at least this long may be frozen."""
+    """A reading unchanged at least this long may be frozen."""
     frozen_resolution_k: float = 0.01
-    """K: readings differing by less than this count as unchanged (the logging resolution)."""
+    """Readings differing by less than this count as unchanged (the logging resolution)."""
     frozen_min_change_k: float = 0.5
-    """K: ... it is frozen if the model predicts a change of at least this meanwhile, ..."""
+    """... it is frozen if the model predicts a change of at least this meanwhile, ..."""
     frozen_noise_k: float = 0.03
-    """K: ... or if the same sensor's noise around the run (estimated from the median
+    """... or if the same sensor's noise around the run (estimated from the median
     reading-to-reading difference) is at least this: a live reading would have moved ..."""
     frozen_noise_window_s: int = 3600
-    """s: ... that noise taken from the readings within this on either side of the run ..."""
+    """... that noise taken from the readings within this on either side of the run ..."""
     frozen_noise_min_pairs: int = 60
     """... and only from at least this many pairs of consecutive valid readings there."""
     dropout_min_s: int = 60
-    """s: readings missing at least this long, in rows that have their other values, are a
+    """Readings missing at least this long, in rows that have their other values, are a
     dropout."""
     loose_min_contrast_k: float = 3.0
-    """K: a quiet window is judged for a loose sensor if the reading starts at least this far
+    """A quiet window is judged for a loose sensor if the reading starts at least this far
     above the air."""
     loose_min_drop_k: float = 2.0
-    """K: ... and falls by at least this, and by this much more than the model says the block
+    """... and falls by at least this, and by this much more than the model says the block
     cools, ..."""
     loose_min_fraction: float = 0.3
     """... covering this much more of the way to the air than the block does (0-1)."""
     loose_min_predicted_rise_k: float = 2.0
-    """K: a braking tells a loose sensor (one not rising in it) from a sound one only when the
+    """A braking tells a loose sensor (one not rising in it) from a sound one only when the
     model predicts a rise of at least this (and ``weak_min_predicted_rise_k``) in it: smaller
     rises are lost in the noise and the sensor's own lag."""
     loose_ambient_k: float = 3.0
-    """K: a reading within this of the air reads the air (a loose sensor's, after a while)."""
+    """A reading within this of the air reads the air (a loose sensor's, after a while)."""
     detached_ratio: float = 0.25
     """A braking whose measured rise is below this share of the predicted one while the
     reading is at the air temperature shows a sensor not touching the block."""
@@ -121,19 +124,19 @@ class FlagConfig:
     """A braking whose measured rise is at least this share of the predicted one shows a
     sensor in contact (a loose-sensor flag ends before it)."""
     drift_min_rate_k_per_h: float = 2.0
-    """K/h: a quiet window whose measured - predicted changes at least this fast, steadily,
+    """A quiet window whose measured - predicted changes at least this fast, steadily,
     may be drifting ..."""
     drift_max_rate_k_per_h: float = 30.0
-    """K/h: ... up to this (faster is not a calibration drift)."""
+    """... up to this (faster is not a calibration drift)."""
     drift_max_rms_k: float = 0.3
-    """K: ... when measured - predicted stays within this (rms) of a straight line."""
+    """... when measured - predicted stays within this (rms) of a straight line."""
     drift_min_windows: int = 3
     """Consecutive drifting segments (of one sign, at least one a quiet window) needed for a
     flag ..."""
     drift_min_duration_s: int = 1500
-    """s: ... spanning at least this, ..."""
+    """... spanning at least this, ..."""
     drift_min_change_k: float = 1.5
-    """K: ... adding up to at least this, with at least one window starting ``settle_after_
+    """... adding up to at least this, with at least one window starting ``settle_after_
     braking_s`` after the last release (the block has settled: no braking explains it)."""
     drift_heat_flow_ratio: float = 0.35
     """A run whose rates a rate proportional to the block's excess over the air fits with
@@ -150,17 +153,21 @@ class FlagConfig:
     """Quiet windows long after a braking needed to fit (and take out) the model's heat-flow
     error of a wagon before drifts are judged (fewer: nothing taken out)."""
     settle_after_braking_s: int = 600
-    """s: a quiet window starting this long after a release has a settled block."""
+    """A quiet window starting this long after a release has a settled block."""
     sensor_warning_s: int = 60
-    """s: a sensor fault shorter than this is ``info`` (a glitch), longer ``warning`` ..."""
+    """A sensor fault shorter than this is ``info`` (a glitch), longer ``warning`` ..."""
     sensor_alarm_s: int = 3600
-    """s: ... and ``alarm`` from this long (the block has gone unwatched that long)."""
+    """... and ``alarm`` from this long (the block has gone unwatched that long)."""
 
     # ---- weak_brake
     weak_ratio: float = 0.75
     """A braking is weak when measured rise / predicted rise is below this ..."""
     weak_min_predicted_rise_k: float = 1.0
-    """K: ... and the predicted rise is at least this (smaller ones are not judged)."""
+    """... and the predicted rise is at least this (smaller ones are not judged)."""
+    weak_min_deficit_k: float = 0.3
+    """... and falls short of the predicted rise by at least this (raised to
+    ``residual_factor`` x the revision's residual spread: a model error no larger than the
+    residual is not a weak brake)."""
     weak_alarm_ratio: float = 0.5
     """A weak-brake flag whose brakings' median ratio is below this is ``alarm``, else
     ``warning``."""
@@ -169,49 +176,44 @@ class FlagConfig:
     min_valid_fraction: float = 0.8
     """A braking or window is judged only if at least this share of its readings is valid."""
     rise_start_s: int = 5
-    """s: a braking's measured rise is counted from the mean of the valid readings in its
+    """A braking's measured rise is counted from the mean of the valid readings in its
     first this many seconds (one reading would add its noise to the rise); none valid there:
     the braking is not judged."""
 
     # ---- dragging_brake
     drag_min_speed_kmh: float = 10.0
-    """km/h: a quiet window is judged for dragging only at this mean speed or more (a block
+    """A quiet window is judged for dragging only at this mean speed or more (a block
     cannot be heated by friction at a standstill)."""
     drag_min_rise_k: float = 1.0
-    """K: the block must heat by at least this over the window, ..."""
+    """The block must heat by at least this over the window, ..."""
     drag_min_excess_k: float = 3.0
-    """K: ... and by at least this more than the model, with no cylinder pressure, predicts."""
+    """... and by at least this more than the model, with no cylinder pressure, predicts."""
     drag_unsure_excess_k: float = 10.0
-    """K: within ``settle_s`` after a data gap in which the wagon may have braked, a window
+    """Within ``settle_s`` after a data gap in which the wagon may have braked, a window
     needs this much heating beyond the model (an unsure simulation is off by a few kelvin at
     most)."""
     drag_event_ratio: float = 1.5
     """A braking heating more than this times the predicted rise ..."""
     drag_event_excess_k: float = 5.0
-    """K: ... and by at least this much more is dragging too."""
+    """... and by at least this much more is dragging too."""
     drag_merge_gap_s: int = 1800
-    """s: dragging windows and brakings closer than this are one flag."""
+    """Dragging windows and brakings closer than this are one flag."""
     drag_alarm_excess_k: float = 15.0
-    """K: a dragging flag whose heating beyond the model adds up to this is ``alarm``, else
+    """A dragging flag whose heating beyond the model adds up to this is ``alarm``, else
     ``warning``."""
-
-    weak_min_deficit_k: float = 0.3
-    """K: ... and falls short of the predicted rise by at least this (raised to
-    ``residual_factor`` x the revision's residual spread: a model error no larger than the
-    residual is not a weak brake)."""
 
     # ---- the estimator's opinion (the virtual sensor, fleetbrake.model.estimator)
     estimator: bool = True
     """Judge the brakes and the sensor on the virtual sensor's estimate too (the unexplained
     heat power and the innovations); false: the timeline's detectors alone."""
     est_drag_min_power_w: float = 60.0
-    """W: a dragging brake is unexplained heat power into the block whose lower 95 % bound
+    """A dragging brake is unexplained heat power into the block whose lower 95 % bound
     stays above this ..."""
     est_drag_min_s: int = 300
-    """s: ... for at least this long (seconds with the cylinder released, moving faster than
+    """... for at least this long (seconds with the cylinder released, moving faster than
     ``drag_min_speed_kmh``; short interruptions up to ``est_drag_join_s`` are bridged) ..."""
     est_drag_join_s: int = 120
-    """s: ... such runs closer than this are one."""
+    """... such runs closer than this are one."""
     est_weak_fraction: float = 0.25
     """A braking is weak for the estimator when the unexplained energy over its window is
     below minus this share of the declared braking energy, ..."""
@@ -219,23 +221,23 @@ class FlagConfig:
     """... and its upper bound (the power's upper 95 % bounds summed over the window) below
     minus this share of it."""
     est_weak_min_kj: float = 50.0
-    """kJ: brakings declaring less heat into the block than this are not judged by the
+    """Brakings declaring less heat into the block than this are not judged by the
     estimator (their missing heat is lost in the noise)."""
     est_tail_s: int = 300
-    """s: a braking's window for the estimator runs from activation to this long after the
+    """A braking's window for the estimator runs from activation to this long after the
     release (or the next activation): the time the filter takes to see the heat."""
     est_nis_window_s: int = 60
-    """s: the normalised innovations (nu^2 / S) are averaged over windows of this many valid
+    """The normalised innovations (nu^2 / S) are averaged over windows of this many valid
     readings ..."""
     est_nis_max: float = 25.0
     """... and a window whose mean is above this (after scaling by the revision's residual
     spread) while the unexplained power cannot follow it is a sensor that stopped reading
     the block."""
     est_settle_s: int = 1800
-    """s: the estimator's first seconds of each span (the filter converging from its prior)
+    """The estimator's first seconds of each span (the filter converging from its prior)
     are not judged."""
 
-    # ---- residual scaling (issue 13)
+    # ---- residual scaling
     residual_factor: float = 4.0
     """Thresholds in kelvin of the brake and drift detectors are at least this many times the
     wagon's residual spread for the revision (the median over its brakings of the rms of
@@ -244,12 +246,12 @@ class FlagConfig:
 
     # ---- overheating
     contact_limit_c: float = 400.0
-    """degC: predicted wheel-block contact maximum above which a braking is overheating
+    """Predicted wheel-block contact maximum above which a braking is overheating
     (see docs/flags.md for where 400 degC comes from)."""
     overheat_warning_margin_k: float = 20.0
-    """K: over the limit by less than this is ``info``, ..."""
+    """Over the limit by less than this is ``info``, ..."""
     overheat_alarm_margin_k: float = 100.0
-    """K: ... by this or more ``alarm``, in between ``warning``."""
+    """... by this or more ``alarm``, in between ``warning``."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -336,8 +338,8 @@ MOVED_KEYS: dict[str, str] = {
     "window_s": "window_s",
     "after_release_s": "quiet_after_release_s",
 }
-"""Keys of earlier flag configurations that now belong to the simulation's timeline
-(``fleetbrake.simulation.chains.ChainParams``): old key -> its field there."""
+"""Keys a flag configuration file may not set because they cut and anchor the simulation's
+timeline (``fleetbrake.simulation.chains.ChainParams``): key -> its field there."""
 
 
 def _check_field(name: str, kind: object, value: object) -> str | None:

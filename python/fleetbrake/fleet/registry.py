@@ -320,28 +320,52 @@ def _cross_problems(values: Mapping[str, Any]) -> list[tuple[tuple[str, ...], st
 class WagonConfig:
     """The registry entry of one wagon, ``[defaults]`` applied; SI, checked on construction.
 
-    Defaults are the values of fleet-data.md. Constructing one directly runs the same checks
-    as :func:`load_registry` and raises ``ValueError`` naming every problem; integers given
-    for float keys are stored as floats.
+    Defaults are the values of fleet-data.md; every field but ``wagon_id`` (the entry's
+    ``id``) is a key of ``fleet.toml``. Constructing one directly runs the same checks as
+    :func:`load_registry` and raises ``ValueError`` naming every problem; integers given for
+    float keys are stored as floats.
+
+    Read by: ``fleetbrake ingest``, ``fleetbrake run``, ``fleetbrake watch``,
+    ``fleetbrake close-loop``, ``fleetbrake record``, ``fleetbrake paper``,
+    ``fleetbrake demo``.
     """
 
     wagon_id: str
+    """The wagon's id (``id`` of its ``[[wagon]]`` entry), matching ``[A-Za-z0-9_-]{1,64}``."""
     type: str | None = None
+    """The wagon type (``Sggmrs``); informative only."""
     wheel_radius_m: float = 0.46
+    """Wheel radius (920 mm nominal wheel)."""
     blocks_per_bogie: int = 16
+    """Brake blocks of one bogie (2Bgu: four blocks per wheel, four wheels)."""
     blocks_per_wheel: int = 4
+    """Brake blocks acting on one wheel."""
     cylinder_diameter_m: float = 0.254
+    """Bore of the brake cylinder."""
     rigging_ratio_total: float = 8.0
+    """Total rigging ratio i_tot (central rigging 2 x rigging after the central one 4)."""
     rigging_ratio_after_central: float = 4.0
+    """Rigging ratio after the central rigging, i_II."""
     rigging_efficiency: float = 0.83
+    """Dynamic efficiency of the rigging, eta_dyn, in (0, 1]."""
     regulator_force_n: float = 2000.0
+    """Spring force of the brake regulator (slack adjuster), F_s,rig, subtracted after the
+    central rigging (block-model.md, eq. 3)."""
     cylinder_spring_force_n: float = 1500.0
+    """Force of the brake cylinder's return spring, F_s,cylinder, subtracted from the
+    pressure's (block-model.md, eq. 4)."""
     friction_coefficient: float = 0.15
+    """Mean wheel-block friction coefficient, in (0, 1)."""
     ambient_temp_c: float = 10.0
+    """Air temperature used where a log has no ``ambient_temp_c``."""
     block: str = "cast-iron-bgu"
+    """The reference block (geometry and material, block-model.md)."""
     sensor_depth_m: float = 0.055
+    """Sensor seat: radial distance from the friction face."""
     sensor_theta_deg: float = 0.0
+    """Sensor seat: angular position, 0 the middle of the block."""
     sensor_z_m: float = 0.0
+    """Sensor seat: axial position, 0 the middle of the block width."""
 
     def __post_init__(self) -> None:
         problems: list[str] = []

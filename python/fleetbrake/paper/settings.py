@@ -37,13 +37,22 @@ CALIBRATION_RANGE_M = (0.030, 0.070)
 
 @dataclass(frozen=True)
 class RunSettings:
-    """How the manoeuvres are simulated. The defaults are the reproduction's."""
+    """How the manoeuvres are simulated. The defaults are the reproduction's.
+
+    Read by: ``fleetbrake paper``.
+    """
 
     element: Element = "hex20"
+    """Finite element of the mesh: ``hex20`` (quadratic) or ``hex8`` (linear)."""
     refinement: float = 1.0
+    """Mesh refinement (1.0: the default mesh, graded towards the sensor seat)."""
     dt_s: float = 1.0
+    """Time step of the Crank-Nicolson integration."""
     horizon_s: float = 1200.0
+    """Simulated time of each manoeuvre, from the brake's activation."""
     probe_spacing_m: float = 0.0005
+    """Spacing of the probed depths along the sensor's radial line, from the friction face to
+    the deepest seat inside the block (the temperatures by depth and the calibration)."""
     field_every: int = 10
     """Whole fields kept every k steps (fields between are recomputed from the nearest one)."""
     workers: int = 2

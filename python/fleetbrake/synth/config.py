@@ -31,33 +31,48 @@ SOLVERS: tuple[str, ...] = get_args(Solver)
 
 @dataclass(frozen=True)
 class SynthConfig:
-    """What to generate. Rates are per row (fractions) or per file (probabilities)."""
+    """What to generate. Rates are per row (fractions) or per file (probabilities).
+
+    Read by: ``fleetbrake synth``, ``fleetbrake demo``, ``fleetbrake bench fleet``,
+    ``fleetbrake bench close-loop``, ``fleetbrake bench watch``.
+    """
 
     wagons: int = 4
     """Registered, well-formed wagons (the extra bad-registry wagons come on top)."""
     days: int = 2
+    """UTC days of operation."""
     seed: int = 0
+    """Seed of every random stream: the same configuration writes the same bytes."""
     start: dt.date = dt.date(2024, 3, 4)
     """First UTC day."""
     effects: EffectSet = field(default_factory=EffectSet)
     """Undeclared effects acting on every wagon."""
     anomalies: bool = True
+    """Dragging brakes, weak brakes and sensor faults in some wagons."""
     gzip_fraction: float = 0.5
+    """Share of the log files written gzipped."""
     ambient_sensor_fraction: float = 0.5
     """Share of the wagons whose logs carry ``ambient_temp_c``."""
     ambient_mean_c: float = 8.0
     """Mean air temperature of the period."""
     sensor_noise_k: float = 0.1
+    """Standard deviation of the block sensor's Gaussian noise (the Pt1000's)."""
     pressure_noise_bar: float = 0.003
+    """Standard deviation of the cylinder pressure's noise (before quantising to 7 mbar)."""
     speed_noise_kmh: float = 0.3
+    """Standard deviation of the GPS speed's noise."""
 
     # imperfections of fleet-data.md
     missing_row_fraction: float = 0.001
+    """Share of the rows dropped."""
     gap_probability: float = 0.15
     """Per file: one gap of 5-120 s."""
     duplicate_fraction: float = 0.0005
+    """Share of the rows written twice."""
     swap_fraction: float = 0.0005
+    """Share of the rows swapped with their neighbour."""
     empty_cell_fraction: float = 0.0002
+    """Share of the cells left empty."""
     frozen_speed_probability: float = 0.1
     """Per file: GPS speed frozen for 20-120 s."""
     speed_jump_probability: float = 0.1
@@ -171,7 +186,7 @@ class SynthConfig:
             values["effects"] = EffectSet.from_list(values["effects"])
         if "start" in values and isinstance(values["start"], str):
             values["start"] = dt.date.fromisoformat(values["start"])
-        if values.get("refinement", DEFAULT_REFINEMENT) is None:  # written before it was explicit
+        if values.get("refinement", DEFAULT_REFINEMENT) is None:  # a truth's null: the default
             del values["refinement"]
         return cls(**values)
 
