@@ -43,7 +43,8 @@ from fleetbrake.bridge.sessions import SessionBuffer
 from fleetbrake.cli.bridge import register
 from fleetbrake.errors import EXIT_LOCKED, EXIT_USAGE
 from fleetbrake.fleet.logfile import COLUMNS, TIME_FORMAT, gzip_bytes, log_name, to_csv_bytes
-from fleetbrake.ingest.files import ingest_fleet, read_log
+from fleetbrake.ingest.files import ingest_fleet
+from fleetbrake.ingest.reading import read_log
 from fleetbrake.warehouse.connection import open_warehouse
 from fleetgen import simple_session, write_registry
 

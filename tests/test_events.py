@@ -1,4 +1,4 @@
-"""Braking event detection (fleetbrake.ingest.events): accuracy on generated sessions, rules, increments."""
+"""Braking event detection (fleetbrake.ingest.detection, fleetbrake.ingest.events): accuracy on generated sessions, rules, increments."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import polars as pl
 import pytest
 
 from fleetbrake.ingest import events as events_module
-from fleetbrake.ingest.events import EVENT_COLUMNS, EventConfig, detect_events
-from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.ingest.config import EventConfig, IngestConfig
+from fleetbrake.ingest.detection import EVENT_COLUMNS, detect_events, shrinking_running_median
+from fleetbrake.ingest.files import run_ingest
 from fleetbrake.synth import corrupt
 from fleetgen import T0_UTC, Session, TrueEvent, make_session, write_registry, write_session
 
@@ -420,7 +421,7 @@ def test_chains_and_windows() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The stage's reads and the smoothed speed (docs/benchmarks.md, session 15)
+# The stage's reads and the smoothed speed (docs/benchmarks.md)
 
 
 @pytest.mark.parametrize("window", [1, 2, 3, 4, 5, 7, 9])
@@ -435,7 +436,7 @@ def test_the_shrinking_running_median_is_polars_bit_for_bit(window: int) -> None
             .rolling_median(window_size=window, center=True, min_samples=1)
             .to_numpy()
         )
-        got = events_module.shrinking_running_median(values, window)
+        got = shrinking_running_median(values, window)
         assert got.dtype == np.float64 and got.shape == expected.shape
         assert np.array_equal(got, expected), (window, n)
 

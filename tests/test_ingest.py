@@ -25,15 +25,13 @@ from fleetbrake.cli.main import app
 from fleetbrake.fleet import logfile as lf
 from fleetbrake.fleet.registry import RegistryError
 from fleetbrake.ingest import files as ingest_module
-from fleetbrake.ingest.files import (
-    IngestConfig,
-    IngestReport,
-    Quarantine,
-    ingest_fleet,
-    read_log,
-    run_ingest,
-)
-from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.ingest import prepare as prepare_module
+from fleetbrake.ingest import scan as scan_module
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import IngestReport, ingest_fleet, run_ingest
+from fleetbrake.ingest.quarantine import Quarantine
+from fleetbrake.ingest.reading import read_log
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.synth import corrupt
 from fleetbrake.warehouse.connection import open_warehouse
 from fleetgen import (
@@ -353,8 +351,8 @@ def test_impossible_readings_are_counted_emptied_and_warn_nowhere(
 ) -> None:
     """A speed of 1e308 km/h and a pressure of -5 bar inside a braking: the file is ingested,
     the cells are recorded as unparsable ones are (counted, noted with their lines, stored
-    empty), and the whole run (events, simulation, flags) raises no warning (before, numpy's
-    overflow warning reached the console from the simulation)."""
+    empty), and the whole run (events, simulation, flags) raises no warning (numpy's overflow
+    warning, for one, would reach the console from the simulation)."""
     monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
     session = make_session(np.random.default_rng(3), n_events=4, kinds=("slowdown", "stop"))
     onset = int((session.events[1].onset_utc - T0_UTC).total_seconds())
@@ -815,7 +813,7 @@ def test_unreadable_file_and_reader_failure_are_quarantined_then_retried(
     fine_start = T0_UTC + dt.timedelta(hours=2)
     write_session(fleet, WAGON, simple_session(fine_start, rows=100), fine_start)
     read_bytes = Path.read_bytes
-    read_log_ = ingest_module.read_log
+    read_log_ = prepare_module.read_log
 
     def refuse(path: Path) -> bytes:
         if path == locked:
@@ -828,7 +826,7 @@ def test_unreadable_file_and_reader_failure_are_quarantined_then_retried(
         return read_log_(data, relpath, *args)  # type: ignore[arg-type]
 
     monkeypatch.setattr(Path, "read_bytes", refuse)
-    monkeypatch.setattr(ingest_module, "read_log", fail)
+    monkeypatch.setattr(prepare_module, "read_log", fail)
     first = ingest(fleet, db)
     reasons = {r.path: r.reason for r in first.quarantined}
     assert reasons == {
@@ -853,11 +851,11 @@ def test_a_file_removed_after_the_scan_is_skipped(
     write_session(fleet, WAGON, simple_session(rows=100), T0_UTC)
     scan = ingest_module.scan_logs
 
-    def with_ghost(fleet_dir: Path) -> list[ingest_module.LogEntry]:
+    def with_ghost(fleet_dir: Path) -> list[scan_module.LogEntry]:
         ghost = fleet_dir / relpath_of(WAGON, T0_UTC + dt.timedelta(hours=1))
         return [
             *scan(fleet_dir),
-            ingest_module.LogEntry(ghost.relative_to(fleet_dir).as_posix(), ghost, 10, 1),
+            scan_module.LogEntry(ghost.relative_to(fleet_dir).as_posix(), ghost, 10, 1),
         ]
 
     monkeypatch.setattr(ingest_module, "scan_logs", with_ghost)

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 import fleetbrake
-from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import run_ingest
 from fleetbrake.synth import corrupt
 from fleetgen import T0_UTC, make_session, snapshot, write_registry, write_session
 
@@ -104,9 +105,11 @@ def reference(fleet: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str
 PAUSE_INGEST = """
 import sys, time
 from pathlib import Path
-import fleetbrake.ingest.files as ingest
+import fleetbrake.ingest.ledger as ledger
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import run_ingest
 fleet, db, marker, after = sys.argv[1], sys.argv[2], Path(sys.argv[3]), int(sys.argv[4])
-insert = ingest._insert
+insert = ledger._insert
 flushes = []
 def pausing(con, name, frame, statement):
     insert(con, name, frame, statement)
@@ -115,8 +118,8 @@ def pausing(con, name, frame, statement):
         if len(flushes) == after:  # inside the open transaction: samples in, not committed
             marker.write_text(str(len(flushes)))
             time.sleep(600)
-ingest._insert = pausing
-ingest.run_ingest(fleet, db, config=ingest.IngestConfig(batch_rows=20_000), progress=False)
+ledger._insert = pausing
+run_ingest(fleet, db, config=IngestConfig(batch_rows=20_000), progress=False)
 """
 
 
@@ -160,7 +163,8 @@ def pausing(*args, **kwargs):
     marker.write_text(hook)  # the first batch: committed, or its insert done, not committed
     time.sleep(600)
 setattr(events, hook, pausing)
-from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import run_ingest
 run_ingest(fleet, db, config=IngestConfig(batch_rows=20_000), progress=False)
 """
 
@@ -207,7 +211,8 @@ def test_sigkill_during_event_detection_then_rerun_equals_uninterrupted(
 
 RUN = """
 import sys
-from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import run_ingest
 run_ingest(sys.argv[1], sys.argv[2], config=IngestConfig(batch_rows=20_000), progress=False)
 """
 

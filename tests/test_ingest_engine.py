@@ -12,7 +12,8 @@ import polars as pl
 import pytest
 
 from fleetbrake.engine import InlineEngine, LocalEngine
-from fleetbrake.ingest.files import IngestConfig, run_ingest
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import run_ingest
 from fleetbrake.synth import corrupt
 from fleetgen import T0_UTC, simple_session, snapshot, write_registry, write_session
 
@@ -118,17 +119,17 @@ def test_a_late_file_changes_only_its_wagon(tmp_path: Path, local: LocalEngine) 
 def test_a_partition_is_committed_whole_in_one_transaction(
     tmp_path: Path, local: LocalEngine, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import fleetbrake.ingest.files as files
+    import fleetbrake.ingest.ledger as ledger
 
     batches: list[list[str]] = []
-    insert = files._insert
+    insert = ledger._insert
 
     def recording(con: object, name: str, frame: pl.DataFrame, statement: str) -> None:
         if name == "file_batch":
             batches.append(frame["path"].to_list())
         insert(con, name, frame, statement)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(files, "_insert", recording)
+    monkeypatch.setattr(ledger, "_insert", recording)
     fleet = _fleet(tmp_path / "fleet")
     config = IngestConfig(partition_files=3, batch_rows=1)
     run_ingest(fleet, tmp_path / "fleet.duckdb", config=config, progress=False, engine=local)

@@ -11,9 +11,10 @@ import duckdb
 import pytest
 
 from fleetbrake.app.run import run_fleet
-from fleetbrake.ingest import files as ingest_module
-from fleetbrake.ingest.files import IngestReport, ingest_fleet, stat_logs
-from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.ingest import prepare as prepare_module
+from fleetbrake.ingest.files import IngestReport, ingest_fleet
+from fleetbrake.ingest.scan import scan_logs, stat_logs
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.warehouse.connection import open_warehouse
 from fleetgen import T0_UTC, simple_session, snapshot, write_registry, write_session
 
@@ -68,7 +69,7 @@ def test_stat_logs_lists_only_the_paths_handed_that_scan_logs_would_list(fleet: 
         "logs/SGG-0001",  # a directory
     ]
     assert [e.relpath for e in stat_logs(fleet, handed)] == sorted([a, b])
-    scanned = {e.relpath: e for e in ingest_module.scan_logs(fleet)}
+    scanned = {e.relpath: e for e in scan_logs(fleet)}
     for entry in stat_logs(fleet, [a, b]):
         assert entry == scanned[entry.relpath]
 
@@ -142,7 +143,7 @@ def test_a_touched_file_takes_its_new_mtime_in_the_ledger_and_is_not_read_again(
 ) -> None:
     """The same bytes under another modification time (a copy, a touch): nothing is stored
     again, the ledger row takes the new mtime, and the next run does not read the file at all
-    (before, the ledger kept the old one and every run, and every rescan of ``watch``, read it
+    (a ledger keeping the old one would have every run, and every rescan of ``watch``, read it
     again)."""
     path = _session(fleet, WAGONS[0], 0)
     quarantined = "logs/SGG-0001/SGG-0001_20240302T060000Z.csv"
@@ -155,13 +156,13 @@ def test_a_touched_file_takes_its_new_mtime_in_the_ledger_and_is_not_read_again(
         os.utime(fleet / name, ns=(stat.st_atime_ns, stat.st_mtime_ns + 7_000_000_000))
 
     read: list[str] = []
-    real = ingest_module._prepare
+    real = prepare_module._prepare
 
     def counting(entry, problems, config):  # type: ignore[no-untyped-def]
         read.append(entry.relpath)
         return real(entry, problems, config)
 
-    monkeypatch.setattr(ingest_module, "_prepare", counting)
+    monkeypatch.setattr(prepare_module, "_prepare", counting)
     report = _ingest(fleet, db)
     assert sorted(read) == sorted([path, quarantined])  # read and hashed: the same bytes
     assert report.results == [] and report.files_unchanged == 2

@@ -11,7 +11,7 @@ import polars as pl
 import pytest
 
 from fleetbrake.fleet import logfile as lf
-from fleetbrake.ingest.files import read_log
+from fleetbrake.ingest.reading import read_log
 from fleetbrake.synth import corrupt
 from fleetgen import T0_UTC, simple_session
 

@@ -28,7 +28,8 @@ import polars as pl
 
 from fleetbrake.bench import BenchError, require_extra
 from fleetbrake.fleet.logfile import log_relpath, write_log
-from fleetbrake.ingest.files import IngestConfig, ingest_fleet
+from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import ingest_fleet
 from fleetbrake.warehouse.connection import open_warehouse
 
 __all__ = ["bench_ingest", "make_bench_fleet"]
