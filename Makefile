@@ -8,7 +8,7 @@ STAMP := $(VENV)/.fleetbrake-installed
 DEMO_OUT ?= demo-out
 export CARGO_TERM_COLOR ?= never
 
-.PHONY: help setup build wheel demo test test-all test-rust test-python lint format bench clean
+.PHONY: help setup build wheel demo test test-all test-rust test-python lint format docs bench clean
 
 help:  ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "} {printf "  %-12s %s\n", $$1, $$2}'
@@ -55,18 +55,28 @@ test-python: build wheel  ## Python tests, slow ones skipped (the wheel test inc
 test-all: build wheel test-rust  ## every test, slow ones included
 	$(TEST_ENV) FLEETBRAKE_TEST_WHEEL="$$(ls $(abspath $(WHEEL_DIR))/fleetbrake-*.whl)" $(PY) -m pytest -n 2 -q
 
-lint: setup  ## rustfmt, clippy, ruff, mypy and the layer contract (import-linter), as CI runs them
+# tools/check_repo.py: module, function and crate-file sizes, and no work-period names,
+# internal tags, issue numbers or scratch paths in docs, code and tests.
+lint: setup  ## rustfmt, clippy, ruff, mypy, import-linter and tools/check_repo.py, as CI runs them
 	cargo fmt --all -- --check
 	cargo clippy --workspace --all-targets --release -- -D warnings
-	$(VENV)/bin/ruff check python tests
-	$(VENV)/bin/ruff format --check python tests
+	$(VENV)/bin/ruff check python tests tools
+	$(VENV)/bin/ruff format --check python tests tools
 	$(VENV)/bin/mypy
 	$(VENV)/bin/lint-imports
+	$(PY) tools/check_repo.py
 
 format: setup  ## format Rust and Python in place
 	cargo fmt --all
-	$(VENV)/bin/ruff format python tests
-	$(VENV)/bin/ruff check --fix python tests
+	$(VENV)/bin/ruff format python tests tools
+	$(VENV)/bin/ruff check --fix python tests tools
+
+# The configuration reference is generated from the configuration classes' docstrings
+# (fleetbrake.cli.configref); tests/test_configref.py fails when the file is out of date.
+docs: setup  ## regenerate docs/configuration.md from the configuration classes
+	$(VENV)/bin/fleetbrake config > docs/configuration.md.new \
+		&& mv docs/configuration.md.new docs/configuration.md \
+		|| { rm -f docs/configuration.md.new; exit 1; }
 
 bench: build  ## the solver benchmark against scikit-fem (see docs/benchmarks.md)
 	$(VENV)/bin/fleetbrake bench solver --json

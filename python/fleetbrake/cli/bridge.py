@@ -25,6 +25,7 @@ from fleetbrake.bridge.config import (
     BridgeConfig,
     MqttProtocol,
 )
+from fleetbrake.cli.options import CONFIG_REFERENCE
 from fleetbrake.cli.signals import stop_on_signals
 
 __all__ = ["bridge_app", "register", "stop_on_signals"]
@@ -48,7 +49,7 @@ def register(app: typer.Typer) -> None:
     app.add_typer(bridge_app, name="bridge", **options)
 
 
-@bridge_app.command("mqtt")
+@bridge_app.command("mqtt", epilog=CONFIG_REFERENCE)
 def mqtt_command(
     broker: Annotated[
         str,

@@ -13,6 +13,9 @@ them:
   another writer), never a traceback;
 * ``--json`` on ``run`` and ``close-loop``: one JSON summary as the last line of stdout
   (:mod:`fleetbrake.cli.output`).
+* ``fleetbrake config``: the configuration reference of ``docs/configuration.md``, generated
+  from the configuration classes (:mod:`fleetbrake.cli.configref`); the top-level help and
+  every command that reads configuration point to it in their epilog.
 
 The benchmarks are the ``bench`` sub-commands (:mod:`fleetbrake.cli.bench`); nothing here
 imports their meters or peers.
@@ -34,6 +37,7 @@ from fleetbrake.cli.bridge import register as register_bridge
 from fleetbrake.cli.group import FleetbrakeGroup
 from fleetbrake.cli.logs import LogFormat, configure_logging, level_for
 from fleetbrake.cli.options import (
+    CONFIG_REFERENCE,
     DEFAULT_DB,
     AddressOption,
     DbOption,
@@ -66,6 +70,7 @@ app = typer.Typer(
     cls=FleetbrakeGroup,
     name="fleetbrake",
     help="Thermal watch over the cast-iron brake blocks of a freight-wagon fleet.",
+    epilog=CONFIG_REFERENCE,
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -111,7 +116,7 @@ def global_options_callback(
         raise OptionError("--quiet and --verbose: give one of them")
 
 
-@app.command("ingest")
+@app.command("ingest", epilog=CONFIG_REFERENCE)
 def ingest_command(
     ctx: typer.Context,
     fleet_dir: FleetDirArgument,
@@ -130,7 +135,7 @@ def ingest_command(
     print_report(report)
 
 
-@app.command("run")
+@app.command("run", epilog=CONFIG_REFERENCE)
 def run_command(
     ctx: typer.Context,
     fleet_dir: FleetDirArgument,
@@ -162,7 +167,7 @@ def run_command(
     """
     from fleetbrake.app.run import run_fleet
     from fleetbrake.ingest.files import print_report
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
 
     if solver not in SOLVERS:
         raise OptionError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
@@ -192,7 +197,7 @@ def _holdout_date(text: str) -> dt.date:
         raise OptionError(f"--holdout-from {text!r} is not a date YYYY-MM-DD") from None
 
 
-@app.command("close-loop")
+@app.command("close-loop", epilog=CONFIG_REFERENCE)
 def close_loop_command(
     ctx: typer.Context,
     holdout_from: Annotated[
@@ -233,7 +238,7 @@ def close_loop_command(
     echo_json(close_loop_summary(report, json_out))
 
 
-@app.command("paper")
+@app.command("paper", epilog=CONFIG_REFERENCE)
 def paper_command(
     ctx: typer.Context,
     out: Annotated[
@@ -283,7 +288,7 @@ def paper_command(
         typer.echo(json.dumps(figures))
 
 
-@app.command("synth")
+@app.command("synth", epilog=CONFIG_REFERENCE)
 def synth_command(
     ctx: typer.Context,
     out_dir: Annotated[
@@ -392,7 +397,7 @@ def synth_command(
     typer.echo(f"generated in {time.perf_counter() - began:.1f} s")
 
 
-@app.command("record")
+@app.command("record", epilog=CONFIG_REFERENCE)
 def record_command(
     ctx: typer.Context,
     wagon: Annotated[str, typer.Option("--wagon", help="Wagon id.")],
@@ -481,7 +486,7 @@ def report_command(
     typer.echo(f"wrote {result.path} with {len(result.pictures)} pictures")
 
 
-@app.command("demo")
+@app.command("demo", epilog=CONFIG_REFERENCE)
 def demo_command(
     ctx: typer.Context,
     out: Annotated[
@@ -516,6 +521,40 @@ def demo_command(
         result = run_demo(out, config, force=force, progress=global_options(ctx).progress)
     typer.echo("")
     print_summary(result)
+
+
+@app.command("config")
+def config_command(
+    check: Annotated[
+        Path | None,
+        typer.Option(
+            "--check",
+            help="Print nothing; exit 1 when FILE is not the reference (`make docs` rewrites "
+            "docs/configuration.md).",
+            metavar="FILE",
+        ),
+    ] = None,
+) -> None:
+    """Print the configuration reference (Markdown): every setting, its unit, default and meaning.
+
+    Generated from the configuration classes; docs/configuration.md holds the same text.
+    """
+    from fleetbrake.cli.configref import render
+
+    text = render()
+    if check is None:
+        typer.echo(text, nl=False)
+        return
+    try:
+        current = check.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        typer.echo(f"{check}: cannot be read ({error})", err=True)
+        raise typer.Exit(1) from None
+    if current != text:
+        typer.echo(
+            f"{check}: not the configuration reference of this code; run `make docs`", err=True
+        )
+        raise typer.Exit(1)
 
 
 def main() -> None:

@@ -17,6 +17,7 @@ from fleetbrake.cli.logs import LogFormat
 from fleetbrake.errors import ConfigError, FleetbrakeError
 
 __all__ = [
+    "CONFIG_REFERENCE",
     "DbOption",
     "FleetDirArgument",
     "GlobalOptions",
@@ -30,6 +31,12 @@ __all__ = [
 DEFAULT_DB = Path("warehouse/fleet.duckdb")
 """``--db`` when not given (contract: ``shared/spec/interface.md``)."""
 
+CONFIG_REFERENCE = (
+    "Every setting (registry keys, flag thresholds, options), with its unit, default and "
+    "meaning: docs/configuration.md, or `fleetbrake config`."
+)
+"""The epilog of ``fleetbrake --help`` and of the commands that read configuration."""
+
 
 class OptionError(ConfigError):
     """A command-line value cannot be used (exit 2); the message names the option."""
@@ -42,11 +49,18 @@ class OutputDirError(FleetbrakeError):
 
 @dataclass(frozen=True)
 class GlobalOptions:
-    """The options given before the command (``fleetbrake --quiet run ...``)."""
+    """The options given before the command (``fleetbrake --quiet run ...``).
+
+    Read by: ``fleetbrake``.
+    """
 
     log_format: LogFormat = LogFormat.TEXT
+    """Log records on stderr as ``text``, or as ``json`` (one object per line)."""
     log_level: int = logging.WARNING
+    """Level of the records shown (``logging``'s numbers): warnings by default, errors only
+    with ``--quiet``, info with ``-v``, debug with ``-vv``."""
     quiet: bool = False
+    """Errors only on stderr, and no progress bars."""
     progress: bool = False
     """Draw progress bars and spinners: stdout is a terminal and not ``--quiet``."""
 

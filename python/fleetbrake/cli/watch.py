@@ -19,6 +19,7 @@ from typing import Annotated, Literal, cast
 import typer
 
 from fleetbrake.cli.options import (
+    CONFIG_REFERENCE,
     AddressOption,
     EngineOption,
     RefinementOption,
@@ -126,7 +127,7 @@ def watch_command(
     """
     from fleetbrake.app.watch.service import FileOutcome, WatchConfig, watch_fleet
     from fleetbrake.flags import load_flag_config
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
 
     if solver not in ("rom", "full"):
         raise WatchOptionError(f"--solver must be rom or full, got {solver!r}")
@@ -176,4 +177,4 @@ def watch_command(
 
 def register(app: typer.Typer) -> None:
     """Add the ``watch`` command to ``app``."""
-    app.command("watch")(watch_command)
+    app.command("watch", epilog=CONFIG_REFERENCE)(watch_command)
