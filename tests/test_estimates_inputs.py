@@ -1,10 +1,10 @@
-"""The estimate stage's inputs and rows built faster give the same bits (issue 12, session 14):
-the modal response of the declared inputs in cache-sized blocks (``model.estimator.
-_modal_response``) against the whole-series formula it replaced, and a wagon's rows built as
-Arrow from the estimate's arrays (``simulation.estimates._rows``) against the polars frame it
-replaced, built here the old way; the dense transitions' steps gathered from one sort (session
-15) against the scan per transition. Equal means equal: ``np.array_equal`` and Arrow's
-``equals``, not a tolerance.
+"""The estimate stage's inputs and rows, built the fast way, give the bits of the plain
+formulas: the modal response of the declared inputs in cache-sized blocks
+(``model.estimator.transitions.modal_response``) against the formula on the whole series at
+once, and a wagon's rows built as Arrow from the estimate's arrays
+(``simulation.estimates.rows.estimate_rows``) against the same columns built as a polars
+frame; the dense transitions' steps gathered from one sort against a scan per transition.
+Equal means equal: ``np.array_equal`` and Arrow's ``equals``, not a tolerance.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 import pytest
 
-import fleetbrake.model.estimator as estimator
+import fleetbrake.model.estimator.transitions as transitions
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.model.estimator import (
     ContactEstimate,
@@ -25,21 +25,23 @@ from fleetbrake.model.estimator import (
     WagonSeries,
     prepare,
 )
+from fleetbrake.model.estimator.transitions import TransitionTable, modal_response
 from fleetbrake.model.rom import ReducedModel
-from fleetbrake.simulation.estimates import ESTIMATE_SCHEMA, _rows
+from fleetbrake.simulation.estimates.rows import ESTIMATE_SCHEMA, estimate_rows
 
 WAGON = WagonConfig(wagon_id="TEST-0001")
 
 
 def _whole_series_response(
     rom: ReducedModel,
-    table: estimator._Transitions,
+    table: TransitionTable,
     index: np.ndarray,
     step_flux: np.ndarray,
     drive: np.ndarray,
     r: int,
 ) -> np.ndarray:
-    """The formula ``prepare`` evaluated until session 13, on the whole series at once."""
+    """The formula of the modal response, on the whole series at once (the dense transitions'
+    steps by a scan of the series per transition)."""
     u = step_flux[:, None] * rom.b_flux[None, :] + drive @ rom.b_faces
     if r > rom.order:
         u = np.concatenate([u, np.zeros((u.shape[0], 1))], axis=1)
@@ -53,9 +55,9 @@ def _whole_series_response(
     return w
 
 
-def _table(rom: ReducedModel, seat_sd_k: float, dense: bool) -> estimator._Transitions:
+def _table(rom: ReducedModel, seat_sd_k: float, dense: bool) -> TransitionTable:
     c_probe = np.append(rom.c_out[0], 1.0) if seat_sd_k > 0 else rom.c_out[0]
-    table = estimator._Transitions(
+    table = TransitionTable(
         rom=rom,
         c_probe=c_probe,
         lag_tau_s=0.0,
@@ -94,11 +96,11 @@ def test_the_modal_response_in_blocks_is_the_whole_series_formula_bit_for_bit(
     index = rng.integers(0, len(table.g), steps).astype(np.int64)
     step_flux = np.where(rng.random(steps) < 0.3, rng.uniform(0, 4e4, steps), 0.0)
     drive = rng.uniform(0, 60.0, (steps, len(rom.face_names))) * rng.normal(0, 8.0, (steps, 1))
-    monkeypatch.setattr(estimator, "_RESPONSE_BLOCK_STEPS", block)
-    got = estimator._modal_response(rom, table, index, step_flux, drive, r)
+    monkeypatch.setattr(transitions, "RESPONSE_BLOCK_STEPS", block)
+    got = modal_response(rom, table, index, step_flux, drive, r)
     want = _whole_series_response(rom, table, index, step_flux, drive, r)
     assert got.shape == (steps, r) and np.array_equal(got, want)
-    empty = estimator._modal_response(rom, table, index[:0], step_flux[:0], drive[:0], r)
+    empty = modal_response(rom, table, index[:0], step_flux[:0], drive[:0], r)
     assert empty.shape == (0, r)
 
 
@@ -107,8 +109,8 @@ def test_the_modal_response_of_many_dense_transitions_is_the_formula_bit_for_bit
     default_rom: ReducedModel, seat_sd_k: float
 ) -> None:
     """A speed-varying convection: dense transitions among the diagonal ones, each gathered
-    once from the steps sorted by transition (session 15) instead of a scan of the series
-    per transition; the same bits as the formula, whichever transitions the steps use (one
+    once from the steps sorted by transition instead of a scan of the series per
+    transition; the same bits as the formula, whichever transitions the steps use (one
     used by no step, one by a single step)."""
     rom = default_rom
     rng = np.random.default_rng(15)
@@ -123,7 +125,7 @@ def test_the_modal_response_of_many_dense_transitions_is_the_formula_bit_for_bit
     index[1_234] = len(table.g) - 2  # used by one step only
     step_flux = np.where(rng.random(steps) < 0.3, rng.uniform(0, 4e4, steps), 0.0)
     drive = rng.uniform(0, 60.0, (steps, faces)) * rng.normal(0, 8.0, (steps, 1))
-    got = estimator._modal_response(rom, table, index, step_flux, drive, r)
+    got = modal_response(rom, table, index, step_flux, drive, r)
     want = _whole_series_response(rom, table, index, step_flux, drive, r)
     assert got.shape == (steps, r) and np.array_equal(got, want)
 
@@ -146,16 +148,18 @@ def test_prepare_is_the_same_whatever_the_block(
         wagon_id=WAGON.wagon_id,
     )
     config = EstimatorConfig(seat_error_sd_k=0.3)
-    monkeypatch.setattr(estimator, "_RESPONSE_BLOCK_STEPS", 7)
+    monkeypatch.setattr(transitions, "RESPONSE_BLOCK_STEPS", 7)
     small = prepare(default_rom, WAGON, series, config=config)
-    monkeypatch.setattr(estimator, "_RESPONSE_BLOCK_STEPS", 1 << 30)
+    monkeypatch.setattr(transitions, "RESPONSE_BLOCK_STEPS", 1 << 30)
     whole = prepare(default_rom, WAGON, series, config=config)
     assert small.w.shape == whole.w.shape and np.array_equal(small.w, whole.w)
     assert np.array_equal(small.index, whole.index) and np.array_equal(small.a, whole.a)
 
 
-def _old_rows(wagon_id: str, revision: str, t0: dt.datetime, est: ContactEstimate) -> pl.DataFrame:
-    """The rows as ``_rows`` built them until session 13 (polars, NaN filled with null)."""
+def _polars_rows(
+    wagon_id: str, revision: str, t0: dt.datetime, est: ContactEstimate
+) -> pl.DataFrame:
+    """The rows built as a polars frame from the same columns (NaN filled with null)."""
     times = np.datetime64(t0, "us") + (np.rint(est.time_s).astype(np.int64) * 1_000_000).astype(
         "timedelta64[us]"
     )
@@ -237,20 +241,20 @@ def _estimate(n: int, smoothed: bool) -> ContactEstimate:
 
 @pytest.mark.parametrize("smoothed", [True, False])
 @pytest.mark.parametrize("n", [1, 2_500])
-def test_the_rows_are_the_polars_frame_they_replaced(n: int, smoothed: bool) -> None:
+def test_the_arrow_rows_are_the_polars_frame_of_the_same_columns(n: int, smoothed: bool) -> None:
     t0 = dt.datetime(2026, 3, 1, 5, 59, 58)
     est = _estimate(n, smoothed)
-    got = _rows("SGG-0042", "declared", t0, est)
-    want = _old_rows("SGG-0042", "declared", t0, est).to_arrow()
+    got = estimate_rows("SGG-0042", "declared", t0, est)
+    want = _polars_rows("SGG-0042", "declared", t0, est).to_arrow()
     assert got.schema.equals(want.schema)
     assert got.equals(want)
-    for name in got.column_names:  # nulls where the old frame had them
+    for name in got.column_names:  # nulls where the polars frame has them
         assert got[name].null_count == want[name].null_count
     assert got["innovation_k"].null_count >= 1
 
 
 def test_no_estimate_is_an_empty_table_of_the_columns() -> None:
-    empty = _rows("SGG-0042", "declared", None, None)
+    empty = estimate_rows("SGG-0042", "declared", None, None)
     assert empty.num_rows == 0
     assert empty.schema.equals(pl.DataFrame(schema=ESTIMATE_SCHEMA).to_arrow().schema)
     assert isinstance(empty, pa.Table)

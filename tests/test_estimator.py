@@ -1,9 +1,9 @@
-"""The virtual sensor (issue 14): the Kalman filter and smoother on the reduced model.
+"""The virtual sensor: the Kalman filter and smoother on the reduced model.
 
 The data are made by the FULL finite-element model (hex20 on the reduced model's own mesh,
 ``TEST_REFINEMENT``, not reduced, and integrated by Crank-Nicolson where the filter's model is
 exact in time; a coarser writer's mesh puts its own error at the seat, which the identity
-check then measured: ``docs/estimator.md``, session 12 (third)): a wagon's 8 hours as the
+check would measure: ``docs/estimator.md``): a wagon's 8 hours as the
 synthetic fleet's wagons run them (standing, trips with brakings and stops; the unit logging
 while the wagon moves, so the standstill between sessions is not logged), with dragging brakes
 of a power drawn at random in a physical range on cruising stretches with the cylinder
@@ -36,7 +36,6 @@ from fleetbrake.model.estimator import (
     estimate_contact,
     fit_noise,
     prepare,
-    run_numpy,
     rust_available,
 )
 from fleetbrake.model.physics import (
@@ -49,6 +48,7 @@ from fleetbrake.model.rom import ReducedModel, first_order_lag
 from fleetbrake.model.thermal import BlockModel, InvalidParameterError, LengthMismatchError
 from fleetbrake.model.timeline import simulate_timeline
 from fleetbrake.synth.operation import operate, sessions
+from oracles.estimator_numpy import numpy_kernel, run_numpy
 
 WAGON = WagonConfig(wagon_id="TEST-0001")
 NOISE_K = 0.1
@@ -61,25 +61,25 @@ pressed with 0.6-1.5 kN at 50-90 km/h."""
 
 pytestmark = pytest.mark.skipif(not rust_available(), reason="the extension has no estimator")
 
-SESSION6 = {
+SIMPLE_FILTER = {
     "model_offset_sd_k_per_sqrt_s": 0.003,
     "brake_power_w_per_sqrt_s": None,
     "manoeuvre": ManoeuvreTest(off_sigma=2.0, smoother_lead_s=0.0),
     "steady_tolerance": 1e-7,
     "smoother_tolerance": 1e-5,
 }
-"""The estimator's settings before the session-12 candidate became the defaults, with σ_q
-0.3 W/√s (:func:`session6`): no braking power ``P_b``, σ_o 3 mK/√s, the mode off at 2 σ, no
-smoother's lead, the steady tolerances 1e-7 / 1e-5 in both modes. The tests of the kernel's
-fast paths and of options measured against this filter set it explicitly: on the benchmark
-wagon-day with a reading missing every 400 s it keeps 26 % of the seconds steady and replays
-33 %, where the defaults at 1e-7 kept none steady (σ_q 0.03 and ``P_b`` settle more slowly
-than a reading goes missing; docs/estimator.md)."""
+"""A simpler filter than the defaults, with σ_q 0.3 W/√s (:func:`simple_filter`): no braking
+power ``P_b``, σ_o 3 mK/√s, the mode off at 2 σ, no smoother's lead, the steady tolerances
+1e-7 / 1e-5 in both modes. The tests of the kernel's fast paths and of options measured
+against this filter set it explicitly: on the benchmark wagon-day with a reading missing every
+400 s it keeps 26 % of the seconds steady and replays 33 %, where the defaults at 1e-7 keep
+none steady (σ_q 0.03 and ``P_b`` settle more slowly than a reading goes missing;
+docs/estimator.md)."""
 
 
-def session6(noise: EstimatorNoise, **changes: object) -> EstimatorConfig:
-    """The :data:`SESSION6` filter with ``noise`` (its σ_q 0.3 W/√s), and ``changes``."""
-    settings: dict[str, object] = {**SESSION6, **changes}
+def simple_filter(noise: EstimatorNoise, **changes: object) -> EstimatorConfig:
+    """The :data:`SIMPLE_FILTER` with ``noise`` (its σ_q 0.3 W/√s), and ``changes``."""
+    settings: dict[str, object] = {**SIMPLE_FILTER, **changes}
     quiet = dataclasses.replace(noise, quiet_power_w_per_sqrt_s=0.3)
     return EstimatorConfig(noise=quiet, **settings)  # type: ignore[arg-type]
 
@@ -466,7 +466,7 @@ def _assert_same(a: ContactEstimate, b: ContactEstimate) -> None:
     assert np.array_equal(a.manoeuvre, b.manoeuvre)
 
 
-@pytest.mark.parametrize("steady", ["default", "exact", "one mode", "session 6"])
+@pytest.mark.parametrize("steady", ["default", "exact", "one mode", "simple"])
 def test_the_rust_kernel_is_the_numpy_reference(
     rom: ReducedModel,
     noisy: WagonSeries,
@@ -476,7 +476,7 @@ def test_the_rust_kernel_is_the_numpy_reference(
 ) -> None:
     """To 1e-9 K, W (relative) on every output, with the steady-state shortcut and without,
     the power noise's modes switching on the same seconds (the day's drags); the defaults
-    (the braking's power ``P_b``, the smoother's lead) and the filter before them."""
+    (the braking's power ``P_b``, the smoother's lead) and the simpler filter without them."""
     config = EstimatorConfig(noise=fitted)
     if steady == "exact":
         config = EstimatorConfig(
@@ -488,14 +488,14 @@ def test_the_rust_kernel_is_the_numpy_reference(
         )
     if steady == "one mode":
         config = EstimatorConfig(noise=fitted.single_mode)
-    if steady == "session 6":
-        config = session6(fitted)
+    if steady == "simple":
+        config = simple_filter(fitted)
         problem = prepare(rom, WAGON, noisy, config=config)
         assert problem.brake_phi is None
     else:
         assert problem.brake_phi is not None  # the defaults have P_b
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     assert fast.manoeuvre is not None
     if steady == "one mode":
@@ -505,10 +505,10 @@ def test_the_rust_kernel_is_the_numpy_reference(
         assert switches >= 8 and 0.02 < fast.manoeuvre.mean() < 0.5, switches
     if steady == "default":
         # with P_b a braking leaves P's variance raised, and it takes 1,300-1,900 s to pass
-        # the 1e-7 test again (docs/estimator.md, session 12 (second)): 0.16 found at 1e-7 /
-        # 1e-5; at the quiet mode's 1e-3 / 1e-3 since session 15, 0.42
+        # the 1e-7 test again (docs/estimator.md): 0.16 at 1e-7 / 1e-5; at the quiet mode's
+        # 1e-3 / 1e-3, 0.42
         assert fast.frozen_fraction == slow.frozen_fraction > 0.3
-    if steady == "session 6":
+    if steady == "simple":
         assert fast.frozen_fraction == slow.frozen_fraction > 0.3
 
 
@@ -529,8 +529,8 @@ def test_the_manoeuvre_modes_own_tolerances_rust_and_numpy(
         manoeuvre_smoother_tolerance=0.0,
     )
     assert config.manoeuvre_tolerances == (0.0, 0.0)
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     assert fast.manoeuvre is not None and fast.manoeuvre.mean() > 0.02
     assert fast.frozen_fraction == slow.frozen_fraction
@@ -538,7 +538,7 @@ def test_the_manoeuvre_modes_own_tolerances_rust_and_numpy(
         config, manoeuvre_steady_tolerance=None, manoeuvre_smoother_tolerance=None
     )
     assert same.manoeuvre_tolerances == (1e-3, 1e-3)
-    loose = estimate([problem], config=same, engine="rust")[0]
+    loose = estimate([problem], config=same)[0]
     assert loose.frozen_fraction > fast.frozen_fraction
     assert loose.smoothed_contact_mean_sd_k is not None
     assert fast.smoothed_contact_mean_sd_k is not None
@@ -568,8 +568,8 @@ def test_rust_is_numpy_with_switching_convection_and_a_lag(
     effects = EffectSet((ConvectionSpeed(gain=2.0, exponent=0.8), SensorLag(tau_s=30.0)))
     problem = prepare(rom, WAGON, part, effects=effects)
     assert problem.lag and (~problem.diagonal).sum() > 10
-    fast = estimate([problem], engine="rust")[0]
-    slow = estimate([problem], engine="numpy")[0]
+    fast = estimate([problem])[0]
+    slow = estimate([problem], kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
 
 
@@ -581,7 +581,7 @@ OPTIONS = EstimatorConfig(standstill_speed_kmh=0.5, seat_error_sd_k=0.05)
 def dense_problem(
     rom: ReducedModel, noisy: WagonSeries, fitted: EstimatorNoise
 ) -> tuple[EstimatorProblem, EstimatorConfig]:
-    """The close loop's revision's case (session 16, EST15): convection that varies with
+    """The close loop's revision's case: convection that varies with
     speed (runs of dense transitions), a lag, the seat's error and the power held at
     standstill, at the default steady tolerances; with its configuration."""
     config = dataclasses.replace(OPTIONS, noise=fitted)
@@ -608,8 +608,8 @@ def dense_runs(
     # convection comes back at standstills)
     assert dense_to_dense > 300 and dense_to_diagonal > 0, (dense_to_dense, dense_to_diagonal)
     assert stays > 10 * dense_to_dense, stays
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     return fast, slow
 
 
@@ -617,10 +617,10 @@ def test_dense_runs_in_their_own_bases_freeze_numpys_seconds_and_keep_its_temper
     dense_runs: tuple[ContactEstimate, ContactEstimate],
 ) -> None:
     """The kernel's steady tests decide as numpy's do in the problem's own basis (tested in
-    the rotated basis they froze other seconds and moved the estimates by millikelvins), so
+    a rotated basis they freeze other seconds and move the estimates by millikelvins), so
     the same seconds are frozen, and the temperatures, the innovations and the standard
-    deviations are numpy's to 1e-9 (found: 5.4e-11 K, 1.4e-12 K, 6.3e-12 W; with the kernel's
-    own eigendecomposition, session 16: 8.3e-10 K, 1.6e-11 K, 8.9e-12 W)."""
+    deviations are numpy's to 1e-9 (found: 5.4e-11 K, 1.4e-12 K, 6.3e-12 W; with an
+    eigendecomposition of the kernel's own: 8.3e-10 K, 1.6e-11 K, 8.9e-12 W)."""
     fast, slow = dense_runs
     assert fast.frozen_fraction > 0.03  # found 0.059 (the drag day's manoeuvres)
     assert fast.frozen_fraction == slow.frozen_fraction
@@ -646,16 +646,16 @@ def test_dense_runs_in_their_own_bases_are_numpy_to_1e_9(
     dense_runs: tuple[ContactEstimate, ContactEstimate],
 ) -> None:
     """Every output to ``_assert_same``'s 1e-9, the power included: the kernel steps each
-    dense transition in the basis ``prepare``'s ``eigh`` made it of (session 17, EST16; found:
-    the power 1.8e-9 W, smoothed 1.4e-9 W, 0.94 of the bar where the power is about 1 W; with
-    the kernel's own eigendecomposition, session 16, 2.66e-8 W failed it)."""
+    dense transition in the basis ``prepare``'s ``eigh`` made it of (found: the power
+    1.8e-9 W, smoothed 1.4e-9 W, 0.94 of the bar where the power is about 1 W; with an
+    eigendecomposition of the kernel's own, 2.66e-8 W fails it)."""
     _assert_same(*dense_runs)
 
 
 def test_the_kernel_is_given_the_eigendecomposition_the_dense_transitions_are_made_of(
     dense_problem: tuple[EstimatorProblem, EstimatorConfig], problem: EstimatorProblem
 ) -> None:
-    """``prepare`` hands the kernel its own ``eigh`` (session 17, EST16): each dense
+    """``prepare`` hands the kernel its own ``eigh``: each dense
     transition's propagator is ``Q diag(e) Qᵀ`` of its eigenvectors and eigenvalues, Q
     orthonormal and leaving the seat's error (the last coordinate) alone; a diagonal one's
     are the identity and its diagonal; the declared model has none. Eigenvectors of the
@@ -676,12 +676,12 @@ def test_the_kernel_is_given_the_eigendecomposition_the_dense_transitions_are_ma
     assert problem.eigenvectors is None and problem.eigenvalues is None
     short = dataclasses.replace(dense, eigenvectors=q[:-1])
     with pytest.raises(LengthMismatchError, match=f"{k} transitions of order {r}"):
-        estimate([short], config=config, engine="rust")
+        estimate([short], config=config)
     first = int(np.flatnonzero(~dense.diagonal)[0])
     broken = q.copy()
     broken[first, 0, 0] = np.nan
     with pytest.raises(InvalidParameterError, match=f"eigendecomposition of transition {first}"):
-        estimate([dataclasses.replace(dense, eigenvectors=broken)], config=config, engine="rust")
+        estimate([dataclasses.replace(dense, eigenvectors=broken)], config=config)
 
 
 def test_rust_is_numpy_with_the_seat_error_and_the_power_held_at_standstill(
@@ -693,15 +693,15 @@ def test_rust_is_numpy_with_the_seat_error_and_the_power_held_at_standstill(
     problem = prepare(rom, WAGON, noisy, config=config)
     assert problem.order == rom.order + 1 and problem.q_modes is not None
     assert problem.held is not None and 0 < problem.held.mean() < 0.5
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
 
 
 def test_rust_is_numpy_with_the_quiet_noise_by_cylinder_state(
     rom: ReducedModel, noisy: WagonSeries, fitted: EstimatorNoise
 ) -> None:
-    """σ_q by the cylinder's state (session 9): the steps with the cylinder applied (the logged
+    """σ_q by the cylinder's state: the steps with the cylinder applied (the logged
     pressure above the threshold at either end, not at a standstill) are transitions of their
     own, whose quiet-mode noise is the applied one; the kernels agree, modes and all, and the
     option changes the filter only through those steps' noise."""
@@ -718,8 +718,8 @@ def test_rust_is_numpy_with_the_quiet_noise_by_cylinder_state(
     above = np.interp(problem.time_s, noisy.time_s, noisy.p_bar) > 0.05
     braking = (above[:-1] | above[1:]) & ~problem.held
     assert np.array_equal(applied_steps, braking)
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     # the same σ_q there as elsewhere is the filter without the option (exact recursions:
     # the applied steps' keys break the steady stretches elsewhere)
@@ -732,8 +732,8 @@ def test_rust_is_numpy_with_the_quiet_noise_by_cylinder_state(
         manoeuvre_smoother_tolerance=0.0,
     )
     plain = dataclasses.replace(same, applied_pressure_bar=None)
-    a = estimate([prepare(rom, WAGON, noisy, config=same)], config=same, engine="rust")[0]
-    b = estimate([prepare(rom, WAGON, noisy, config=plain)], config=plain, engine="rust")[0]
+    a = estimate([prepare(rom, WAGON, noisy, config=same)], config=same)[0]
+    b = estimate([prepare(rom, WAGON, noisy, config=plain)], config=plain)[0]
     np.testing.assert_allclose(a.contact_mean_c, b.contact_mean_c, rtol=0, atol=1e-9)
     assert np.max(np.abs(fast.contact_mean_c - b.contact_mean_c)) > 1e-3
 
@@ -743,13 +743,13 @@ def test_the_smoother_lets_the_power_step_where_the_drag_began(
 ) -> None:
     """``ManoeuvreTest.smoother_lead_s``: the smoother replays the manoeuvre mode from that
     long before each switch-on (a second forward pass for it alone), the filter and its
-    modes unchanged; the kernels agree (1e-9) on it. With σ_q 0.03 (session 8: the rest as
-    in :data:`SESSION6`) the smoother without the lead spreads each drag's onset over the half
+    modes unchanged; the kernels agree (1e-9) on it. With σ_q 0.03 (the rest as in
+    :data:`SIMPLE_FILTER`) the smoother without the lead spreads each drag's onset over the half
     hour before it (the truth outside its band there); with it the band holds the truth there
     and over the day (90-99 %). The defaults (σ_q 0.03 with ``P_b``, the mode off at 1 σ,
     σ_o 1.5 mK/√s) have the lead: their band is ``test_the_truth_is_inside_the_95_percent_band``'s
-    (without the lead they gave 0.65 / 0.78 here, with it 0.98 / 0.97)."""
-    base = session6(fitted)
+    (without the lead they give 0.65 / 0.78 here, with it 0.98 / 0.97)."""
+    base = simple_filter(fitted)
     base = dataclasses.replace(
         base, noise=dataclasses.replace(base.noise, quiet_power_w_per_sqrt_s=0.03)
     )
@@ -760,9 +760,9 @@ def test_the_smoother_lets_the_power_step_where_the_drag_began(
         base, manoeuvre=ManoeuvreTest(off_sigma=2.0, smoother_lead_s=120.0)
     )
     problem = prepare(rom, WAGON, noisy, config=base)
-    plain = estimate([problem], config=plain_cfg, engine="rust")[0]
-    fast = estimate([problem], config=led_cfg, engine="rust")[0]
-    slow = estimate([problem], config=led_cfg, engine="numpy")[0]
+    plain = estimate([problem], config=plain_cfg)[0]
+    fast = estimate([problem], config=led_cfg)[0]
+    slow = estimate([problem], config=led_cfg, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     assert plain.manoeuvre is not None and fast.manoeuvre is not None
     assert np.array_equal(plain.manoeuvre, fast.manoeuvre)
@@ -928,7 +928,7 @@ def test_a_state_dependent_effect_is_evaluated_on_the_estimate(
         calls.append(1)
         return real(*args, **kwargs)  # type: ignore[arg-type]  # passed through unchanged
 
-    monkeypatch.setattr("fleetbrake.model.estimator.prepare", counting)
+    monkeypatch.setattr("fleetbrake.model.estimator.estimates.prepare", counting)
     faded = estimate_contact(
         rom, WAGON, part, effects=EffectSet((FrictionTemperature(fade_per_k=2e-3),))
     )
@@ -941,28 +941,49 @@ def test_a_state_dependent_effect_is_evaluated_on_the_estimate(
     assert faded.unexplained_power_w[braking].mean() > plain.unexplained_power_w[braking].mean()
 
 
-def test_numpy_reference_alone_and_engines_are_named(problem: EstimatorProblem) -> None:
-    with pytest.raises(EstimatorInputError, match="unknown engine"):
-        estimate([problem], engine="fortran")  # type: ignore[arg-type]  # the wrong value tested
+def test_the_numpy_reference_filters_alone(problem: EstimatorProblem) -> None:
     short = run_numpy(problem, EstimatorNoise(), smooth=False, outputs=False)
     assert short.smoothed_mean_c is None and short.updates > 10_000
 
 
-def test_the_benchmark_runs_both_engines_on_the_same_inputs(rom: ReducedModel) -> None:
-    """``bench estimator`` on two wagon-days: both engines ran on the same problems and gave
-    the same estimates; the rates are what the clock said (not restated here)."""
-    from fleetbrake.bench.estimator import bench_estimator
+def test_the_kernel_is_the_numpy_reference_on_the_benchmarks_day(rom: ReducedModel) -> None:
+    """The first wagon-day of ``bench estimator`` with its settings (the defaults, σ_v 0.1 K):
+    the kernel's filtered and smoothed contact temperatures equal the numpy reference's to
+    1e-9 K, every other output to 1e-9 of its size, and the power noise's mode switches on the
+    same seconds."""
+    from fleetbrake.bench.estimator import NOISE_K as BENCH_NOISE_K
+    from fleetbrake.bench.estimator import SeriesMaker
+
+    wagon = WagonConfig(wagon_id="BENCH-0000")
+    series = SeriesMaker(rom, wagon, distinct_days=1, seed=0).series(0)
+    config = EstimatorConfig(noise=EstimatorNoise(measurement_k=BENCH_NOISE_K))
+    problem = prepare(rom, wagon, series, config=config)
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
+    _assert_same(fast, slow)
+    for name in ("contact_mean_c", "contact_max_c", "smoothed_contact_mean_c"):
+        a, b = getattr(fast, name), getattr(slow, name)
+        assert float(np.nanmax(np.abs(a - b))) <= 1e-9, name
+    assert fast.manoeuvre is not None and slow.manoeuvre is not None
+    assert np.array_equal(fast.manoeuvre, slow.manoeuvre)
+
+
+def test_the_benchmark_times_the_kernel_and_the_end_to_end_pass(rom: ReducedModel) -> None:
+    """``bench estimator`` on two wagon-days: the kernel alone and the end-to-end pass (prepare
+    and kernel in the engine's workers, as run does) over every wagon-second, each beside the
+    floor; the rates are what the clock said (not restated here)."""
+    from fleetbrake.bench.estimator import FLOOR_WAGON_SECONDS_PER_S, bench_estimator
 
     lines: list[str] = []
-    figures = bench_estimator(wagons=2, numpy_wagons=1, rom=rom, echo=lines.append)
-    assert figures["wagon_seconds"] > figures["numpy_wagon_seconds"] > 10_000
-    assert figures["max_difference_k"] <= 1e-9
-    assert figures["rust_wagon_seconds_per_s"] > 0 and figures["numpy_wagon_seconds_per_s"] > 0
-    # end to end, prepare and kernel in the engine's workers (as run does), every wagon-second
+    figures = bench_estimator(wagons=2, rom=rom, echo=lines.append)
+    assert figures["wagon_seconds"] > 20_000
+    assert figures["rust_wagon_seconds_per_s"] > 0 and figures["rust_cpu_s"] > 0
     assert figures["end_to_end_workers"] >= 1
     assert figures["end_to_end_wagon_seconds_per_s"] > 0 and figures["end_to_end_cpu_s"] > 0
-    assert any(line.startswith("end to end") for line in lines)
-    assert any("rust" in line and "numpy" in line for line in lines)
+    assert figures["floor_wagon_seconds_per_s"] == FLOOR_WAGON_SECONDS_PER_S == 500_000
+    assert any(line.lstrip().startswith("kernel") for line in lines)
+    assert any(line.lstrip().startswith("end to end") for line in lines)
+    assert any("500,000" in line for line in lines)
 
 
 def test_steady_states_and_replayed_excursions_change_no_result(rom: ReducedModel) -> None:
@@ -972,7 +993,7 @@ def test_steady_states_and_replayed_excursions_change_no_result(rom: ReducedMode
     steps, session starts) between them. The kernel that freezes and replays equals the numpy
     reference, which computes every covariance step of the steady-state recursion, to 1e-9 on
     every output: a replay or a frozen step that gave other numbers fails here. The
-    :data:`SESSION6` filter: with the defaults this day has no steady second (σ_q 0.03 and
+    :data:`SIMPLE_FILTER` filter: with the defaults this day has no steady second (σ_q 0.03 and
     ``P_b`` settle more slowly than a reading goes missing: 0 % frozen, 0 % replayed found);
     theirs are checked on the drag day (``test_the_rust_kernel_is_the_numpy_reference``) and
     by the Rust unit tests."""
@@ -982,11 +1003,11 @@ def test_steady_states_and_replayed_excursions_change_no_result(rom: ReducedMode
     reading = day.reading_c.copy()
     reading[np.arange(200, reading.size, 400)] = np.nan
     series = dataclasses.replace(day, reading_c=reading)
-    config = session6(EstimatorNoise(measurement_k=NOISE_K))
+    config = simple_filter(EstimatorNoise(measurement_k=NOISE_K))
     problem = prepare(rom, WAGON, series, config=config)
     assert problem.n_samples > 30_000 and (problem.index != problem.index[0]).any()
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     # a fifth of the seconds or more frozen, as many replayed (33 % and 26 % found)
     assert fast.frozen_fraction == slow.frozen_fraction > 0.2
@@ -994,14 +1015,14 @@ def test_steady_states_and_replayed_excursions_change_no_result(rom: ReducedMode
 
 
 def test_rust_is_numpy_with_noise_in_proportion_to_the_declared_power(rom: ReducedModel) -> None:
-    """Session 10: the power's diffusion ``σ² + (g P_declared)²``: non-zero exactly on the steps
+    """The power's diffusion ``σ² + (g P_declared)²``: non-zero exactly on the steps
     with declared friction heat (brakings), never steady there; on a benchmark wagon-day with a
     reading missing every 400 s the Rust kernel (steady states and replayed excursions on the
     released seconds) equals the numpy reference (every braking step computed) to 1e-9, the
     fast paths still cover the released seconds, and the option changes the filter only
     through those steps' noise (g = 0 is the filter without it, exactly). On the
-    :data:`SESSION6` filter it was measured on (with the defaults' ``P_b`` this day has no
-    steady second, with the option or without)."""
+    :data:`SIMPLE_FILTER` (with the defaults' ``P_b`` this day has no steady second, with the
+    option or without)."""
     from fleetbrake.bench.estimator import SeriesMaker
 
     day = SeriesMaker(rom, WagonConfig(wagon_id="BENCH-0000"), distinct_days=1, seed=5).series(0)
@@ -1009,7 +1030,7 @@ def test_rust_is_numpy_with_noise_in_proportion_to_the_declared_power(rom: Reduc
     reading[np.arange(200, reading.size, 400)] = np.nan
     series = dataclasses.replace(day, reading_c=reading)
     noise = EstimatorNoise(measurement_k=NOISE_K)
-    config = session6(noise, declared_power_noise_per_sqrt_s=5e-4)
+    config = simple_filter(noise, declared_power_noise_per_sqrt_s=5e-4)
     problem = prepare(rom, WAGON, series, config=config)
     assert problem.power_noise is not None
     # the cylinder applied and the wheel turning at either end of the step: friction heat
@@ -1018,8 +1039,8 @@ def test_rust_is_numpy_with_noise_in_proportion_to_the_declared_power(rom: Reduc
     braking = (applied & turning)[:-1] | (applied & turning)[1:]
     noisy_steps = problem.power_noise > 0
     assert not np.any(noisy_steps & ~braking) and 0.01 < noisy_steps.mean() < 0.5
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     # the fast paths still cover released seconds (14 % frozen, 8 % replayed found; without
     # the option 26 % and 33 %: each braking leaves a transient)
@@ -1027,9 +1048,9 @@ def test_rust_is_numpy_with_noise_in_proportion_to_the_declared_power(rom: Reduc
     assert fast.replayed_fraction > 0.05
     # g = 0 is the filter without the option, to the bit
     off = dataclasses.replace(config, declared_power_noise_per_sqrt_s=0.0)
-    a = estimate([prepare(rom, WAGON, series, config=off)], config=off, engine="rust")[0]
-    plain = session6(noise)
-    b = estimate([prepare(rom, WAGON, series, config=plain)], config=plain, engine="rust")[0]
+    a = estimate([prepare(rom, WAGON, series, config=off)], config=off)[0]
+    plain = simple_filter(noise)
+    b = estimate([prepare(rom, WAGON, series, config=plain)], config=plain)[0]
     assert np.array_equal(a.contact_mean_c, b.contact_mean_c)
     assert np.array_equal(a.smoothed_contact_mean_sd_k, b.smoothed_contact_mean_sd_k)
     # and it is another filter where the brake works
@@ -1038,12 +1059,12 @@ def test_rust_is_numpy_with_noise_in_proportion_to_the_declared_power(rom: Reduc
 
 @pytest.mark.parametrize("tau_b_s", [0.0, 30.0])
 def test_rust_is_numpy_with_the_braking_power_state(rom: ReducedModel, tau_b_s: float) -> None:
-    """Session 12: the braking's power ``P_b`` as a state of its own
+    """The braking's power ``P_b`` as a state of its own
     (``brake_power_w_per_sqrt_s``): a random walk over exactly the steps with declared friction
     heat, decaying (τ_b > 0) or forgotten (τ_b = 0) elsewhere; the reported power ``P + P_b``.
     On a benchmark wagon-day with a reading missing every 400 s the Rust kernel (steady states
     and replayed excursions where it can) equals the numpy reference to 1e-9; the option off
-    leaves the problem as it was (no ``P_b``, the state one shorter)."""
+    leaves the problem without it (no ``P_b``, the state one shorter)."""
     from fleetbrake.bench.estimator import SeriesMaker
 
     day = SeriesMaker(rom, WagonConfig(wagon_id="BENCH-0000"), distinct_days=1, seed=5).series(0)
@@ -1069,18 +1090,18 @@ def test_rust_is_numpy_with_the_braking_power_state(rom: ReducedModel, tau_b_s: 
     off_phi = problem.brake_phi[problem.index][~on]
     step_s = np.diff(problem.time_s)[~on]
     assert np.allclose(off_phi, np.exp(-step_s / tau_b_s) if tau_b_s > 0 else 0.0, rtol=1e-12)
-    fast = estimate([problem], config=config, engine="rust")[0]
-    slow = estimate([problem], config=config, engine="numpy")[0]
+    fast = estimate([problem], config=config)[0]
+    slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     # the same seconds steady (few: a braking leaves P's variance raised, and with σ_q 0.03
-    # it settles slowly; docs/estimator.md, session 12)
+    # it settles slowly; docs/estimator.md)
     assert fast.frozen_fraction == slow.frozen_fraction
-    # the option off (set explicitly: the defaults have it): the problem and the filter as
-    # they were
+    # the option off (set explicitly: the defaults have it): the problem and the filter
+    # without it
     plain = EstimatorConfig(noise=noise, brake_power_w_per_sqrt_s=None)
     p_plain = prepare(rom, WAGON, series, config=plain)
     assert p_plain.brake_phi is None and p_plain.n_state == rom.order + 1
-    b = estimate([p_plain], config=plain, engine="rust")[0]
+    b = estimate([p_plain], config=plain)[0]
     assert np.max(np.abs(fast.unexplained_power_w - b.unexplained_power_w)) > 0.1
 
 

@@ -1,4 +1,4 @@
-"""The estimation stage's reads, writes and engine (issue 12): the wagons' samples read a chunk
+"""The estimation stage's reads, writes and engine: the wagons' samples read a chunk
 of whole wagons per query and cut as the per-wagon query reads them, the rows committed in
 bulk on a writer thread while the work goes on, the revision's sigma_w fitted wagon by wagon
 on the engine; the rows the same as the per-wagon path's, bit for bit."""
@@ -45,8 +45,8 @@ def fleet(
     the simulation stage."""
     from fleetbrake.ingest.events import update_events
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.simulation.predictions import (
-        SimulationConfig,
         current_revision,
         simulate_events,
         store_registry,
@@ -224,8 +224,8 @@ def test_the_revisions_sigma_w_is_fitted_on_the_engine_as_in_the_parent(
 def _full_search(
     problems: Any, config: Any, measurement_k: float, lo: float, hi: float, tolerance: float
 ) -> tuple[float, float, int]:
-    """The reference: the bounded scalar search over ``lo`` .. ``hi`` and then the floor
-    (``_fit_power_noise`` until session 12): log σ_w, the negative log likelihood, passes."""
+    """The reference: the bounded scalar search over ``lo`` .. ``hi`` and then the floor,
+    without the shortcut at the floor: log σ_w, the negative log likelihood, passes."""
     import numpy as np
     from scipy.optimize import minimize_scalar
 
@@ -237,7 +237,7 @@ def _full_search(
         nonlocal passes
         passes += 1
         noise = m.EstimatorNoise(measurement_k, float(np.exp(np.clip(z, lo, hi))), None)
-        raws = m._run(problems, noise, smooth=False, config=config, engine=None, outputs=False)
+        raws = m.run_kernel(problems, noise, smooth=False, config=config, outputs=False)
         return -float(sum(raw.log_likelihood for raw in raws))
 
     result = minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": tolerance})
@@ -260,9 +260,11 @@ def test_sigma_w_at_its_floor_takes_two_passes_and_the_full_searchs_answer(
 
     import numpy as np
 
-    from fleetbrake.model import estimator as m
     from fleetbrake.model.effects import EffectSet, HeatPartitionEffusivity
+    from fleetbrake.model.estimator import noise as model_noise
+    from fleetbrake.simulation.estimates import noise as stage_noise
     from fleetbrake.simulation.predictions import Revision, revision
+    from fleetbrake.simulation.store import chunk_table, sample_parts
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
@@ -270,21 +272,21 @@ def test_sigma_w_at_its_floor_takes_two_passes_and_the_full_searchs_answer(
             base = revision(wh, "declared")
             events = wh.con.sql("SELECT wagon_id, start_utc FROM events").pl()
             wagon_id = min(w for w in events["wagon_id"] if w in fleet.registry.wagons)
-            samples = e.chunk_table(wh, "q_simulation_chunk_samples", [wagon_id])
+            samples = chunk_table(wh, "q_simulation_chunk_samples", [wagon_id])
         effects = EffectSet((HeatPartitionEffusivity(contact_factor=0.5),) if misfit else ())
         rev = Revision("r", effects, base.solver, base.refinement)
         days = tuple(sorted({s.date() for w, s in events.iter_rows() if w == wagon_id}))
         config = dataclasses.replace(fleet.config, noise_fit_s=3_600.0)
         task = e.NoiseFitTask(
             fleet.registry.wagons[wagon_id],
-            e.sample_parts(samples, [wagon_id])[wagon_id],
+            sample_parts(samples, [wagon_id])[wagon_id],
             days,
             rev,
             config,
         )
         seen: dict[str, Any] = {}
         passes = [0]
-        run, fit_noise = m._run, m.fit_noise
+        run, fit_noise = model_noise.run_kernel, stage_noise.fit_noise
 
         def counted(*args: Any, **kwargs: Any) -> Any:
             passes[0] += 1
@@ -294,8 +296,8 @@ def test_sigma_w_at_its_floor_takes_two_passes_and_the_full_searchs_answer(
             seen.update(problems=problems, **kwargs)
             return fit_noise(problems, **kwargs)
 
-        mp.setattr(m, "_run", counted)
-        mp.setattr(e, "fit_noise", kept)
+        mp.setattr(model_noise, "run_kernel", counted)
+        mp.setattr(stage_noise, "fit_noise", kept)
         found = e.fit_wagon_noise(task)
         mp.undo()
     assert found is not None
@@ -325,13 +327,14 @@ def test_a_state_dependent_revisions_filtered_passes_are_the_smoothed_ones_witho
     fleet: Fleet, rom_cache_dir: Path
 ) -> None:
     """``fit_wagon_noise`` evaluates a fade on the first estimate's filtered contact, which it
-    takes from filter-only passes (``_estimate(smooth=False)``): their filtered values, and so
+    takes from filter-only passes (``wagon_estimate(smooth=False)``): their filtered values, and so
     their number of passes and the fit, are those of the smoothed estimate, bit for bit; and
     ``estimate_contact`` iterates a fade on filter-only passes, smoothing only the last one."""
     import numpy as np
 
-    from fleetbrake.model import estimator as m
     from fleetbrake.model.effects import EffectSet, FrictionTemperature
+    from fleetbrake.model.estimator import estimates as m
+    from fleetbrake.simulation.estimates.wagon import wagon_estimate
     from fleetbrake.simulation.predictions import Revision, revision
 
     with pytest.MonkeyPatch.context() as mp:
@@ -364,7 +367,7 @@ def test_a_state_dependent_revisions_filtered_passes_are_the_smoothed_ones_witho
                 return run(*args, **kwargs)
 
             mp.setattr(m, "estimate", counted)
-            found[smooth] = e._estimate(wagon, series, rev, fleet.config, noise, smooth=smooth)
+            found[smooth] = wagon_estimate(wagon, series, rev, fleet.config, noise, smooth=smooth)
     smoothed, filtered = found[True], found[False]
     assert smoothed is not None and filtered is not None
     # the fade iterated on filter-only passes; the smoothed estimate smooths the last once more
@@ -431,6 +434,7 @@ def test_the_stage_estimates_with_the_configured_quiet_noise_and_keys_on_it() ->
 
     from fleetbrake.fleet.registry import WagonConfig
     from fleetbrake.model.estimator import EstimatorConfig, EstimatorNoise, WagonSeries
+    from fleetbrake.simulation.estimates.stage import model_key
     from fleetbrake.simulation.predictions import Revision
 
     rng = np.random.default_rng(3)
@@ -455,6 +459,6 @@ def test_the_stage_estimates_with_the_configured_quiet_noise_and_keys_on_it() ->
         assert 0.08 < noise.measurement_k < 0.12
         assert noise.power_w_per_sqrt_s == 7.0
     wagon, rev = WagonConfig("SGG-0001"), Revision("declared")
-    keys = {c: e._model_key(wagon, rev, c, 7.0) for c in (default, quiet)}
+    keys = {c: model_key(wagon, rev, c, 7.0) for c in (default, quiet)}
     assert keys[default] != keys[quiet]
-    assert keys[default] == e._model_key(wagon, rev, e.EstimationConfig(), 7.0)
+    assert keys[default] == model_key(wagon, rev, e.EstimationConfig(), 7.0)

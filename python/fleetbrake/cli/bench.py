@@ -114,21 +114,16 @@ def bench_estimator_command(
     wagons: Annotated[
         int, typer.Option("--wagons", help="Wagon-days run through the Rust kernel.")
     ] = 100,
-    numpy_wagons: Annotated[
-        int,
-        typer.Option("--numpy-wagons", help="Of those, run also by the plain numpy filter."),
-    ] = 1,
     refinement: RefinementOption = 1.0,
 ) -> None:
     """The virtual sensor (Kalman filter and smoother): wagon-seconds per second of the Rust
-    kernel beside a plain numpy implementation of the same filter, in the same run."""
+    kernel alone and end to end (prepare and kernel in the engine's workers, as run does),
+    beside the floor of 500,000 end to end on two cores."""
     import json
 
     from fleetbrake.bench.estimator import bench_estimator
 
-    figures = bench_estimator(
-        wagons=wagons, numpy_wagons=numpy_wagons, refinement=refinement, echo=typer.echo
-    )
+    figures = bench_estimator(wagons=wagons, refinement=refinement, echo=typer.echo)
     if json_out:
         typer.echo(json.dumps(figures))
 

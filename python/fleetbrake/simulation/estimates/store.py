@@ -1,0 +1,216 @@
+"""The estimation stage's tables (``warehouse/sql/schema_estimates.sql``): the partitions read
+for the workers (:func:`estimate_task`, :func:`estimation_chunk`), the keys each wagon was
+estimated from (``estimated_wagons``, :func:`estimated_wagons`), a revision's fitted noise
+(``estimator_noise``, :func:`stored_noise`, :func:`store_noise`), and the rows written
+(:func:`replace_estimates`: whole wagons, one transaction) and read back
+(:func:`wagon_estimates`)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import polars as pl
+import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
+
+from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.model.estimator import EstimatorNoise
+from fleetbrake.simulation.estimates.config import EstimationConfig
+from fleetbrake.simulation.estimates.rows import ESTIMATE_SCHEMA
+from fleetbrake.simulation.estimates.wagon import EstimateChunk, EstimateResult, EstimateTask
+from fleetbrake.simulation.predictions import Revision
+from fleetbrake.simulation.store import chunk_table, utc_now
+from fleetbrake.warehouse.connection import Warehouse, sql
+
+__all__ = [
+    "EstimatedWagon",
+    "StoredNoise",
+    "estimate_task",
+    "estimated_wagon_ids",
+    "estimated_wagons",
+    "estimation_chunk",
+    "estimation_data_keys",
+    "forget_wagon",
+    "replace_estimates",
+    "store_noise",
+    "stored_noise",
+    "wagon_estimates",
+]
+
+
+@dataclass(frozen=True)
+class EstimatedWagon:
+    """A row of ``estimated_wagons``."""
+
+    wagon_id: str
+    data_key: str
+    model_key: str
+    seconds: int
+    created_utc: dt.datetime
+    measurement_k: float | None = None
+    """σ_v it was estimated with (the wagon's own unless given)."""
+    power_w_per_sqrt_s: float | None = None
+    """σ_w it was estimated with (the revision's)."""
+
+
+@dataclass(frozen=True)
+class StoredNoise:
+    """A row of ``estimator_noise``."""
+
+    noise: EstimatorNoise
+    method: str
+    fit_wagons: str | None
+    fit_readings: int | None
+    log_likelihood: float | None
+    at_floor: bool | None
+
+
+def estimate_task(
+    wh: Warehouse,
+    wagon: WagonConfig,
+    rev: Revision,
+    config: EstimationConfig,
+    power_noise_w_per_sqrt_s: float,
+    *,
+    data_key: str,
+    model_key: str,
+) -> EstimateTask:
+    """The wagon's partition, read from the warehouse by the parent."""
+    samples = wh.con.sql(
+        sql("q_simulation_wagon_samples"), params={"wagon_id": wagon.wagon_id}
+    ).to_arrow_table()
+    return EstimateTask(wagon, samples, rev, config, power_noise_w_per_sqrt_s, data_key, model_key)
+
+
+def estimation_chunk(
+    wh: Warehouse,
+    wagons: Iterable[tuple[WagonConfig, str, str]],
+    rev: Revision,
+    config: EstimationConfig,
+    power_noise_w_per_sqrt_s: float,
+) -> EstimateChunk:
+    """The chunk's partitions, read from the warehouse with one query (by the parent: the
+    workers never open it)."""
+    todo = tuple(wagons)
+    samples = chunk_table(wh, "q_simulation_chunk_samples", [w.wagon_id for w, _, _ in todo])
+    return EstimateChunk(todo, samples, rev, config, power_noise_w_per_sqrt_s)
+
+
+def stored_noise(wh: Warehouse, revision: str) -> StoredNoise | None:
+    """The σ_w fitted for ``revision`` (None: none is stored, the default applies)."""
+    rows = wh.con.execute(sql("q_estimates_noise"), {"revision": revision}).fetchall()
+    if not rows:
+        return None
+    v, w, method, wagons, readings, loglik, at_floor, _ = rows[0]
+    return StoredNoise(
+        EstimatorNoise(float(v), float(w)), method, wagons, readings, loglik, at_floor
+    )
+
+
+def store_noise(wh: Warehouse, revision: str, stored: StoredNoise) -> None:
+    """Store ``revision``'s fitted noise (replacing any stored for it)."""
+    wh.con.execute(
+        sql("q_estimates_insert_noise"),
+        {
+            "revision": revision,
+            "measurement_k": stored.noise.measurement_k,
+            "power_w_per_sqrt_s": stored.noise.power_w_per_sqrt_s,
+            "method": stored.method,
+            "fit_wagons": stored.fit_wagons,
+            "fit_readings": stored.fit_readings,
+            "log_likelihood": stored.log_likelihood,
+            "at_floor": stored.at_floor,
+            "created_utc": utc_now(),
+        },
+    )
+
+
+def estimation_data_keys(wh: Warehouse) -> dict[str, str]:
+    """Each wagon with samples: a key of its files and samples as they are now."""
+    rows = wh.con.execute(sql("q_estimates_wagon_data")).fetchall()
+    return {str(wagon_id): str(key) for wagon_id, key in rows}
+
+
+def estimated_wagons(wh: Warehouse, revision: str) -> dict[str, EstimatedWagon]:
+    """The wagons estimated with ``revision``, and from what."""
+    rows = wh.con.execute(sql("q_estimates_estimated_wagons"), {"revision": revision}).fetchall()
+    return {
+        str(r[0]): EstimatedWagon(str(r[0]), r[1], r[2], int(r[3]), r[4], r[5], r[6]) for r in rows
+    }
+
+
+def estimated_wagon_ids(wh: Warehouse, revision: str) -> set[str]:
+    """The wagons holding rows of ``revision`` in ``contact_estimates`` or
+    ``estimated_wagons``: the ones :func:`replace_estimates` must delete before it inserts."""
+    rows = wh.con.execute(sql("q_estimates_stored_wagon_ids"), {"revision": revision}).fetchall()
+    return {str(r[0]) for r in rows}
+
+
+def replace_estimates(
+    wh: Warehouse, revision: str, results: Sequence[EstimateResult], *, delete: bool = True
+) -> None:
+    """Replace the rows of ``revision`` of every wagon of ``results``, all in one transaction
+    (each wagon whole-old or whole-new whatever happens), one bulk insert per table (Arrow
+    in), recording the keys of each.
+
+    ``delete=False``: none of the wagons holds rows of ``revision``
+    (:func:`estimated_wagon_ids`), so the deletes, each a scan of its whole table (which grows
+    with the fleet), are skipped."""
+    if not results:
+        return
+    if len({r.wagon_id for r in results}) != len(results):
+        raise ValueError("replace_estimates: a wagon given twice")
+    key = {"wagon_ids": [r.wagon_id for r in results], "revision": revision}
+    tables = [r.rows for r in results if r.rows.num_rows]
+    stamps = pa.table(
+        {
+            "wagon_id": pa.array([r.wagon_id for r in results], pa.string()),
+            "model_revision": pa.array([revision] * len(results), pa.string()),
+            "data_key": pa.array([r.data_key for r in results], pa.string()),
+            "model_key": pa.array([r.model_key for r in results], pa.string()),
+            "seconds": pa.array([r.seconds for r in results], pa.int64()),
+            "measurement_k": pa.array(
+                [None if r.noise is None else r.noise.measurement_k for r in results],
+                pa.float64(),
+            ),
+            "power_w_per_sqrt_s": pa.array(
+                [None if r.noise is None else r.noise.power_w_per_sqrt_s for r in results],
+                pa.float64(),
+            ),
+            "created_utc": pa.array([utc_now()] * len(results), pa.timestamp("us")),
+        }
+    )
+    with wh.transaction() as con:
+        if delete:
+            con.execute(sql("q_estimates_delete_wagons"), key)
+            con.execute(sql("q_estimates_delete_estimated_wagons"), key)
+        batches = [("estimated_batch", stamps, "q_estimates_insert_estimated_wagons")]
+        if tables:
+            rows = tables[0] if len(tables) == 1 else pa.concat_tables(tables)
+            batches.insert(0, ("estimate_batch", rows, "q_estimates_insert"))
+        for name, table, statement in batches:
+            con.register(name, table)
+            try:
+                con.execute(sql(statement))
+            finally:
+                con.unregister(name)
+
+
+def forget_wagon(wh: Warehouse, wagon_id: str) -> None:
+    """Delete every row of a wagon whose samples are gone, of every revision."""
+    with wh.transaction() as con:
+        con.execute(sql("q_estimates_forget_wagon"), {"wagon_id": wagon_id})
+        con.execute(sql("q_estimates_forget_estimated_wagon"), {"wagon_id": wagon_id})
+
+
+def wagon_estimates(wh: Warehouse, wagon_id: str, revision: str) -> pl.DataFrame:
+    """One wagon's stored estimates of ``revision`` by time, every column of
+    ``contact_estimates`` (:data:`~fleetbrake.simulation.estimates.rows.ESTIMATE_SCHEMA`; empty
+    if none)."""
+    frame = wh.con.sql(
+        sql("q_estimates_wagon"), params={"wagon_id": wagon_id, "revision": revision}
+    ).pl()
+    if frame.height == 0:
+        return pl.DataFrame(schema=ESTIMATE_SCHEMA)
+    return frame.select(list(ESTIMATE_SCHEMA)).cast(dict(ESTIMATE_SCHEMA))
