@@ -1,4 +1,4 @@
-"""The virtual sensor's stage (issue 14): ``run`` fills ``v_contact_estimates`` with one row
+"""The virtual sensor's stage: ``run`` fills ``v_contact_estimates`` with one row
 per wagon and logged second (interface v2), incrementally, the same on any engine; with a
 fleet that follows the declared model the estimate is the model's prediction, and a dragging
 brake shows as unexplained power."""
@@ -19,13 +19,13 @@ import pytest
 from fleetbrake.app.run import RunReport, run_fleet
 from fleetbrake.engine import InlineEngine, LocalEngine
 from fleetbrake.model.estimator import Z95, EstimatorNoise
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.simulation.estimates import (
     DEFAULT_POWER_NOISE_W_PER_SQRT_S,
     ESTIMATE_SCHEMA,
     EstimationConfig,
     wagon_estimates,
 )
-from fleetbrake.simulation.predictions import SimulationConfig
 from fleetbrake.warehouse.connection import open_warehouse
 
 VIEW_COLUMNS = [
@@ -450,7 +450,7 @@ def _assert_identity(
         # braking's power P_b resolves after a while: a few seconds of long brakings leave the
         # band, by less than 1.5x the sensor's noise (measured with the defaults: 0.12 % of
         # the seconds, by 0.024 K filtered; 0.06 %, by 0.11 K smoothed; with sigma_q 0.3 and
-        # no P_b, until session 15: 0.05 %, by 0.006 K and 0.10 K)
+        # no P_b: 0.05 %, by 0.006 K and 0.10 K)
         excess = np.abs(mean - model) - (0.5 * half + 0.02 + model_error_k)
         outside = float(np.mean(excess > 0))
         print(f"{prefix}outside the band: {outside:.5f}, by at most {excess.max():.4f} K")
@@ -503,7 +503,7 @@ def test_a_wagons_results_do_not_depend_on_when_the_others_arrived(
 def test_the_estimate_beats_the_open_loop_prediction_over_normal_operation(
     fleet: Path, inline_db: Path
 ) -> None:
-    """Issue 14: on a normal noisy generated fleet, the filtered and smoothed contact mean's
+    """On a normal noisy generated fleet, the filtered and smoothed contact mean's
     RMSE against the truth over normal operation (every wagon's seconds outside its
     anomalies) is at most the open-loop prediction's (the stored timeline); and the estimate
     follows the prediction within its band, not the sensor reading."""
@@ -720,14 +720,14 @@ def test_identity_on_a_full_fe_fleet_following_the_declared_model(
     the band and the FE model's distance from the reduced one (up to 0.3 K at a hard
     braking's peak on the face, within 0.01 K at the seat).
 
-    Written at the model's mesh since the defaults have σ_q 0.03 W/√s and the braking's power
+    Written at the model's mesh because the defaults have σ_q 0.03 W/√s and the braking's power
     ``P_b`` (docs/estimator.md, "The defaults: a documented tuning"): the 409-node mesh of
     ``FE_REFINEMENT`` (0.2) puts its own error of 0.1-0.2 K at the seat in hard brakings,
     which the tight quiet noise then follows into the face (with the defaults there: 48 s
     outside the band + 0.5 K, by up to 0.37 K; the power band holding 0 for 0.948 / 0.900 of
     the seconds; at 0.6: 0 s, 0.993 / 0.988), as the acceptance fleets and the drag day of
-    ``test_estimator`` left that mesh for the same reason (sessions 11-12)."""
-    from fleetbrake.model.rom import FullModelRunner
+    ``test_estimator`` are written at the model's mesh for the same reason."""
+    from fleetbrake.model.fullmodel import FullModelRunner
 
     monkeypatch.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
     root = tmp_path / "fleet"

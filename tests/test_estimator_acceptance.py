@@ -1,4 +1,4 @@
-"""Issue 14's bars for the virtual sensor, shown on fleets written by the FULL finite-element
+"""The virtual sensor's acceptance bars, shown on fleets written by the FULL finite-element
 model (``fleetbrake.synth`` with ``solver="full"``: not the reduced model the pipeline
 estimates with, which differs from it by its reduction and its time integration), with
 dragging brakes, weak brakes and sensor faults, run through ``run_fleet`` (the ``estimate``
@@ -7,11 +7,10 @@ stage) and read from ``v_contact_estimates`` / ``contact_estimates``.
 The writer is the close loop's (``acceptance_fleets.writer_for``, ``FE_REFINEMENT`` 0.6: the
 6,131-node mesh the reduced model is reduced from) and the fleets come from its cache
 (``acceptance_fleets.write_fleet``, written once per writer version;
-``FLEETBRAKE_ACCEPTANCE_CACHE=off`` writes them afresh). Until session 11 they were written at
-0.2 (409 nodes), a mesh coarser than the model's: in a hard braking that writer's seat is
-0.1-0.2 K off the 0.6 mesh's, while the reduced model's is within 0.01 K, so most of the
-seat's disagreement the filter was chasing was the writer's mesh error (docs/estimator.md,
-"Session 11 (second)"). The bars:
+``FLEETBRAKE_ACCEPTANCE_CACHE=off`` writes them afresh). Not at a mesh coarser than the
+model's, such as 0.2 (409 nodes): in a hard braking that writer's seat is 0.1-0.2 K off the
+0.6 mesh's, while the reduced model's is within 0.01 K, so most of the seat's disagreement the
+filter would chase is the writer's mesh error (docs/estimator.md). The bars:
 
 - contact-mean RMSE against the truth over normal operation, filtered and smoothed, at most
   the open-loop prediction's (the stored timeline);
@@ -28,8 +27,8 @@ seat's disagreement the filter was chasing was the writer's mesh error (docs/est
 Every bar is met with the estimator's defaults (the braking's power ``P_b``, σ_q 0.03 W/√s,
 σ_o 1.5 mK/√s, the smoother's lead; chosen on seeds 3 and 4 against their truth, checked on
 the held-out seed 5). The filtered RMSE on seed 4 has the thinnest margin (0.4 % under the open
-loop's). Until session 13 the defaults (σ_q 0.3, no ``P_b``) failed the filtered RMSE on seed 3
-and the band over normal operation (too wide), both strict xfails then.
+loop's). The simpler filter with σ_q 0.3 and no ``P_b`` fails the filtered RMSE on seed 3 and
+the band over normal operation (too wide).
 
 Run with ``-s`` to see the figures (``docs/estimator.md`` quotes them, "The defaults: a
 documented tuning").
@@ -56,8 +55,8 @@ from fleetbrake.engine import InlineEngine
 from fleetbrake.fleet.registry import WagonConfig, load_registry
 from fleetbrake.model.estimator import Z95
 from fleetbrake.model.physics import friction_power_series_w, heat_partition_alpha
-from fleetbrake.simulation.predictions import SimulationConfig
-from fleetbrake.synth import generator as synth_generator
+from fleetbrake.simulation.config import SimulationConfig
+from fleetbrake.synth import readings as synth_readings
 from fleetbrake.synth.generator import SynthConfig
 from fleetbrake.synth.truth import FleetTruth
 
@@ -66,7 +65,7 @@ pytestmark = pytest.mark.slow
 FE_REFINEMENT = acceptance_fleets.FE_REFINEMENT
 """The full model's mesh that writes the fleets: the close loop's writer (0.6, 6,131 hex20
 nodes, the mesh the reduced model is reduced from), so the fleets' truth is not the writer's
-own mesh error (it was 0.2, 409 nodes, until session 11: docs/estimator.md)."""
+own mesh error (docs/estimator.md)."""
 SEEDS = (3, 4)
 """Two fleets of 4 wagons x 2 days (wagon 1 clean, a dragging brake on 2, a weak brake on 3,
 sensor faults on 2-4; synth's unregistered and badly registered wagons besides)."""
@@ -342,7 +341,7 @@ def _declared_fleet(
     )
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FLEETBRAKE_CACHE_DIR", str(cache_dir))
-        mp.setattr(synth_generator, "PRESSURE_QUANTUM_BAR", pressure_quantum_bar)
+        mp.setattr(synth_readings, "PRESSURE_QUANTUM_BAR", pressure_quantum_bar)
         return _fleet(root, config, model_for, refinement)
 
 
@@ -377,7 +376,7 @@ def declared_fleet_7mbar(
         reduced_model_for,
         rom_refinement,
         rom_cache_dir,
-        synth_generator.PRESSURE_QUANTUM_BAR,
+        synth_readings.PRESSURE_QUANTUM_BAR,
     )
 
 
@@ -457,7 +456,7 @@ def test_the_power_follows_the_logged_pressures_own_error(
     unexplained power. Over the long brakings (after their first minute) the heat the logged
     inputs miss is inside the power's 95 % band for at least 90 % of the seconds; where it is
     5 W or more, the smoothed power over the braking and the live one over its second half
-    are within 20 % of it (the issue's drag bar) and the smoothed band leaves out 0 for most
+    are within 20 % of it (the drag bar) and the smoothed band leaves out 0 for most
     of its seconds. The 1 mbar fleet's missing heat is small (so it is the
     quantisation, not the model): its worst long braking misses less than a fifth of the 7 mbar
     fleet's worst."""

@@ -1,5 +1,5 @@
 """Tests of the flags' second opinion, the virtual sensor (fleetbrake.flags.estimated), and
-of the thresholds that scale with the revision's residual spread (issues 13 and 14).
+of the thresholds that scale with the revision's residual spread.
 
 Hand-made estimates check each detector and how two opinions make one flag; generated fleets
 (anomalies on, one made by the full finite-element model) check that the flags with both
@@ -315,7 +315,7 @@ class Judged:
 def _uncapped_spread(wh: Warehouse, wagon_ids: Iterable[str]) -> dict[str, float]:
     """Each wagon's residual spread as :func:`wagon_residual_spread` computes it, without
     its cap (to know how far the model misses, not how far the flags scale)."""
-    from fleetbrake.flags import judge
+    from fleetbrake.flags import wagon as judge
 
     out = {}
     with pytest.MonkeyPatch.context() as mp:
@@ -343,9 +343,9 @@ def judge_fleet(
     from conftest import TEST_REFINEMENT
     from fleetbrake.flags import raise_flags
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.simulation.estimates import EstimationConfig, estimate_wagons
     from fleetbrake.simulation.predictions import (
-        SimulationConfig,
         current_revision,
         simulate_events,
     )
@@ -458,7 +458,7 @@ def test_a_model_lacking_an_effect_raises_no_brake_or_sensor_flag(
     a brake or a sensor. The limit: a model missing by far more than the cap (convection
     growing with speed, the demo's effect) does raise flags, which is what the close loop is
     for."""
-    from fleetbrake.flags.judge import RESIDUAL_SPREAD_CAP_K
+    from fleetbrake.flags.wagon import RESIDUAL_SPREAD_CAP_K
     from fleetbrake.model.effects import ConvectionSpeed, HeatPartition
 
     judged = judge_fleet(
@@ -496,11 +496,11 @@ def test_the_flags_read_the_stored_estimates_when_they_are_current(
     stage is the one place a wagon is estimated."""
     from conftest import TEST_REFINEMENT
     from fleetbrake.flags import raise_flags
-    from fleetbrake.flags.judge import _current_estimates
+    from fleetbrake.flags.judge import current_estimates
     from fleetbrake.ingest.files import load_fleet_registry, run_ingest
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.simulation.estimates import estimate_wagons
     from fleetbrake.simulation.predictions import (
-        SimulationConfig,
         current_revision,
         simulate_events,
     )
@@ -517,12 +517,12 @@ def test_the_flags_read_the_stored_estimates_when_they_are_current(
         simulate_events(
             wh, registry, rev, SimulationConfig(refinement=TEST_REFINEMENT), progress=False
         )
-        assert _current_estimates(wh, rev.name) == set()  # none stored yet: no opinion
+        assert current_estimates(wh, rev.name) == set()  # none stored yet: no opinion
         alone = raise_flags(wh, registry, rev.name)
         assert alone.flags and not any(f.detail == "estimator" for f in alone.flags)
         assert not any("virtual sensor" in f.evidence for f in alone.flags)
         estimate_wagons(wh, registry, rev)
-        assert _current_estimates(wh, rev.name) == set(registry.wagons)
+        assert current_estimates(wh, rev.name) == set(registry.wagons)
         stored = raise_flags(wh, registry, rev.name)
         today = raise_flags(wh, registry, rev.name, TODAY)
         observable = {id(a): _observable(wh, truth, a) for a in truth.anomalies}

@@ -23,10 +23,10 @@ from fleetbrake.warehouse.connection import open_warehouse
 WAGON = "TW-0001"
 BARE_WAGON = "TW-0002"  # samples, no events, no predictions
 T0 = dt.datetime(2024, 3, 1, 10, 0, 0)
-SESSION_1_S = 600  # samples 10:00:00 .. 10:09:59
+FIRST_TRIP_S = 600  # samples 10:00:00 .. 10:09:59
 T1 = dt.datetime(2024, 3, 1, 12, 0, 0)
-SESSION_2_S = 100  # samples 12:00:00 .. 12:01:39 (a gap of ~2 h before)
-FAULTY_S = range(400, 405)  # out-of-range readings (a broken wire) in session 1
+SECOND_TRIP_S = 100  # samples 12:00:00 .. 12:01:39 (a gap of ~2 h before)
+FAULTY_S = range(400, 405)  # out-of-range readings (a broken wire) in the first trip
 MISSING_S = range(450, 453)  # no reading at all
 E1 = f"{WAGON}-20240301T100140"  # stop: 10:01:40 .. 10:04:10
 E2 = f"{WAGON}-20240301T120020"  # slowdown: 12:00:20 .. 12:00:50
@@ -34,7 +34,7 @@ E1_START, E1_END = T0 + dt.timedelta(seconds=100), T0 + dt.timedelta(seconds=250
 E2_START, E2_END = T1 + dt.timedelta(seconds=20), T1 + dt.timedelta(seconds=50)
 
 
-def _session(start: dt.datetime, n: int, brake: tuple[int, int], file_id: int) -> pl.DataFrame:
+def _trip(start: dt.datetime, n: int, brake: tuple[int, int], file_id: int) -> pl.DataFrame:
     s = np.arange(n, dtype=float)
     a, b = brake
     braking = (s >= a) & (s < b)
@@ -83,13 +83,13 @@ def _predictions(samples: pl.DataFrame, event_id: str, start: dt.datetime, n: in
     )
 
 
-DRAG_S = range(300, 400)  # session 1: an unexplained 500 W (a dragging brake) in the estimates
+DRAG_S = range(300, 400)  # the first trip: an unexplained 500 W (a dragging brake) in the estimates
 
 
 def _estimates(samples: pl.DataFrame) -> pl.DataFrame:
     """``v_contact_estimates`` rows (interface v2) for every logged second of ``samples``: the
     contact mean 70 K over the reading with a +-5 K band, the unexplained power 500 W during
-    :data:`DRAG_S` of session 1 (else 0) with a +-50 W band."""
+    :data:`DRAG_S` of the first trip (else 0) with a +-50 W band."""
     n = samples.height
     temp = samples["block_temp_c"].fill_null(40.0).to_numpy()
     k = np.arange(n)
@@ -122,23 +122,23 @@ def fleet_db(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
 
 
 def build_fleet_db(db: Path) -> dict[str, object]:
-    """A small warehouse at ``db``: two sessions of one wagon (700 samples, 5 faulty and 3
+    """A small warehouse at ``db``: two trips of one wagon (700 samples, 5 faulty and 3
     missing readings), two events with predictions of revision `declared`, contact estimates
     at every logged second, two flags; and a wagon with samples only."""
-    s1 = _session(T0, SESSION_1_S, (100, 250), 1)
-    faulty = pl.Series("k", np.arange(SESSION_1_S)).is_in(list(FAULTY_S))
-    missing = pl.Series("k", np.arange(SESSION_1_S)).is_in(list(MISSING_S))
+    s1 = _trip(T0, FIRST_TRIP_S, (100, 250), 1)
+    faulty = pl.Series("k", np.arange(FIRST_TRIP_S)).is_in(list(FAULTY_S))
+    missing = pl.Series("k", np.arange(FIRST_TRIP_S)).is_in(list(MISSING_S))
     s1 = s1.with_columns(
         block_temp_c=pl.when(faulty | missing).then(None).otherwise(pl.col("block_temp_c")),
         block_temp_raw_c=pl.when(faulty).then(850.0).otherwise(None),
         block_temp_fault=faulty,
     )
-    s2 = _session(T1, SESSION_2_S, (20, 50), 2)
-    bare = _session(T0, 50, (10, 20), 3).with_columns(wagon_id=pl.lit(BARE_WAGON))
+    s2 = _trip(T1, SECOND_TRIP_S, (20, 50), 2)
+    bare = _trip(T0, 50, (10, 20), 3).with_columns(wagon_id=pl.lit(BARE_WAGON))
     samples = pl.concat([s1, s2, bare])
-    # Predictions: from activation until the end of the session (the next event is later).
-    p1 = _predictions(s1, E1, E1_START, SESSION_1_S - 100)
-    p2 = _predictions(s2, E2, E2_START, SESSION_2_S - 20)
+    # Predictions: from activation until the end of the trip (the next event is later).
+    p1 = _predictions(s1, E1, E1_START, FIRST_TRIP_S - 100)
+    p2 = _predictions(s2, E2, E2_START, SECOND_TRIP_S - 20)
     predictions = pl.concat([p1, p2])
     estimates = pl.concat([_estimates(s1), _estimates(s2)])
     now = dt.datetime(2024, 3, 2)
@@ -195,8 +195,8 @@ def build_fleet_db(db: Path) -> dict[str, object]:
         )
     return {
         "db": db,
-        "samples_1": SESSION_1_S + SESSION_2_S,
-        "valid_temps": SESSION_1_S + SESSION_2_S - len(FAULTY_S) - len(MISSING_S),
+        "samples_1": FIRST_TRIP_S + SECOND_TRIP_S,
+        "valid_temps": FIRST_TRIP_S + SECOND_TRIP_S - len(FAULTY_S) - len(MISSING_S),
         "predictions": predictions.height,
         "residuals": predictions["measured_sensor_c"].is_not_null().sum(),
         "p1": p1,
@@ -275,7 +275,7 @@ def test_timeline_recording(fleet_db: dict[str, object], tmp_path: Path) -> None
     low = e["/wagon/temperature/estimated_contact_mean_lo_c"]["values"]["Scalars:scalars"]
     assert all(m[0] - lo[0] == pytest.approx(5.0) for m, lo in zip(mean, low, strict=True))
     assert summary.counts["wagon/unexplained_power/estimate_w"] == fleet_db["estimates"]
-    # The two-hour gap between the sessions is a hole in the lines, not a straight line.
+    # The two-hour gap between the trips is a hole in the lines, not a straight line.
     assert e["/wagon/speed_kmh"]["rows"]["Clear:is_recursive"] == 1
     assert "SeriesLines:names" in e["/wagon/speed_kmh"]["static"]
 
@@ -303,12 +303,12 @@ def test_event_recording_has_the_block_field(fleet_db: dict[str, object], tmp_pa
     e = _read(out)
     _assert_utc_timeline(e)
 
-    # Window: 60 s before activation to the last prediction (the end of session 1).
-    assert e["/wagon/speed_kmh"]["rows"]["Scalars:scalars"] == SESSION_1_S - 100 + 60
+    # Window: 60 s before activation to the last prediction (the end of the first trip).
+    assert e["/wagon/speed_kmh"]["rows"]["Scalars:scalars"] == FIRST_TRIP_S - 100 + 60
     p1 = fleet_db["p1"]
     assert e["/wagon/temperature/predicted_sensor_c"]["rows"]["Scalars:scalars"] == p1.height
-    # the estimates of the window (every logged second of it), not the other session's
-    window_s = SESSION_1_S - 100 + 60
+    # the estimates of the window (every logged second of it), not the other trip's
+    window_s = FIRST_TRIP_S - 100 + 60
     assert e["/wagon/temperature/estimated_contact_mean_c"]["rows"]["Scalars:scalars"] == window_s
     assert e["/wagon/unexplained_power/estimate_w"]["rows"]["Scalars:scalars"] == window_s
 
