@@ -24,13 +24,14 @@ import pytest
 
 from conftest import TEST_REFINEMENT
 from fleetbrake.app.run import run_fleet
-from fleetbrake.closeloop.loop import CloseLoopConfig, run_close_loop
+from fleetbrake.closeloop.config import CloseLoopConfig
+from fleetbrake.closeloop.loop import run_close_loop
 from fleetbrake.fleet.registry import WagonConfig, load_registry
 from fleetbrake.model.effects import EFFECTS, EffectSet, HeatPartition, effect_from_dict
+from fleetbrake.model.fullmodel import FullModelRunner
 from fleetbrake.model.physics import heat_partition_alpha
-from fleetbrake.model.rom import FullModelRunner
 from fleetbrake.model.timeline import simulate_timeline
-from fleetbrake.simulation.predictions import SimulationConfig
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.synth.generator import SynthConfig, generate_fleet
 from fleetgen import T0_UTC, make_session, write_registry, write_session
 

@@ -1,4 +1,4 @@
-"""The close loop's acceptance tests on fleets the pipeline did not make easy (issue 13).
+"""The close loop's acceptance tests on fleets the pipeline did not make easy.
 
 One small fleet per effect of the vocabulary, a clean one and one with an effect outside the
 vocabulary (sunshine by the hour of day), each written by the full finite-element model on
@@ -15,7 +15,7 @@ test below is parametrised by the fleet, so one fleet runs alone with ``-k NAME`
 against the truth with their intervals, the holdout RMSE against the noise-free truth before
 and after, the noise, the verdict, the flags' precision and recall, and the seconds spent.)
 
-What must hold (issue 13, "What it must show"): on a vocabulary fleet the effect in the data
+What must hold: on a vocabulary fleet the effect in the data
 is named **alone**, in its law, and nothing is added on the clean fleet; every fitted
 parameter's 95 % interval (``parameter_intervals``) contains the true value; on the holdout
 day the new revision's RMSE against the noise-free truth is at most 40 % of the declared
@@ -26,8 +26,8 @@ report says ``adequate: false``, ``unexplained`` names the hour of day, and noth
 ``v_predictions`` gives.
 
 Every case takes half an hour or more on a shared 2-core machine, most of it the full model
-at refinement 0.6 writing the fleet (26 min for ambient_offset under load 7-10; 54 s at the
-former 0.2; docs/closeloop.md, "Session 9"), then ``run`` and the close loop: the module is
+at refinement 0.6 writing the fleet (26 min for ambient_offset under load 7-10; 54 s at
+refinement 0.2; docs/closeloop.md), then ``run`` and the close loop: the module is
 ``slow``; run one case at a time.
 
 A written fleet is kept: under ``$FLEETBRAKE_ACCEPTANCE_CACHE`` (default
@@ -97,7 +97,7 @@ def outcome_of(
     too is kept, and raised again by every test of the case, rather than paid for again)."""
     done: dict[str, Outcome | BaseException] = {}
     with pytest.MonkeyPatch.context() as mp:
-        # the pipeline builds its reduced models where the session keeps them
+        # the pipeline builds its reduced models where the test run keeps them
         mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
 
         def get(case: Case) -> Outcome:

@@ -18,8 +18,11 @@ import pytest
 from conftest import TEST_REFINEMENT
 from conftest import RunFleet as Fleet
 from fleetbrake.closeloop import fitdata
+from fleetbrake.closeloop.config import CloseLoopConfig
+from fleetbrake.closeloop.evidence import event_sets
 from fleetbrake.closeloop.fitdata import FitData
-from fleetbrake.closeloop.loop import CloseLoopConfig, _event_sets, run_close_loop
+from fleetbrake.closeloop.loop import run_close_loop
+from fleetbrake.closeloop.terms import speed_noise_kmh, with_speed_debiased
 from fleetbrake.model.effects import (
     AmbientOffset,
     ConvectionSpeed,
@@ -65,7 +68,7 @@ def fit_events(fleet: Fleet) -> tuple[Revision, pl.DataFrame, dict[str, Any]]:
     with open_warehouse(fleet.db) as wh:
         wagons = stored_wagons(wh)
         base = current_revision(wh, refinement=TEST_REFINEMENT)
-        fit, _, _ = _event_sets(wh, base.name, config)
+        fit, _, _ = event_sets(wh, base.name, config)
         loaded = {w: load_wagon(wh, wagons[w], fleet.simulation) for w in fit["wagon_id"]}
     return base, fit, loaded
 
@@ -272,9 +275,9 @@ def test_the_speed_noise_is_read_from_the_logged_speed_and_its_bias_taken_out(
     where the wagon stands (it logs about its noise there), unchanged to 1e-3 at running
     speeds, the driving running median debiased alike."""
     _, _, loaded = fit_events(fleet)
-    noise = fitdata.speed_noise_kmh(loaded)
+    noise = speed_noise_kmh(loaded)
     assert noise == pytest.approx(0.3, rel=0.1)
-    debiased = fitdata.with_speed_debiased(loaded, noise)
+    debiased = with_speed_debiased(loaded, noise)
     width = fleet.simulation.chain.speed_median_samples
     for wagon_id, data in loaded.items():
         for before, after in zip(data.spans, debiased[wagon_id].spans, strict=True):

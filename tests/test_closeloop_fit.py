@@ -1,7 +1,7 @@
-"""The close loop's parameter fit (``fleetbrake.closeloop.loop._fit``) on event sets small
-enough to reason about: each evaluation is scored second by second against the seconds of the
-starting point, whatever predictions a candidate drops (NaN in its residual: the start's
-residual there)."""
+"""The close loop's parameter fit (``fleetbrake.closeloop.leastsquares.fit_parameters``) on
+event sets small enough to reason about: each evaluation is scored second by second against
+the seconds of the starting point, whatever predictions a candidate drops (NaN in its
+residual: the start's residual there)."""
 
 from __future__ import annotations
 
@@ -11,15 +11,11 @@ import datetime as dt
 import numpy as np
 import pytest
 
-from fleetbrake.closeloop.loop import (
-    Candidate,
-    CloseLoopConfig,
-    CloseLoopConfigError,
-    CloseLoopError,
-    _fit,
-    _steps,
-    refit_moved,
-)
+from fleetbrake.closeloop.candidates import Candidate
+from fleetbrake.closeloop.config import CloseLoopConfig
+from fleetbrake.closeloop.errors import CloseLoopConfigError, CloseLoopError
+from fleetbrake.closeloop.leastsquares import fit_parameters, forward_steps
+from fleetbrake.closeloop.revision import refit_moved
 from fleetbrake.model.effects import EFFECT_ORDER, EffectSet, HeatPartition
 
 ALPHA_DECLARED = 0.7455
@@ -82,7 +78,7 @@ def test_steps_are_scipys_forward_differences_turned_round_at_a_bound():
     x = np.array([0.5, -2.0, 0.99, 3.0])
     lo = np.array([0.0, -10.0, 0.0, 2.9])
     hi = np.array([1.0, 10.0, 1.0, 3.05])
-    h = _steps(x, lo, hi, 0.05)
+    h = forward_steps(x, lo, hi, 0.05)
     np.testing.assert_allclose(h, [0.025, -0.1, -0.0495, -0.1], rtol=1e-12)
     # the same Jacobian as scipy's own 2-point scheme with these bounds
     a = np.array([[1.0, 2.0, 3.0, 4.0], [0.5, -1.0, 2.0, 0.0]])
@@ -113,7 +109,7 @@ def test_a_fit_whose_candidates_drop_a_braking_scores_them_on_the_right_seconds(
     expected = 1.0 - factor * (1.0 - ALPHA_DECLARED)
     assert expected == pytest.approx(0.775, abs=0.002)
 
-    fit = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    fit = fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
 
     fitted = fit.effects.get("heat_partition")
     assert isinstance(fitted, HeatPartition)
@@ -154,7 +150,7 @@ def test_a_fit_simulates_each_parameter_vector_once():
     the fitted effects."""
     brakings = CountingBrakings(alphas=(0.70, 0.75, 0.80), drop_above=0.76)
 
-    fit = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    fit = fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
 
     assert len(brakings.simulated) >= 3
     assert len(set(brakings.simulated)) == len(brakings.simulated), brakings.simulated
@@ -168,7 +164,7 @@ def test_two_wild_events_are_left_out_and_change_neither_verdict_nor_parameter()
     everything, the wild pair biases alpha and leaves the fit far above the noise; the outlier
     rule picks exactly those two events from their residual RMS, and the fit on the kept
     events finds the truth and is judged adequate."""
-    from fleetbrake.closeloop.selection import adequacy, event_rms, outlier_events
+    from fleetbrake.closeloop.stats import adequacy, event_rms, outlier_events
 
     brakings = ThreeBrakings(alphas=(0.72,) * 40, drop_above=1.0)
     for wild in (3, 11):
@@ -176,12 +172,12 @@ def test_two_wild_events_are_left_out_and_change_neither_verdict_nor_parameter()
     event = np.repeat(np.arange(40), brakings.rise_k.size)
     noise_k = 0.05
 
-    everything = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    everything = fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
     rms = event_rms(brakings.residuals([everything.effects])[0], event, 40)
     outliers, threshold = outlier_events(rms, noise_k)
     assert sorted(outliers.tolist()) == [3, 11] and threshold >= 5 * noise_k
     kept = ~np.isin(event, outliers)
-    robust = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14, keep=kept)
+    robust = fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14, keep=kept)
 
     def alpha(fit) -> float:  # type: ignore[no-untyped-def]
         effect = fit.effects.get("heat_partition")
@@ -200,7 +196,7 @@ def test_two_wild_events_are_left_out_and_change_neither_verdict_nor_parameter()
 def test_outlier_rule_leaves_nothing_out_of_a_uniform_misfit():
     """A model that misfits every event alike has no outlier: the bulk moves with it; and at
     most the worst ``max_fraction`` of the events are ever left out."""
-    from fleetbrake.closeloop.selection import outlier_events
+    from fleetbrake.closeloop.stats import outlier_events
 
     rng = np.random.default_rng(3)
     misfit = 2.0 + 0.2 * rng.random(100)  # every event ~2 K off, noise 0.1 K
@@ -223,7 +219,7 @@ def test_a_refit_inside_the_fits_uncertainty_keeps_the_revision():
     wild pair biases alpha, and the refit on the 38 clean events moves it far beyond its
     interval (made again); chosen on the 38 clean events, a refit on 36 of them (two good
     events more judged unusable) moves it by a fraction of its interval (kept)."""
-    from fleetbrake.closeloop.selection import blocked_intervals
+    from fleetbrake.closeloop.stats import blocked_intervals
 
     brakings = ThreeBrakings(alphas=(0.72,) * 40, drop_above=1.0)
     for wild in (3, 11):
@@ -232,7 +228,7 @@ def test_a_refit_inside_the_fits_uncertainty_keeps_the_revision():
 
     def fit_without(*gone: int):  # type: ignore[no-untyped-def]
         keep = ~np.isin(event, gone)
-        return _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14, keep=keep)
+        return fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14, keep=keep)
 
     def intervals(fit):  # type: ignore[no-untyped-def]
         return blocked_intervals(fit.jacobian, fit.aligned, fit.x, fit.names, event[fit.scored])
@@ -253,10 +249,10 @@ def test_a_refit_inside_the_fits_uncertainty_keeps_the_revision():
 def test_a_refit_move_of_an_undetermined_parameter_or_a_new_one():
     """A parameter whose interval is unbounded (the data do not determine it) never counts
     as moved; one the chosen candidate lacks always does."""
-    from fleetbrake.closeloop.selection import BlockedIntervals
+    from fleetbrake.closeloop.stats import BlockedIntervals
 
     chosen = Candidate(EffectSet((HeatPartition(alpha=0.70),)), 0.1, 0.0, 1)
-    refit = _fit(ThreeBrakings((0.72,) * 3, 1.0), EffectSet(), [HeatPartition], None, 14)
+    refit = fit_parameters(ThreeBrakings((0.72,) * 3, 1.0), EffectSet(), [HeatPartition], None, 14)
     assert refit.x[0] != pytest.approx(0.70, abs=1e-3)
     unbounded = BlockedIntervals({"heat_partition.alpha": (-np.inf, np.inf)}, {}, {}, {}, 3, {})
     assert refit_moved(chosen, refit, unbounded, 0.25) == []
@@ -280,18 +276,20 @@ def test_a_refit_from_the_optimum_stops_at_the_fits_resolution_and_one_far_off_d
     returned bit for bit. scipy's own stopping (``xtol`` 1e-8 relative) evaluates more steps
     of the same refit and moves the parameter by less than that tolerance. Started 10 standard
     errors away, the rule does not stop the refit: it goes to the optimum."""
-    from fleetbrake.closeloop.selection import effective_sample_size, standard_errors
+    from fleetbrake.closeloop.stats import effective_sample_size, standard_errors
 
     brakings = ThreeBrakings(alphas=(0.70, 0.72, 0.74) * 8, drop_above=1.0)
     event = np.repeat(np.arange(24), brakings.rise_k.size)
-    fitted = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    fitted = fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
     n_eff = effective_sample_size(fitted.aligned, event)
     sigma = float(standard_errors(fitted.jacobian, fitted.aligned, n_eff)[0])
     assert 0.0 < sigma < 0.01
 
     def refit_from(alpha: float, tolerance: float):  # type: ignore[no-untyped-def]
         start = (HeatPartition(alpha=alpha),)
-        return _fit(brakings, EffectSet(), [HeatPartition], start, 7, 0.05, None, tolerance, event)
+        return fit_parameters(
+            brakings, EffectSet(), [HeatPartition], start, 7, 0.05, None, tolerance, event
+        )
 
     at_optimum = refit_from(fitted.x[0], 0.1)
     assert at_optimum.evaluations <= 2
@@ -308,14 +306,14 @@ def test_a_refit_from_the_optimum_stops_at_the_fits_resolution_and_one_far_off_d
         CloseLoopConfig(dt.date(2024, 3, 6), refit_step_tolerance=-0.1)
 
 
-def test_brakings_over_a_frozen_gps_speed_are_left_out_of_the_fit() -> None:
+def test_brakings_over_a_frozen_gps_speed_are_left_out_of_thefit_parameters() -> None:
     """An event braking while the logged speed repeats one value to the last digit (a GPS
     that froze) has an unknown heat input: the close loop leaves it out of fit and holdout.
     A braking whose speed jitters as a live GPS does is kept, and so is a frozen speed with
     the brake released."""
     from types import SimpleNamespace
 
-    from fleetbrake.closeloop.loop import _unknown_heat_events
+    from fleetbrake.closeloop.evidence import unknown_heat_events
     from fleetbrake.simulation.series import WagonSeries
 
     n = 600
@@ -341,7 +339,7 @@ def test_brakings_over_a_frozen_gps_speed_are_left_out_of_the_fit() -> None:
         events=[("A", 100, 160, True), ("B", 300, 360, True), ("C", 530, 560, True)],
     )
     loaded = {"SGG-0001": SimpleNamespace(spans=[series])}
-    assert _unknown_heat_events(loaded) == frozenset({"A"})  # type: ignore[arg-type]
+    assert unknown_heat_events(loaded) == frozenset({"A"})  # type: ignore[arg-type]
 
 
 class ThreeBrakingsMisread(ThreeBrakings):
@@ -359,26 +357,24 @@ class ThreeBrakingsMisread(ThreeBrakings):
 def test_the_input_term_is_gauss_newton_steps_that_agree_with_the_refit():
     """The input term (``input_shift``): the chosen parameters' response to an input's
     systematic error by quasi-Newton steps from the fit's Jacobian, one evaluation of the
-    residual with the input changed each, agrees with refitting with it changed (session 9's
-    method). The heat partition's flux factor is nonlinear in alpha: an input read 1 % (5 %)
+    residual with the input changed each, agrees with refitting with it changed. The heat
+    partition's flux factor is nonlinear in alpha: an input read 1 % (5 %)
     wrong moves alpha by 0.0028 (0.0133), the first step (``gauss_newton_shift``, the linear
     sensitivity) is 1 % (5 %) off the refit's shift, the Broyden-updated steps (one
-    parameter: the secant method) meet it to 1e-7 in 2 evaluations (the chord, session 10:
-    0.01 % (0.25 %) in 2-3). A parameter on a bound the step would cross stays on it."""
-    from fleetbrake.closeloop.loop import (
-        effects_at,
-        gauss_newton_shift,
-        input_shift,
-        parameter_bounds,
-    )
+    parameter: the secant method) meet it to 1e-7 in 2 evaluations (the chord, ``J^T J`` every
+    step: 0.01 % (0.25 %) in 2-3). A parameter on a bound the step would cross stays on it."""
+    from fleetbrake.closeloop.leastsquares import effects_at, parameter_bounds
+    from fleetbrake.closeloop.terms import gauss_newton_shift, input_shift
 
     brakings = ThreeBrakings((0.72, 0.70, 0.74), drop_above=1.0)
-    fitted = _fit(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
+    fitted = fit_parameters(brakings, EffectSet(), [HeatPartition], None, max_nfev=14)
     lower, upper = parameter_bounds([HeatPartition])
     assert (lower, upper) == (pytest.approx([0.0]), pytest.approx([0.999]))
     for misread in (1.01, 0.99, 1.05, 0.95):
         moved = ThreeBrakingsMisread((0.72, 0.70, 0.74), 1.0, misread)
-        refit = _fit(moved, EffectSet(), [HeatPartition], list(fitted.effects), max_nfev=14)
+        refit = fit_parameters(
+            moved, EffectSet(), [HeatPartition], list(fitted.effects), max_nfev=14
+        )
         wanted = refit.x[0] - fitted.x[0]
         assert abs(wanted) > 2e-3
         first = gauss_newton_shift(fitted, moved.residuals([fitted.effects])[0], lower, upper)
@@ -414,13 +410,14 @@ def test_the_input_term_converges_where_the_fits_jacobian_overstates_the_respons
     """On the bench fleet the fit's Jacobian (a 5 % forward difference: a secant over a
     convection quantum) is 2-3 times the residual's response over the input term's small
     shift (a convection varying inside a piece is rounded, so on that scale the residual is a
-    step function of the parameters), and the chord (``J^T J`` every step) contracted by only
+    step function of the parameters), and the chord (``J^T J`` every step) contracts by only
     0.5-0.7 a step: 5 evaluations, 5 % short. Here a linear response ``S`` whose fit Jacobian
     is ``J = -S diag(2, 3.3)`` (the fit's normal equations hold for both): the shift the
     changed residual asks is known exactly, the chord's 5 steps miss it by 0.7^5 = 17 % in
     the second parameter, the Broyden-updated steps (:func:`input_shift`) meet it to 1e-6
     (exact after 2p updates on a linear response; 3 evaluations on the bench fleet)."""
-    from fleetbrake.closeloop.loop import FitResult, input_shift
+    from fleetbrake.closeloop.leastsquares import FitResult
+    from fleetbrake.closeloop.terms import input_shift
 
     rng = np.random.default_rng(11)
     t = np.linspace(0.0, 1.0, 600)
@@ -446,7 +443,7 @@ def test_the_input_term_converges_where_the_fits_jacobian_overstates_the_respons
     lower, upper = np.array([0.0, 0.1]), np.array([50.0, 2.0])
     shift, evaluations = input_shift(fitted, residual_at, lower, upper)
     assert shift == pytest.approx(wanted, rel=1e-6) and evaluations <= 5
-    # the chord: the fit's Jacobian every step, as until session 11
+    # the chord: the fit's Jacobian every step
     x = x0.copy()
     jac = fitted.jacobian
     for _ in range(5):

@@ -1,4 +1,4 @@
-"""The cache of written acceptance fleets (``acceptance_fleets.cached_fleet``, issue 13).
+"""The cache of written acceptance fleets (``acceptance_fleets.cached_fleet``).
 
 An acceptance fleet written by the full model at ``FE_REFINEMENT`` 0.6 costs 7-26 min (about
 1 h 40 min for convection_speed), so ``test_closeloop_acceptance`` keeps each one under
@@ -27,7 +27,7 @@ import pytest
 import acceptance_fleets as af
 from fleetbrake import _ext
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.rom import FullModelRunner
+from fleetbrake.model.fullmodel import FullModelRunner
 from fleetbrake.synth.config import draw_effect
 from fleetbrake.synth.generator import SynthConfig, generate_fleet, load_truth
 

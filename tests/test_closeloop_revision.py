@@ -1,7 +1,7 @@
-"""The close loop's making of a revision (``closeloop.loop._make_revision``, issue 12, session
-15): the simulation on a second connection in a thread of its own while σ_w is fitted and the
-wagons are estimated stores what the three steps one after the other store, table for table
-(the revision's predictions, timeline, segments, stamps, σ_w and every row of
+"""The close loop's making of a revision (``closeloop.revision.make_revision``): the
+simulation on a second connection in a thread of its own while σ_w is fitted and the wagons
+are estimated stores what the three steps one after the other store, table for table (the
+revision's predictions, timeline, segments, stamps, σ_w and every row of
 ``contact_estimates``), in this process and on the local engine's workers; an error of either
 side is raised, the other side having finished."""
 
@@ -19,8 +19,11 @@ import pytest
 
 from conftest import TEST_REFINEMENT
 from conftest import RunFleet as Fleet
-from fleetbrake.closeloop import loop
-from fleetbrake.closeloop.loop import Candidate, CloseLoopConfig, _event_sets, _record_revision
+from fleetbrake.closeloop import revision
+from fleetbrake.closeloop.candidates import Candidate
+from fleetbrake.closeloop.config import CloseLoopConfig
+from fleetbrake.closeloop.evidence import event_sets
+from fleetbrake.closeloop.revision import record_revision
 from fleetbrake.engine import LocalEngine
 from fleetbrake.model.effects import ConvectionSpeed, EffectSet
 from fleetbrake.simulation.estimates import EstimationConfig, estimate_wagons, fit_revision_noise
@@ -72,22 +75,22 @@ def _stored(db: Path, revision: str) -> dict[str, pl.DataFrame]:
 
 
 def _make(fleet: Fleet, db: Path, engine: Any, *, together: bool) -> str:
-    """A copy of the fleet's database given a convection revision, made by ``_make_revision``
-    (``together``) or by its three steps one after the other (as until session 14)."""
+    """A copy of the fleet's database given a convection revision, made by ``make_revision``
+    (``together``) or by its three steps one after the other."""
     shutil.copy(fleet.db, db)
     sim = fleet.simulation
     config = CloseLoopConfig(HOLDOUT, simulation=sim)
     with open_warehouse(db) as wh:
         wagons = stored_wagons(wh)
         base = current_revision(wh, refinement=TEST_REFINEMENT)
-        fit, _, _ = _event_sets(wh, base.name, config)
+        fit, _, _ = event_sets(wh, base.name, config)
         events = wh.con.sql(sql("q_closeloop_events")).pl()["event_id"].to_list()
         name = "r1-convection_speed"
-        _record_revision(wh, name, base, Candidate(EFFECTS, 0.0, 0.0, 2))
+        record_revision(wh, name, base, Candidate(EFFECTS, 0.0, 0.0, 2))
         rev = Revision(name, EFFECTS, base.solver, base.refinement)
         assert fit.height > 5 and len(events) > fit.height
         if together:
-            loop._make_revision(wh, wagons, rev, sim, events, fit, engine)
+            revision.make_revision(wh, wagons, rev, sim, events, fit, engine)
         else:
             estimation = EstimationConfig(chain=sim.chain)
             simulate_events(wh, wagons, rev, sim, event_ids=events, engine=engine)
@@ -134,17 +137,17 @@ def test_the_revision_made_together_is_the_three_steps_one_after_the_other(
 def test_an_error_on_either_side_is_raised_after_the_other_ended(
     fleet: Fleet, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failing: str
 ) -> None:
-    """The side that fails raises its error from ``_make_revision``; the other ran to its
+    """The side that fails raises its error from ``make_revision``; the other ran to its
     end first (its rows are stored: no thread left writing)."""
-    real = getattr(loop, failing)
+    real = getattr(revision, failing)
 
     def fails(*args: Any, **kwargs: Any) -> None:
         raise RuntimeError(f"{failing} failed")
 
-    monkeypatch.setattr(loop, failing, fails)
+    monkeypatch.setattr(revision, failing, fails)
     with pytest.raises(RuntimeError, match=f"{failing} failed"):
         _make(fleet, tmp_path / "fails.duckdb", None, together=True)
-    monkeypatch.setattr(loop, failing, real)
+    monkeypatch.setattr(revision, failing, real)
     stored = _stored(tmp_path / "fails.duckdb", "r1-convection_speed")
     other = "contact_estimates" if failing == "simulate_events" else "timeline"
     assert stored[other].height > 0

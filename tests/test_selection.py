@@ -1,25 +1,39 @@
-"""The close loop's statistics (``fleetbrake.closeloop.selection``) on synthetic arrays whose
+"""The close loop's statistics (``fleetbrake.closeloop.stats``) on synthetic arrays whose
 answers are known: white and AR(1) noise, a linear model with correlated noise, a smooth
-leftover driven by a known input; and the Markdown report's verdict line
-(``fleetbrake.closeloop.report``) from report dicts."""
+leftover driven by a known input; and the typed report (``fleetbrake.closeloop.report``): its
+JSON and the Markdown report's verdict line (``fleetbrake.closeloop.markdown``)."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import polars as pl
 import pytest
 
-from fleetbrake.closeloop.report import (
+from fleetbrake.closeloop.candidates import HeldOut
+from fleetbrake.closeloop.evidence import ResidualSummary
+from fleetbrake.closeloop.fit import Outliers
+from fleetbrake.closeloop.markdown import (
     MarkdownReport,
     ResidualPlots,
     plot_residual_by_phase,
     plot_residual_by_wagon,
     render_markdown,
-    verdict,
+    verdict_line,
 )
-from fleetbrake.closeloop.selection import (
+from fleetbrake.closeloop.report import (
+    AdequacyReport,
+    CandidateReport,
+    CloseLoopReport,
+    EventSetFigures,
+    IntervalMethods,
+    UnknownHeat,
+)
+from fleetbrake.closeloop.stats import (
     EFFECT_NULLS,
     SelectionError,
     adequacy,
@@ -41,6 +55,7 @@ from fleetbrake.closeloop.selection import (
     systematic_share,
     with_numerical_term,
 )
+from fleetbrake.closeloop.terms import InputTerm, Numerical
 
 
 def ar1(n: int, rho: float, rng: np.random.Generator, sigma: float = 1.0) -> np.ndarray:
@@ -501,59 +516,120 @@ def test_systematic_share_does_not_count_the_noise_as_left():
 
 
 # ---------------------------------------------------------------------------- report
-def report_dict(**changes):
-    report = {
-        "baseline_revision": "declared",
-        "new_revision": "r1-convection_speed",
-        "effect": "convection_speed",
-        "parameters": {"h_speed": 1.2},
-        "evidence": "residual correlates with speed",
-        "fit": {"events": 40, "rmse_before_k": 1.31, "rmse_after_k": 0.118},
-        "holdout": {"events": 10, "rmse_before_k": 1.40, "rmse_after_k": 0.121},
-        "candidates": [
-            {
-                "effect": "convection_speed",
-                "parameters": {"convection_speed": {"h_speed": 1.2}},
-                "rmse_fit_k": 0.118,
-                "rmse_holdout_k": 0.121,
-                "score": 310.5,
-            }
+def typed_report(**changes: Any) -> CloseLoopReport:
+    """A report of an added convection, adequate, with ``changes``."""
+    report = CloseLoopReport(
+        baseline_revision="declared",
+        new_revision="r1-convection_speed",
+        effect="convection_speed",
+        parameters={"h_speed": 1.2},
+        evidence="residual correlates with speed",
+        fit=EventSetFigures(40, 1.31, 0.118, 44, 1.5, 0.5),
+        holdout=EventSetFigures(10, 1.40, 0.121, 12, 1.6, 0.6),
+        candidates=[
+            CandidateReport(
+                effect="convection_speed",
+                label="convection_speed",
+                parameters={"convection_speed": {"h_speed": 1.2}},
+                rmse_fit_k=0.118,
+                rmse_holdout_k=0.121,
+                score=310.5,
+                fitted_on="fit",
+                held_out=None,
+                refused=None,
+            )
         ],
-        "parameter_intervals": {"h_speed": [1.1, 1.3]},
-        "noise_k": 0.1,
-        "adequate": True,
-        "unexplained": None,
-        "selection": "blocked cross-validation",
-    }
-    report.update(changes)
-    return report
+        noise_k=0.1,
+        flags_judged_with="r1-convection_speed",
+        solver="rom",
+        residual=ResidualSummary(100),
+        n_eff=30.0,
+        selection="blocked cross-validation",
+        exclusion="flagged events",
+        outliers=Outliers(events=0),
+        unknown_heat=UnknownHeat(0, []),
+        effects=None,
+        interval_methods=None,
+        parameter_intervals={"h_speed": [1.1, 1.3]},
+        adequate=True,
+        unexplained=None,
+        adequacy=AdequacyReport(0.118, 1.18, 0.9, 0.99, {}),
+    )
+    return dataclasses.replace(report, **changes)
+
+
+def methods(numerical: float | None = None, inputs: float | None = None) -> IntervalMethods:
+    """Interval methods naming the jackknife as the widest, with the terms' half-widths."""
+    return IntervalMethods(
+        blocks=4,
+        widest={"h_speed": "jackknife"},
+        jacobian={},
+        sandwich={},
+        jackknife={},
+        statistical={},
+        numerical=None
+        if numerical is None
+        else Numerical(0.6, [], 2.0, 3.0, {"h_speed": numerical}),
+        inputs=None if inputs is None else InputTerm(0.3, {"h_speed": 1.2}, {"h_speed": inputs}, 2),
+    )
 
 
 def test_report_first_line_is_the_verdict():
-    found = render_markdown(report_dict()).splitlines()
+    found = render_markdown(typed_report()).splitlines()
     assert found[0].startswith("found: convection_speed")
     assert "| h_speed | 1.2 | 1.1 | 1.3 | - | - | - |" in found
     # the statistical method and the numerical term beside the reported interval
-    methods = {"widest": {"h_speed": "jackknife"}, "numerical": {"half_width": {"h_speed": 0.05}}}
-    with_term = render_markdown(report_dict(interval_methods=methods)).splitlines()
+    with_term = render_markdown(typed_report(interval_methods=methods(0.05))).splitlines()
     assert "| h_speed | 1.2 | 1.1 | 1.3 | jackknife | 0.05 | - |" in with_term
     assert any("adequate" in line and "yes" in line for line in found)
     partly = (
         "partly explained: friction_speed explains 76 % of the residual; 1.2 K remains "
         "against 0.1 K of sensor noise, correlated with speed (r = +0.41)"
     )
-    text = render_markdown(report_dict(adequate=False, unexplained=partly, effect="friction_speed"))
+    text = render_markdown(
+        typed_report(adequate=False, unexplained=partly, effect="friction_speed")
+    )
     assert text.splitlines()[0] == partly
     assert "| adequate | no |" in text
-    nothing = report_dict(new_revision=None, effect=None, parameters={}, parameter_intervals={})
-    assert verdict(nothing).startswith("nothing added")
-    assert verdict(nothing).endswith("the baseline revision is adequate")
+    nothing = typed_report(new_revision=None, effect=None, parameters={}, parameter_intervals={})
+    assert verdict_line(nothing).startswith("nothing added")
+    assert verdict_line(nothing).endswith("the baseline revision is adequate")
     assert render_markdown(nothing).splitlines()[0].startswith("nothing added")
-    # a report of the first contract version (no adequacy fields) still renders
-    old = report_dict()
+
+
+def test_the_report_serialises_to_the_contracts_keys():
+    """``to_dict`` gives interface.md's keys in its order, the optional sections only when
+    there is something in them, and a JSON round trip of it."""
+    data = typed_report().to_dict()
+    contract = [
+        "baseline_revision",
+        "new_revision",
+        "effect",
+        "parameters",
+        "evidence",
+        "fit",
+        "holdout",
+        "candidates",
+    ]
+    assert list(data)[: len(contract)] == contract
     for key in ("parameter_intervals", "noise_k", "adequate", "unexplained"):
-        del old[key]
-    assert render_markdown(old).splitlines()[0].startswith("found: convection_speed")
+        assert key in data
+    assert list(data["fit"]) == [
+        "events",
+        "rmse_before_k",
+        "rmse_after_k",
+        "events_all",
+        "rmse_before_all_k",
+        "rmse_after_all_k",
+    ]
+    assert list(data["candidates"][0])[:2] == ["effect", "label"]
+    assert "effects" not in data and "interval_methods" not in data and "cost" not in data
+    assert data["outliers"] == {"events": 0} and data["residual"] == {"seconds": 100}
+    with_terms = typed_report(interval_methods=methods(0.05, -0.04)).to_dict()
+    terms = with_terms["interval_methods"]
+    assert terms["numerical"]["half_width"] == {"h_speed": 0.05}
+    assert terms["input"]["half_width"] == {"h_speed": 0.04}
+    assert json.loads(json.dumps(with_terms)) == with_terms
 
 
 def test_the_residual_plots_drawn_on_a_worker_are_those_drawn_here(tmp_path: Path) -> None:
@@ -584,7 +660,7 @@ def test_the_residual_plots_drawn_on_a_worker_are_those_drawn_here(tmp_path: Pat
     here, there = plots("here"), plots("there")
     plot_residual_by_wagon(frame, here.by_wagon)
     plot_residual_by_phase(frame, here.by_phase)
-    text = render_markdown(report_dict(), there)
+    text = render_markdown(typed_report(), there)
     with LocalEngine(1) as engine:
         MarkdownReport(tmp_path / "there.md", text, there).write(engine)
     for drawn, reference in ((there.by_wagon, here.by_wagon), (there.by_phase, here.by_phase)):
@@ -592,35 +668,36 @@ def test_the_residual_plots_drawn_on_a_worker_are_those_drawn_here(tmp_path: Pat
     written = (tmp_path / "there.md").read_text(encoding="utf-8")
     assert written == text
     assert "](there-by-wagon.png)" in written and "](there-by-phase.png)" in written
-    assert "png" not in render_markdown(report_dict())
+    assert "png" not in render_markdown(typed_report())
 
 
 def test_report_names_the_law_the_refusals_and_the_figure_judged():
-    flat = {
-        "effect": "convection_speed",
-        "label": "convection_speed[flat_plate]",
-        "parameters": {"convection_speed": {"multiplier": 0.4}},
-        "rmse_fit_k": 0.5,
-        "rmse_holdout_k": 0.6,
-        "score": 12.0,
-        "held_out": {"gain": 0.01},
-        "refused": "held-out RMSE 0.5 -> 0.495 K (+1.0 %, margin 5 %), better on 2 of 5 folds",
-    }
-    report = report_dict(
-        candidates=[*report_dict()["candidates"], flat],
-        outliers={"events": 2},
-        adequacy={
-            "rmse_judged_k": 0.105,
-            "judged_on": "v_predictions less 2 outlier events",
-            "ratio": 1.05,
-            "max_ratio": 1.5,
-        },
+    flat = CandidateReport(
+        effect="convection_speed",
+        label="convection_speed[flat_plate]",
+        parameters={"convection_speed": {"multiplier": 0.4}},
+        rmse_fit_k=0.5,
+        rmse_holdout_k=0.6,
+        score=12.0,
+        fitted_on="fit",
+        held_out=HeldOut("none", 0.5, 0.495, 0.01, 0.05, 2, 5),
+        refused="held-out RMSE 0.5 -> 0.495 K (+1.0 %, margin 5 %), better on 2 of 5 folds",
+    )
+    report = typed_report(
+        candidates=[*typed_report().candidates, flat],
+        outliers=Outliers(events=2),
+        adequacy=AdequacyReport(
+            0.105,
+            1.05,
+            0.9,
+            0.99,
+            {},
+            rmse_judged_k=0.105,
+            judged_on="v_predictions less 2 outlier events",
+            max_ratio=1.5,
+        ),
         parameter_intervals={"h_speed": [1.1, 1.3]},
-        interval_methods={
-            "widest": {"h_speed": "jackknife"},
-            "numerical": {"half_width": {"h_speed": 0.03}},
-            "input": {"half_width": {"h_speed": 0.04}},
-        },
+        interval_methods=methods(0.03, 0.04),
     )
     text = render_markdown(report)
     first = text.splitlines()[0]

@@ -54,9 +54,6 @@ engine's workers are idle (a single fit, the interval terms).
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import itertools
-import math
 import pickle
 import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -68,36 +65,32 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from fleetbrake.closeloop.spans import Span, prepare_span, steps_of
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.effects import DriveInputs, EffectSet
-from fleetbrake.model.estimator import noise_from_second_differences
-from fleetbrake.model.rom import ChainPieces, ChainRule, ReducedModel
+from fleetbrake.model.chaintypes import ChainPieces, ChainRule
+from fleetbrake.model.effects import EffectSet
+from fleetbrake.model.rom import ReducedModel
 from fleetbrake.model.romchain import chain_convection, simulate_chain_sensor
-from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
+from fleetbrake.model.timeline import H_QUANTUM_W_M2K
 from fleetbrake.simulation.chains import (
     ANCHOR_TOLERANCE_K,
     Model,
-    event_windows,
-    segment_bounds,
-    trusted_readings,
 )
+from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.simulation.predictions import (
     Revision,
-    SimulationConfig,
     WagonData,
     model_for,
     predict_wagon,
 )
-from fleetbrake.simulation.series import FloatArray, WagonSeries, running_median
+from fleetbrake.simulation.series import FloatArray, WagonSeries
 
 __all__ = [
     "FitData",
     "kernel_calls",
     "parallel",
-    "speed_noise_kmh",
     "store",
     "stored",
-    "with_speed_debiased",
 ]
 
 _KERNEL_CALLS = [0]
@@ -162,94 +155,13 @@ DRIVERS = ("speed_kmh", "brake_pressure_bar", "flux_w_m2", "ambient_c")
 """The drivers kept for each second (the prediction's columns of the same names)."""
 
 
-def _step_mean(samples: FloatArray) -> FloatArray:
-    return 0.5 * (samples[:-1] + samples[1:])
-
-
-def _steps_of(
-    span: _Span,
-    applied: Sequence[DriveInputs],
-    name: str,
-    get: Callable[[DriveInputs], FloatArray | None],
-) -> FloatArray:
-    """One input of the kernel per step, the flux or the air (``get`` of each source's
-    loading: the step means, the sources' steps concatenated and gathered into the chain's;
-    None: zeros), for the span's loading with the effects ``applied`` (the
-    fine samples', then each coarse piece's). Where every source's array is the declared
-    one itself (the effects left it as it was), the span's declared steps, made once."""
-    declared = [span.fine, *span.coarse]
-    unchanged = all(get(a) is get(d) for a, d in zip(applied, declared, strict=True))
-    if unchanged and name in span.declared_steps:
-        return span.declared_steps[name]
-    parts: list[FloatArray] = []
-    for inputs in applied:
-        values = get(inputs)
-        size = inputs.flux_w_m2.size - 1
-        parts.append(
-            np.zeros(size) if values is None else _step_mean(np.asarray(values, dtype=np.float64))
-        )
-    steps = np.concatenate(parts)[span.gather]
-    if unchanged:
-        span.declared_steps[name] = steps
-    return steps
-
-
-@dataclass
-class _Span:
-    """One span's chain, everything but the effects: its pieces (the timeline's segments in
-    order, then the windows' continuations), where each piece's steps come from (``gather``
-    into the fine steps followed by each coarse grid's), and the seconds read from its
-    windows (``select`` into the kernel's concatenated window output)."""
-
-    trusted_c: FloatArray
-    ambient_c: FloatArray
-    fine: DriveInputs
-    """The declared loading at samples 0 .. last (before the effects)."""
-    coarse: list[DriveInputs]
-    """Each coarse gap piece's declared loading on its own grid."""
-    coarse_at: list[tuple[int, int, FloatArray]]
-    """Each coarse gap piece's samples ``a .. b`` and grid (for a state-dependent effect's
-    face temperature there)."""
-    gather: np.ndarray
-    piece_a: np.ndarray
-    piece_b: np.ndarray
-    piece_dt: np.ndarray
-    step_offsets: np.ndarray
-    at: FloatArray
-    at_offsets: np.ndarray
-    continuation: np.ndarray
-    length: np.ndarray
-    select: np.ndarray
-    """Positions in the window output of this span's seconds (in :attr:`FitData.seconds`
-    order)."""
-    read: np.ndarray = field(init=False, repr=False)
-    """One flag per window output (``length.sum()``), set where :attr:`select` reads it: the
-    chain kernel's ``windows`` (made once, not per evaluation)."""
-    contact: FloatArray | None = None
-    """The face temperature of the last state-dependent fixed point (a warm start)."""
-    declared_steps: dict[str, FloatArray] = field(default_factory=dict, repr=False)
-    """The kernel's per-step inputs (``flux``, ``air``) of the declared loading,
-    made the first time an evaluation's effects leave that input as declared (the same
-    arrays: an effect that does not change an input returns it as it was given), and reused
-    by later evaluations that leave it so; not pickled (a worker makes its own)."""
-
-    def __post_init__(self) -> None:
-        self.read = np.zeros(int(self.length.sum()), dtype=np.bool_)
-        self.read[self.select] = True
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state["declared_steps"] = {}
-        return state
-
-
 @dataclass
 class _Wagon:
     wagon: WagonConfig
     data: WagonData | None
     """The wagon's samples, kept only where the kernel path cannot run it."""
     event_ids: frozenset[str]
-    spans: list[_Span]
+    spans: list[Span]
     batched: bool
     """Whether the kernel path can run this wagon's spans (else ``predict_wagon``)."""
     start: int
@@ -257,181 +169,6 @@ class _Wagon:
     """Its seconds are ``start .. stop`` of :attr:`FitData.seconds`."""
     keys: pl.DataFrame
     """(event_id, time_utc, position) of its seconds, for reading a frame at them."""
-
-
-def _prepare_span(
-    series: WagonSeries,
-    wagon: WagonConfig,
-    model: ReducedModel,
-    config: SimulationConfig,
-    wanted: frozenset[str],
-) -> tuple[_Span | None, list[tuple[str, int, int, int]], bool]:
-    """The span's cached chain and its wanted windows ``(event_id, start, release, stop)`` in
-    output order; None when it holds no wanted window. The flag: whether the kernel path can
-    run it (a window starting on a coarse gap segment cannot)."""
-    chain = config.chain
-    mine = [w for w in event_windows(series, chain) if w.event_id in wanted]
-    if not mine:
-        return None, [], True
-    until = max(w.stop for w in mine)
-    n = series.n
-    bounds, kinds = segment_bounds(series, chain)
-    windows = {w.start: w for w in mine}
-    end = min(n, until + 1)
-    segments: list[tuple[int, int, bool]] = []  # a, b, coarse
-    for (a, stop), kind in zip(itertools.pairwise(bounds), kinds, strict=True):
-        if a >= end:
-            break
-        b = min(stop, n - 1)
-        if b > a:
-            segments.append((a, b, kind == "gap" and b - a > 2 * chain.gap_step_s))
-    if any(coarse and a in windows for a, _, coarse in segments):
-        return None, [], False
-    pieces: list[tuple[int, int, bool]] = list(segments)
-    continuation: list[int] = []
-    length: list[int] = []
-    for a, b, _ in segments:
-        window = windows.get(a)
-        length.append(0 if window is None else window.stop - a + 1)
-        if window is not None and window.stop > b:
-            pieces.append((b, window.stop, False))
-            continuation.append(len(pieces) - 1)
-        else:
-            continuation.append(-1)
-    last = max(b for _, b, _ in pieces)
-    speed = running_median(series.speed_kmh, chain.speed_median_samples)
-    fine = drive_inputs(
-        model,
-        wagon,
-        dt_s=1.0,
-        p_bar=series.pressure_bar[: last + 1],
-        speed_kmh=speed[: last + 1],
-        ambient_c=series.ambient_c[: last + 1],
-    )
-    coarse: list[DriveInputs] = []
-    coarse_at: list[tuple[int, int, FloatArray]] = []
-    gather: list[np.ndarray] = []
-    at_parts: list[FloatArray] = []
-    at_counts: list[int] = []
-    dts: list[float] = []
-    counts: list[int] = []
-    source = last  # the fine steps come first in the source arrays, the coarse grids after
-    for a, b, is_coarse in pieces:
-        if is_coarse:
-            steps = math.ceil((b - a) / chain.gap_step_s)
-            at = np.linspace(a, b, steps + 1)
-            k = np.arange(a, b + 1)
-            coarse.append(
-                drive_inputs(
-                    model,
-                    wagon,
-                    dt_s=(b - a) / steps,
-                    p_bar=np.interp(at, k, series.pressure_bar[a : b + 1]),
-                    speed_kmh=np.interp(at, k, speed[a : b + 1]),
-                    ambient_c=np.interp(at, k, series.ambient_c[a : b + 1]),
-                )
-            )
-            coarse_at.append((a, b, at))
-            gather.append(np.arange(source, source + steps))
-            source += steps
-            at_parts.append(at)
-            at_counts.append(at.size)
-            dts.append((b - a) / steps)
-            counts.append(steps)
-        else:
-            gather.append(np.arange(a, b))
-            at_counts.append(0)
-            dts.append(1.0)
-            counts.append(b - a)
-    # the windows' seconds with a valid measurement, in the kernel's output order
-    select: list[np.ndarray] = []
-    done: list[tuple[str, int, int, int]] = []
-    offset = 0
-    for (a, _, _), size in zip(segments, length, strict=True):
-        if size:
-            w = windows[a]
-            k = np.arange(w.start, w.stop + 1)
-            ok = np.flatnonzero(np.isfinite(series.measured_c[k]))
-            select.append(offset + ok)
-            done.append((w.event_id, w.start, w.release, w.stop))
-            offset += size
-
-    def offsets(values: list[int]) -> np.ndarray:
-        return np.concatenate([[0], np.cumsum(values, dtype=np.int64)]).astype(np.int64)
-
-    span = _Span(
-        trusted_c=trusted_readings(series, chain),
-        ambient_c=series.ambient_c,
-        fine=fine,
-        coarse=coarse,
-        coarse_at=coarse_at,
-        gather=np.concatenate(gather).astype(np.int64),
-        piece_a=np.array([p[0] for p in pieces], dtype=np.int64),
-        piece_b=np.array([p[1] for p in pieces], dtype=np.int64),
-        piece_dt=np.array(dts, dtype=np.float64),
-        step_offsets=offsets(counts),
-        at=np.concatenate(at_parts) if at_parts else np.zeros(0),
-        at_offsets=offsets(at_counts),
-        continuation=np.array(continuation, dtype=np.int64),
-        length=np.array(length, dtype=np.int64),
-        select=np.concatenate(select) if select else np.zeros(0, dtype=np.int64),
-    )
-    return span, done, True
-
-
-MOVING_KMH = 5.0
-"""km/h: :func:`speed_noise_kmh` reads the GPS speed's noise where the logged speed is above
-this on three consecutive seconds (a wagon that moves: its speed changes smoothly)."""
-
-
-def speed_noise_kmh(loaded: Mapping[str, WagonData], moving_kmh: float = MOVING_KMH) -> float:
-    """The logged GPS speed's white noise (km/h), from the data: the second differences of the
-    logged speed (``speed_raw_kmh``) over three consecutive logged seconds all above
-    ``moving_kmh``, of every span of every wagon, scaled robustly
-    (:func:`~fleetbrake.model.estimator.noise_from_second_differences`: 1.4826 MAD / sqrt 6;
-    a train's speed changes smoothly, so its second differences are the noise's). NaN when no
-    such seconds."""
-    parts: list[FloatArray] = []
-    for data in loaded.values():
-        for series in data.spans:
-            v = series.speed_raw_kmh
-            if v.size < 3:
-                continue
-            d2 = v[2:] - 2.0 * v[1:-1] + v[:-2]
-            ok = np.isfinite(d2) & (v[2:] > moving_kmh) & (v[1:-1] > moving_kmh)
-            ok &= v[:-2] > moving_kmh
-            parts.append(d2[ok])
-    d2 = np.concatenate(parts) if parts else np.zeros(0)
-    return noise_from_second_differences(d2) if d2.size >= 3 else math.nan
-
-
-def with_speed_debiased(loaded: Mapping[str, WagonData], noise_kmh: float) -> dict[str, WagonData]:
-    """The wagons with their speed (logged and interpolated) read without the bias its noise
-    puts in a magnitude: ``sqrt(max(v^2 - noise^2, 0))`` (a GPS speed is ``|v + e|``, whose
-    mean square is ``v^2 + noise^2``: at standstill it reads about its noise, not 0; at
-    running speeds the correction is nothing). The input's systematic error, for the
-    sensitivity of a fit to it (the reported intervals' input term, ``closeloop.loop``). The
-    running median the model is driven by commutes with it (it is monotone), so the driving
-    speed is debiased alike."""
-
-    def debiased(v: FloatArray) -> FloatArray:
-        with np.errstate(invalid="ignore"):
-            return np.where(
-                np.isfinite(v), np.sqrt(np.maximum(v * v - noise_kmh * noise_kmh, 0.0)), v
-            )
-
-    return {
-        wagon_id: dataclasses.replace(
-            data,
-            spans=[
-                dataclasses.replace(
-                    s, speed_kmh=debiased(s.speed_kmh), speed_raw_kmh=debiased(s.speed_raw_kmh)
-                )
-                for s in data.spans
-            ],
-        )
-        for wagon_id, data in loaded.items()
-    }
 
 
 _MODELS: dict[tuple[object, ...], Model] = {}
@@ -500,13 +237,13 @@ class FitData:
             wanted = frozenset(events.filter(pl.col("wagon_id") == wagon_id)["event_id"])
             model = _model(data.wagon, base.solver, base.refinement)
             batched = isinstance(model, ReducedModel) and config.initial_state == "carried"
-            spans: list[_Span] = []
+            spans: list[Span] = []
             start = position
             keys: list[pl.DataFrame] = []
             base_effects = EffectSet(tuple(e for e in base.effects if e.name != "sensor_lag"))
             for series in data.spans if batched else ():
                 assert isinstance(model, ReducedModel)
-                span, windows, ok = _prepare_span(series, data.wagon, model, config, wanted)
+                span, windows, ok = prepare_span(series, data.wagon, model, config, wanted)
                 if not ok:
                     batched = False
                     break
@@ -648,7 +385,7 @@ class FitData:
 
     def _span_unit(
         self,
-        span: _Span,
+        span: Span,
         model: ReducedModel,
         effect_sets: Sequence[EffectSet],
         out: list[FloatArray],
@@ -670,7 +407,7 @@ class FitData:
 
         return run
 
-    def _run_span(self, span: _Span, model: ReducedModel, effects: EffectSet) -> FloatArray:
+    def _run_span(self, span: Span, model: ReducedModel, effects: EffectSet) -> FloatArray:
         """The span's chain with ``effects``, in one kernel call; the predictions at its
         seconds. An effect depending on the block's temperature: fixed-point iteration over
         the whole chain (the face temperature of one pass feeding the heat input of the next,
@@ -696,7 +433,7 @@ class FitData:
 
     def _run_span_once(
         self,
-        span: _Span,
+        span: Span,
         model: ReducedModel,
         effects: EffectSet,
         contact: FloatArray | None,
@@ -715,8 +452,8 @@ class FitData:
                 for c, (a, b, at) in zip(coarse, span.coarse_at, strict=True)
             ]
         applied = [block.apply_to_inputs(fine), *(block.apply_to_inputs(c) for c in coarse)]
-        flux = _steps_of(span, applied, "flux", lambda x: x.flux_w_m2)
-        air = _steps_of(span, applied, "air", lambda x: x.ambient_c)
+        flux = steps_of(span, applied, "flux", lambda x: x.flux_w_m2)
+        air = steps_of(span, applied, "air", lambda x: x.ambient_c)
         # the convection per step and its systems in one Rust pass: the step means gathered,
         # a convection varying inside a piece rounded, piece by piece (simulate_timeline's);
         # a face set the loading has no convection for: zeros

@@ -1,305 +1,538 @@
-"""The close-loop report for people: Markdown with plots (residual before and after, per
-wagon, per phase), written beside the JSON report. Its first line is the verdict
-(:func:`verdict`): ``found: ...``, ``partly explained: ...`` or ``nothing added ...``; then the
-sensor noise, whether the new revision is adequate and what is left unexplained, and each
-fitted parameter with its 95 % interval (``parameter_intervals``).
-
-The report is read from the warehouse (:func:`read_markdown_report`: its residuals) and
-written apart (:meth:`MarkdownReport.write`), so that ``close-loop`` writes it, its plots
-drawn on one of the engine's workers, while the warehouse closes (DuckDB's checkpoint)."""
+"""The close loop's last phase, report: what the phases found, as the typed report
+(:class:`CloseLoopReport`, its values as reported: rounded where the JSON rounds them), built
+once (:func:`build_report`), its verdict judged again on the figure it shows
+(:func:`judged_on_report`), and serialised in one place (:meth:`CloseLoopReport.to_dict`: the
+JSON of ``shared/spec/interface.md``, "close-loop report", and the fields beyond it). The
+Markdown report (:mod:`fleetbrake.closeloop.markdown`) is rendered from the same object."""
 
 from __future__ import annotations
 
-from collections import deque
+import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-import polars as pl
+from fleetbrake.closeloop.candidates import (
+    Candidate,
+    Families,
+    HeldOut,
+    HeldOutFailed,
+    report_parameters,
+)
+from fleetbrake.closeloop.config import CloseLoopConfig
+from fleetbrake.closeloop.evidence import (
+    Evidence,
+    ResidualSummary,
+    event_sets,
+    rmse_from_predictions,
+)
+from fleetbrake.closeloop.fit import Fitted, Outliers
+from fleetbrake.closeloop.revision import NewRevision
+from fleetbrake.closeloop.selection import Selection
+from fleetbrake.closeloop.stats import MAX_NOISE_RATIO, describe_drivers, intervals_for_json
+from fleetbrake.closeloop.terms import InputTerm, Numerical
+from fleetbrake.closeloop.verdict import Verdict
+from fleetbrake.model.effects import Effect
+from fleetbrake.warehouse.connection import Warehouse
 
-from fleetbrake.engine import Engine
-from fleetbrake.warehouse.connection import Warehouse, sql
+__all__ = [
+    "AdequacyReport",
+    "CandidateReport",
+    "CloseLoopReport",
+    "Cost",
+    "EventSetFigures",
+    "IntervalMethods",
+    "UnknownHeat",
+    "build_report",
+    "judged_on_report",
+]
 
-
-def _residuals(wh: Warehouse, revisions: list[str]) -> pl.DataFrame:
-    frames = []
-    for rev in revisions:
-        frames.append(wh.con.sql(sql("q_closeloop_residuals"), params={"revision": rev}).pl())
-    return pl.concat(frames) if frames else pl.DataFrame()
-
-
-def plot_residual_by_wagon(frame: pl.DataFrame, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    summary = (
-        frame.group_by("wagon_id", "model_revision")
-        .agg((pl.col("residual_k") ** 2).mean().sqrt().alias("rmse_k"))
-        .sort("wagon_id", "model_revision")
-    )
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    revisions = summary["model_revision"].unique(maintain_order=True).to_list()
-    wagons = summary["wagon_id"].unique(maintain_order=True).to_list()
-    width = 0.8 / max(len(revisions), 1)
-    for i, rev in enumerate(revisions):
-        part = summary.filter(pl.col("model_revision") == rev)
-        lookup = dict(zip(part["wagon_id"], part["rmse_k"], strict=True))
-        ax.bar(
-            [w + i * width for w in range(len(wagons))],
-            [lookup.get(w, 0.0) for w in wagons],
-            width,
-            label=rev,
-        )
-    ax.set_xticks([w + 0.4 - width / 2 for w in range(len(wagons))], wagons, rotation=30)
-    ax.set_ylabel("RMSE measured - predicted (K)")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+Intervals = dict[str, list[float | None]]
+"""Intervals as the report gives them: name -> [low, high] (None: unbounded)."""
 
 
-def plot_residual_by_phase(frame: pl.DataFrame, path: Path) -> None:
-    import matplotlib
+@dataclass(frozen=True)
+class EventSetFigures:
+    """The report's ``fit`` or ``holdout``: the events used and the RMSE (K) over every second
+    of their windows with a valid measurement, before and after; ``*_all`` over every event
+    of the set, flagged ones included (None: no events)."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5), sharey=True)
-    for ax, phase in zip(axes, ("heating", "cooling"), strict=True):
-        for rev in frame["model_revision"].unique(maintain_order=True).to_list():
-            values = frame.filter((pl.col("phase") == phase) & (pl.col("model_revision") == rev))[
-                "residual_k"
-            ].to_numpy()
-            if values.size:
-                ax.hist(values, bins=60, alpha=0.6, label=rev, density=True)
-        ax.set_title(phase)
-        ax.set_xlabel("measured - predicted (K)")
-    axes[0].legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    events: int
+    rmse_before_k: float | None
+    rmse_after_k: float | None
+    events_all: int
+    rmse_before_all_k: float | None
+    rmse_after_all_k: float | None
 
 
-def _k(value: Any) -> str:
-    return "-" if value is None else f"{float(value):.3g}"
+@dataclass(frozen=True)
+class CandidateReport:
+    """One candidate as the report lists it."""
+
+    effect: str
+    """The vocabulary names, ``+``-joined."""
+    label: str
+    """The added laws (``convection_speed[flat_plate]``)."""
+    parameters: dict[str, dict[str, float]]
+    rmse_fit_k: float
+    rmse_holdout_k: float | None
+    score: float
+    """Criterion improvement over the baseline."""
+    fitted_on: str
+    held_out: HeldOut | HeldOutFailed | None
+    refused: str | None
 
 
-def _judged(report: Mapping[str, Any]) -> str:
-    """``, 0.105 K without 2 outlier events`` when the verdict was judged on a fit RMSE other
-    than the one shown (outlier events left out), else nothing."""
-    judged = (report.get("adequacy") or {}).get("rmse_judged_k")
-    after = (report.get("fit") or {}).get("rmse_after_k")
-    count = (report.get("outliers") or {}).get("events") or 0
-    if judged is None or after is None or not count or f"{judged:.3g}" == f"{after:.3g}":
-        return ""
-    return f", {_k(judged)} K without {count} outlier event{'s' if count > 1 else ''}"
+@dataclass(frozen=True)
+class UnknownHeat:
+    """Events left out for braking over a frozen GPS speed."""
+
+    events: int
+    event_ids: list[str]
 
 
-def verdict(report: Mapping[str, Any]) -> str:
-    """The report in one line: ``found: X ...`` (an effect added and the model adequate),
-    ``partly explained: X explains 76 % of the residual; 1.2 K remains, correlated with
-    speed ...`` (added, not adequate), or ``nothing added ...``. Reports without the v2
-    adequacy fields read as adequate when an effect was added."""
-    fit = report.get("fit", {})
-    before, after = fit.get("rmse_before_k"), fit.get("rmse_after_k")
-    noise = report.get("noise_k")
-    noise_part = f", sensor noise {_k(noise)} K" if noise is not None else ""
-    unexplained = report.get("unexplained")
-    adequate = report.get("adequate")
-    if report.get("new_revision"):
-        effect = report.get("effect")
-        if adequate is False:
-            if unexplained:
-                return str(unexplained)
-            share = ""
-            if before and after is not None:
-                share = (
-                    f" explains {100 * max(1 - (after / before) ** 2, 0.0):.0f} % of the residual;"
-                )
-            return f"partly explained: {effect}{share} {_k(after)} K remains{noise_part}"
-        hold = report.get("holdout", {})
-        held = ""
-        if hold.get("rmse_before_k") is not None:
-            held = f"; holdout {_k(hold['rmse_before_k'])} -> {_k(hold.get('rmse_after_k'))} K"
-        return (
-            f"found: {effect} (fit RMSE {_k(before)} -> {_k(after)} K{_judged(report)}"
-            f"{noise_part}{held})"
-        )
-    line = (
-        "nothing added: no candidate effect explains a significant part of the residual "
-        f"(fit RMSE {_k(before)} K{noise_part})"
-    )
-    if adequate is False and unexplained:
-        line += f"; {unexplained}"
-    elif adequate is True:
-        line += "; the baseline revision is adequate"
-    return line
+@dataclass(frozen=True)
+class AdequacyReport:
+    """The figures behind ``adequate``: at the choice (``rmse_k`` .. ``correlations``) and, once
+    judged on the report's own fit events (:func:`judged_on_report`), that figure too."""
+
+    rmse_k: float
+    ratio: float
+    whiteness: float
+    explained_fraction: float | None
+    correlations: dict[str, float]
+    rmse_choice_k: float | None = None
+    rmse_judged_k: float | None = None
+    rmse_fit_k: float | None = None
+    max_ratio: float | None = None
+    judged_on: str | None = None
 
 
-def render_markdown(report: Mapping[str, Any], plots: ResidualPlots | None = None) -> str:
-    """The Markdown report of a JSON report dict (keys as in ``interface.md``), its first line
-    the :func:`verdict`. With ``plots``, it shows the residual plots (drawn apart:
-    :func:`draw_residual_plots`)."""
-    lines = [
-        verdict(report),
-        "",
-        "# Closed loop",
-        "",
-        f"Baseline revision `{report['baseline_revision']}`; "
-        + (
-            f"new revision `{report['new_revision']}` adds **{report['effect']}** with "
-            f"`{report['parameters']}`."
-            if report.get("new_revision")
-            else "no effect was added."
+@dataclass(frozen=True)
+class IntervalMethods:
+    """The three statistical intervals the reported ones are the widest of (``widest`` names
+    which, per parameter), and the numerical and input terms added to them in quadrature."""
+
+    blocks: int
+    widest: dict[str, str]
+    jacobian: Intervals
+    sandwich: Intervals
+    jackknife: Intervals
+    statistical: Intervals
+    numerical: Numerical | None = None
+    inputs: InputTerm | None = None
+
+    @property
+    def numerical_half_width(self) -> dict[str, float]:
+        """The numerical term's half-widths as reported (none: empty)."""
+        return _g6(self.numerical.half_width) if self.numerical is not None else {}
+
+    @property
+    def input_half_width(self) -> dict[str, float]:
+        """The input term's half-widths as reported (none: empty)."""
+        return _g6(self.inputs.half_width) if self.inputs is not None else {}
+
+
+@dataclass(frozen=True)
+class Cost:
+    """What a run took: candidates fitted, chain-kernel calls, model evaluations per phase and
+    seconds per phase."""
+
+    candidates_fitted: int
+    kernel_calls: int
+    evaluations: dict[str, int]
+    seconds: dict[str, float]
+
+
+@dataclass(frozen=True)
+class CloseLoopReport:
+    """The close-loop report (``shared/spec/interface.md``, "close-loop report"), its values as
+    reported. ``effects`` and ``interval_methods`` only when an effect was added (and
+    fitted), ``cost`` once the run is done."""
+
+    baseline_revision: str
+    new_revision: str | None
+    effect: str | None
+    parameters: dict[str, float]
+    evidence: str
+    fit: EventSetFigures
+    holdout: EventSetFigures
+    candidates: list[CandidateReport]
+    noise_k: float
+    flags_judged_with: str
+    solver: str
+    residual: ResidualSummary
+    n_eff: float
+    selection: str
+    exclusion: str
+    outliers: Outliers
+    unknown_heat: UnknownHeat
+    effects: list[Effect] | None
+    interval_methods: IntervalMethods | None
+    parameter_intervals: Intervals
+    adequate: bool
+    unexplained: str | None
+    adequacy: AdequacyReport
+    cost: Cost | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The report as JSON values, keys in the contract's order (the one place the report
+        is serialised)."""
+        out: dict[str, Any] = {
+            "baseline_revision": self.baseline_revision,
+            "new_revision": self.new_revision,
+            "effect": self.effect,
+            "parameters": dict(self.parameters),
+            "evidence": self.evidence,
+            "fit": dataclasses.asdict(self.fit),
+            "holdout": dataclasses.asdict(self.holdout),
+            "candidates": [_candidate_json(c) for c in self.candidates],
+            "noise_k": self.noise_k,
+            "flags_judged_with": self.flags_judged_with,
+            "solver": self.solver,
+            "residual": _residual_json(self.residual),
+            "n_eff": self.n_eff,
+            "selection": self.selection,
+            "exclusion": self.exclusion,
+            "outliers": _outliers_json(self.outliers),
+            "unknown_heat": {
+                "events": self.unknown_heat.events,
+                "event_ids": list(self.unknown_heat.event_ids),
+            },
+        }
+        if self.effects is not None:
+            out["effects"] = [e.to_dict() for e in self.effects]
+        if self.interval_methods is not None:
+            out["interval_methods"] = _methods_json(self.interval_methods)
+        out["parameter_intervals"] = dict(self.parameter_intervals)
+        out["adequate"] = self.adequate
+        out["unexplained"] = self.unexplained
+        out["adequacy"] = _adequacy_json(self.adequacy)
+        if self.cost is not None:
+            out["cost"] = dataclasses.asdict(self.cost)
+        return out
+
+
+# ---------------------------------------------------------------------------- serialising
+def _g6(values: Mapping[str, float]) -> dict[str, float]:
+    return {k: float(f"{v:.6g}") for k, v in values.items()}
+
+
+def _candidate_json(c: CandidateReport) -> dict[str, Any]:
+    out = dataclasses.asdict(c)
+    held = c.held_out
+    out["held_out"] = None if held is None else dataclasses.asdict(held)
+    return out
+
+
+def _residual_json(summary: ResidualSummary) -> dict[str, Any]:
+    if summary.correlations is None:
+        return {"seconds": summary.seconds}
+    return dataclasses.asdict(summary)
+
+
+def _outliers_json(outliers: Outliers) -> dict[str, Any]:
+    if outliers.judged_with is None:
+        return {"events": outliers.events}
+    return {
+        "events": outliers.events,
+        "threshold_k": outliers.threshold_k,
+        "median_event_rms_k": outliers.median_event_rms_k,
+        "judged_with": outliers.judged_with,
+        "event_ids": list(outliers.event_ids),
+        "worst": [{"event_id": e, "rms_k": rms} for e, rms in outliers.worst],
+    }
+
+
+def _numerical_json(n: Numerical) -> dict[str, Any]:
+    def g(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: g(v) for k, v in value.items()}
+        return float(f"{value:.6g}") if isinstance(value, float) else value
+
+    return {
+        "method": (
+            "grid convergence index (Roache; ASME V&V 20's u_num): the chosen effects "
+            "refitted on the same fit events through the reduced model on coarser meshes; "
+            "per mesh gci = safety_factor |coarse - fine| / (ratio^order - 1), the largest "
+            "added in quadrature to the statistical half-width"
         ),
-        "",
-        f"Evidence: {report['evidence']}.",
-        "",
-    ]
-    if "adequate" in report or "noise_k" in report:
-        adequate = report.get("adequate")
-        lines += [
-            "| adequacy | |",
-            "|---|---|",
-            f"| sensor noise (K, from the residual) | {_k(report.get('noise_k'))} |",
-            f"| adequate | {'-' if adequate is None else ('yes' if adequate else 'no')} |",
-        ]
-        judged = report.get("adequacy") or {}
-        if judged.get("judged_on"):
-            lines.append(
-                f"| judged on | fit RMSE {_k(judged.get('rmse_judged_k'))} K "
-                f"({judged['judged_on']}), ratio {_k(judged.get('ratio'))} "
-                f"(adequate at most {_k(judged.get('max_ratio'))}) |"
-            )
-        if report.get("unexplained"):
-            lines.append(f"| unexplained | {report['unexplained']} |")
-        lines.append("")
-    intervals = report.get("parameter_intervals") or {}
-    if intervals:
-        values = report.get("parameters") or {}
-        methods = report.get("interval_methods") or {}
-        widest = methods.get("widest") or {}
-        numerical = (methods.get("numerical") or {}).get("half_width") or {}
-        inputs = (methods.get("input") or {}).get("half_width") or {}
-        lines += [
-            "| parameter | value | 95 % low | 95 % high | statistical: widest of | "
-            "numerical (GCI) +- | input (speed) +- |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for name, (lo, hi) in intervals.items():
-            lines.append(
-                f"| {name} | {_k(values.get(name))} | {_k(lo)} | {_k(hi)} | "
-                f"{widest.get(name, '-')} | {_k(numerical.get(name))} | {_k(inputs.get(name))} |"
-            )
-        lines.append("")
-    lines += [
-        "| events | count | RMSE before (K) | RMSE after (K) |",
-        "|---|---|---|---|",
-    ]
+        "refinement": n.refinement,
+        "order": n.order,
+        "safety_factor": n.safety_factor,
+        "grids": [g(grid) for grid in n.grids],
+        "half_width": g(n.half_width),
+    }
 
-    def cell(value: float | None) -> str:
-        return "-" if value is None else f"{value:.3f}"
 
-    for key in ("fit", "holdout"):
-        part = report[key]
-        lines.append(
-            f"| {key} | {part['events']} | {cell(part.get('rmse_before_k'))} | "
-            f"{cell(part.get('rmse_after_k'))} |"
+def _input_json(term: InputTerm) -> dict[str, Any]:
+    return {
+        "method": (
+            "sensitivity to the input's systematic error (ASME V&V 20's u_input): the "
+            "chosen parameters' residual on the same fit events with the speed read as "
+            "sqrt(max(v^2 - noise^2, 0)) (a GPS speed is a magnitude: at standstill it "
+            "reads its noise), the noise from the logged speed's second differences where "
+            "the wagon moves, and the parameters' shift where the changed residual meets "
+            "the fit's normal equations, by quasi-Newton steps from the fit's Jacobian "
+            "(Broyden-updated); the shift added in quadrature to the statistical half-width"
+        ),
+        "speed_noise_kmh": float(f"{term.speed_noise_kmh:.6g}"),
+        "debiased": _g6(term.debiased),
+        "shift": _g6(term.shift),
+        "evaluations": term.evaluations,
+        "half_width": _g6(term.half_width),
+    }
+
+
+def _adequacy_json(a: AdequacyReport) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "rmse_k": a.rmse_k,
+        "ratio": a.ratio,
+        "whiteness": a.whiteness,
+        "explained_fraction": a.explained_fraction,
+        "correlations": a.correlations,
+    }
+    if a.judged_on is not None:  # judged again on the report's own fit events
+        out.update(
+            {
+                "rmse_choice_k": a.rmse_choice_k,
+                "rmse_judged_k": a.rmse_judged_k,
+                "rmse_fit_k": a.rmse_fit_k,
+                "max_ratio": a.max_ratio,
+                "judged_on": a.judged_on,
+            }
         )
-    for key in ("fit", "holdout"):
-        part = report[key]
-        if "events_all" in part:
-            lines.append(
-                f"| {key}, flagged included | {part['events_all']} | "
-                f"{cell(part.get('rmse_before_all_k'))} | {cell(part.get('rmse_after_all_k'))} |"
-            )
-    if "exclusion" in report:
-        lines += ["", f"Events: {report['exclusion']}."]
-    lines += [
-        "",
-        "## Candidates",
-        "",
-        "| candidate | score | RMSE fit (K) | RMSE holdout (K) | held-out gain | refused |",
-        "|---|---|---|---|---|---|",
-    ]
-    for c in report["candidates"]:
-        held = c.get("held_out") or {}
-        gain = f"{100 * held['gain']:+.1f} %" if "gain" in held else "-"
-        lines.append(
-            f"| {c.get('label', c['effect'])} | {c['score']:.1f} | {cell(c.get('rmse_fit_k'))} | "
-            f"{cell(c.get('rmse_holdout_k'))} | {gain} | {c.get('refused') or '-'} |"
+    return out
+
+
+def _methods_json(m: IntervalMethods) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "blocks": m.blocks,
+        "widest": m.widest,
+        "jacobian": m.jacobian,
+        "sandwich": m.sandwich,
+        "jackknife": m.jackknife,
+        "statistical": m.statistical,
+    }
+    if m.numerical is not None:
+        out["numerical"] = _numerical_json(m.numerical)
+    if m.inputs is not None:
+        out["input"] = _input_json(m.inputs)
+    return out
+
+
+# ---------------------------------------------------------------------------- building
+def _selection_text(evidence: Evidence, config: CloseLoopConfig) -> str:
+    n_eff = evidence.n_eff["fit"]
+    return (
+        f"Bayesian information criterion on the fit events on an effective sample size of "
+        f"{n_eff:.0f} independent residuals (of {int(evidence.ok.sum())} seconds: the "
+        f"baseline residual's autocorrelation within wagon-days); score = improvement over "
+        f"the baseline. Every addition (the first effect over the baseline, a pair over "
+        f"its single, empirical over what it corrects) must score {config.bic_margin:g} "
+        f"above what it adds to, cut the fit RMSE by "
+        f"{100 * config.min_improvement:.0f} %, cut the held-out RMSE of whole wagon-days "
+        f"({config.folds} folds, each fit moved one Gauss-Newton step off its fold) by the "
+        f"practical margin of {100 * config.held_out_margin:.0f} % and on most folds, and "
+        f"have each added law's parameters distinguishable from their nulls (95 % "
+        f"intervals, the widest of Jacobian on n_eff, cluster-robust and delete-one-"
+        f"wagon-day jackknife); a candidate's 'refused' says why it did not enter. Pairs "
+        f"are tried when the single leaves the fit RMSE above "
+        f"{config.pair_above_noise:g}x the noise. The holdout is never used to choose."
+    )
+
+
+def _exclusion_text(config: CloseLoopConfig) -> str:
+    return (
+        "events whose window overlaps a dragging_brake, weak_brake or "
+        "sensor_fault flag of their wagon or the window of one of its events cut by a data gap "
+        f"(incomplete), or starts less than {config.settle_after_flag_s:.0f} s after one ends, "
+        "are left out of fit and holdout, and so are brakings over a frozen GPS speed (their "
+        "heat input is unknown: unknown_heat); events_all and rmse_*_all_k count every event "
+        "of the "
+        "set; fit events whose residual RMS under the best screened effect is far above the "
+        "bulk (outliers) are left out of the parameter fit and the adequacy verdict"
+    )
+
+
+def _candidate_report(c: Candidate, current: Candidate, families: Families) -> CandidateReport:
+    return CandidateReport(
+        effect=c.label,
+        label=families.label(c),
+        parameters={e.name: e.parameters for e in families.added(c.effects)},
+        rmse_fit_k=round(c.rmse_fit_k, 5),
+        rmse_holdout_k=None if c.rmse_holdout_k is None else round(c.rmse_holdout_k, 5),
+        score=round(current.bic - c.bic, 3),
+        fitted_on=c.fitted_on,
+        held_out=c.held_out,
+        refused=c.refused,
+    )
+
+
+def _figures(
+    wh: Warehouse,
+    ids: list[str],
+    every: list[str],
+    before: str,
+    after: str,
+    rmse: tuple[float | None, float | None],
+) -> EventSetFigures:
+    """An event set's figures: ``rmse`` (before, after) on its ``ids``, and both revisions'
+    RMSE over ``every`` event of the set, flagged ones included."""
+    return EventSetFigures(
+        events=len(ids),
+        rmse_before_k=rmse[0],
+        rmse_after_k=rmse[1],
+        events_all=len(every),
+        rmse_before_all_k=rmse_from_predictions(wh, before, every) if every else None,
+        rmse_after_all_k=rmse_from_predictions(wh, after, every) if every else None,
+    )
+
+
+def _adequacy_report(verdict: Verdict) -> AdequacyReport:
+    a = verdict.adequacy
+    return AdequacyReport(
+        rmse_k=round(a.rmse_k, 5),
+        ratio=round(a.ratio, 3),
+        whiteness=round(a.whiteness, 3),
+        explained_fraction=None if a.explained_fraction is None else round(a.explained_fraction, 4),
+        correlations={k: round(v, 3) for k, v in a.correlations.items()},
+    )
+
+
+def _interval_methods(verdict: Verdict) -> IntervalMethods | None:
+    iv = verdict.intervals
+    if iv is None:
+        return None
+    return IntervalMethods(
+        blocks=iv.blocks,
+        widest=iv.method,
+        jacobian=intervals_for_json(iv.jacobian),
+        sandwich=intervals_for_json(iv.sandwich),
+        jackknife=intervals_for_json(iv.jackknife),
+        statistical=intervals_for_json(iv.intervals),
+        numerical=verdict.numerical,
+        inputs=verdict.inputs,
+    )
+
+
+def build_report(
+    wh: Warehouse,
+    evidence: Evidence,
+    families: Families,
+    fitted: Fitted,
+    selection: Selection,
+    verdict: Verdict,
+    new: NewRevision | None,
+    config: CloseLoopConfig,
+) -> CloseLoopReport:
+    """The close loop's last phase: the report of what the phases found (``new``: the new
+    revision, None when nothing was added), the RMSE of every event of each set read from
+    ``v_predictions``."""
+    base = evidence.base.name
+    every = evidence.events.every
+    sentence = evidence.summary.sentence(evidence.noise_k)
+    if new is None:
+        sentence += "; no candidate effect explains a significant part of it: nothing was added"
+        after, flags_with, added, parameters = base, base, None, {}
+        ids = {
+            "fit": evidence.events.fit["event_id"].to_list(),
+            "holdout": evidence.events.holdout["event_id"].to_list(),
+        }
+        rmse: dict[str, tuple[float | None, float | None]] = {}
+        for key, idset in ids.items():
+            value = rmse_from_predictions(wh, base, idset) if idset else None
+            rmse[key] = (value, value)
+    else:
+        after, flags_with, added = new.name, new.flags_judged_with, new.added
+        parameters = report_parameters(new.added)
+        ids = {"fit": new.fit_ids, "holdout": new.hold_ids}
+        rmse = {key: (new.rmse[(key, base)], new.rmse[(key, new.name)]) for key in ids}
+    figures = {key: _figures(wh, ids[key], every[key], base, after, rmse[key]) for key in ids}
+    return CloseLoopReport(
+        baseline_revision=base,
+        new_revision=None if new is None else new.name,
+        effect=None if new is None else new.chosen.label,
+        parameters=parameters,
+        evidence=sentence,
+        fit=figures["fit"],
+        holdout=figures["holdout"],
+        candidates=[_candidate_report(c, fitted.current, families) for c in selection.candidates],
+        noise_k=round(evidence.noise_k, 5),
+        flags_judged_with=flags_with,
+        solver=evidence.base.solver,
+        residual=evidence.summary,
+        n_eff=round(evidence.n_eff["fit"], 1),
+        selection=_selection_text(evidence, config),
+        exclusion=_exclusion_text(config),
+        outliers=fitted.outliers,
+        unknown_heat=UnknownHeat(len(evidence.unknown_heat), sorted(evidence.unknown_heat)),
+        effects=added,
+        interval_methods=_interval_methods(verdict),
+        parameter_intervals=intervals_for_json(verdict.reported_intervals(parameters)),
+        adequate=verdict.adequacy.adequate,
+        unexplained=verdict.adequacy.unexplained,
+        adequacy=_adequacy_report(verdict),
+    )
+
+
+def judged_on_report(
+    wh: Warehouse, report: CloseLoopReport, config: CloseLoopConfig
+) -> CloseLoopReport:
+    """The verdict judged on the figure the report shows: the fit RMSE of the revision the
+    report ends with, from ``v_predictions`` over the fit events as they stand after the
+    re-flagging, less only the outlier events the report names (the fit's verdict was judged
+    on the events of the choice, before the re-flagging; they differ when the flags moved).
+    ``adequacy`` gives both figures: ``rmse_fit_k`` (every unflagged fit event, the report's
+    ``fit.rmse_after_k``) and ``rmse_judged_k`` (less the outliers: what ``adequate`` is
+    judged on), with ``ratio`` = ``rmse_judged_k / noise_k``."""
+    noise = report.noise_k
+    if not noise:
+        return report
+    revision = report.new_revision or report.baseline_revision
+    unknown_heat = report.unknown_heat.event_ids
+    fit_ids = event_sets(wh, report.baseline_revision, config, unknown_heat).fit
+    fit_ids_list = fit_ids["event_id"].to_list()
+    outliers = set(report.outliers.event_ids)
+    kept = [e for e in fit_ids_list if e not in outliers]
+    judged = rmse_from_predictions(wh, revision, kept) if kept else float("nan")
+    if not math.isfinite(judged):
+        return report
+    ratio = judged / noise
+    adequate = bool(ratio <= MAX_NOISE_RATIO)
+    ad = dataclasses.replace(
+        report.adequacy,
+        rmse_choice_k=report.adequacy.rmse_k,
+        rmse_k=round(judged, 5),
+        rmse_judged_k=round(judged, 5),
+        rmse_fit_k=report.fit.rmse_after_k,
+        ratio=round(ratio, 3),
+        max_ratio=MAX_NOISE_RATIO,
+        judged_on=(
+            f"v_predictions of {revision} over the {len(kept)} fit events of the report "
+            f"less the {len(fit_ids_list) - len(kept)} outlier events (fit.rmse_after_k counts "
+            "them too)"
+        ),
+    )
+    unexplained = report.unexplained
+    if adequate != report.adequate:
+        unexplained = None if adequate else _unexplained(report, judged, noise, ad)
+    return dataclasses.replace(report, adequacy=ad, adequate=adequate, unexplained=unexplained)
+
+
+def _unexplained(report: CloseLoopReport, judged: float, noise: float, ad: AdequacyReport) -> str:
+    """What is left when the verdict judged on the report's figure is inadequate."""
+    before = report.fit.rmse_before_k
+    rest = (
+        f"{judged:.2g} K remains against {noise:.2g} K of sensor noise, "
+        f"{describe_drivers(ad.correlations)}"
+    )
+    if report.new_revision:
+        share = (
+            f" explains {100 * max(1.0 - (judged / before) ** 2, 0.0):.0f} % of the residual"
+            if before
+            else " was added"
         )
-    if report.get("selection"):
-        lines += ["", report["selection"]]
-    lines.append("")
-    if plots is not None:
-        lines += [
-            "## Residual per wagon",
-            "",
-            f"![residual per wagon]({plots.by_wagon.name})",
-            "",
-            "## Residual per phase",
-            "",
-            f"![residual per phase]({plots.by_phase.name})",
-            "",
-        ]
-    return "\n".join(lines)
-
-
-@dataclass(frozen=True)
-class ResidualPlots:
-    """The residual plots of a report: the residuals they show (``q_closeloop_residuals``'s
-    columns, as an Arrow table: what an engine ships to a worker) and their files."""
-
-    residuals: Any  # pyarrow.Table (pyarrow ships no type information)
-    by_wagon: Path
-    by_phase: Path
-
-
-def draw_residual_plots(plots: ResidualPlots) -> None:
-    """Draw the residual plots into their files (in a worker: matplotlib is imported there)."""
-    frame = pl.DataFrame(plots.residuals)
-    plot_residual_by_wagon(frame, plots.by_wagon)
-    plot_residual_by_phase(frame, plots.by_phase)
-
-
-@dataclass(frozen=True)
-class MarkdownReport:
-    """A Markdown report read from the warehouse and not yet written: its text and, when
-    there are residuals, its plots."""
-
-    path: Path
-    text: str
-    plots: ResidualPlots | None
-
-    def write(self, engine: Engine) -> None:
-        """Draw the plots (on one of ``engine``'s workers: in this process for the inline
-        engine), then write the text."""
-        if self.plots is not None:
-            deque(engine.map(draw_residual_plots, [self.plots], name=_plots_name), maxlen=0)
-        self.path.write_text(self.text, encoding="utf-8")
-
-
-def _plots_name(plots: ResidualPlots) -> str:
-    return f"the residual plots {plots.by_wagon.name}, {plots.by_phase.name}"
-
-
-def read_markdown_report(wh: Warehouse, report: Mapping[str, Any], path: Path) -> MarkdownReport:
-    """The Markdown report of ``report`` at ``path`` (its plots beside it, named after it),
-    its residuals (the baseline and the new revision's) read from ``wh`` now."""
-    revisions = [report["baseline_revision"]]
-    if report.get("new_revision"):
-        revisions.append(report["new_revision"])
-    frame = _residuals(wh, revisions)
-    plots = None
-    if frame.height:
-        stem = path.with_suffix("")
-        plots = ResidualPlots(
-            frame.to_arrow(),
-            stem.parent / f"{stem.name}-by-wagon.png",
-            stem.parent / f"{stem.name}-by-phase.png",
-        )
-    return MarkdownReport(path, render_markdown(report, plots), plots)
+        return f"partly explained: {report.effect}{share}; {rest}"
+    return f"not explained: {rest}"
