@@ -1,5 +1,5 @@
-"""The fleets of the close loop's acceptance tests (issue 13, "Tests on fleets the pipeline did
-not make easy"), and what the tests measure on them.
+"""The fleets of the close loop's acceptance tests (fleets the pipeline did not make easy), and
+what the tests measure on them.
 
 Each :class:`Case` is one small fleet (``WAGONS`` wagons x ``DAYS`` UTC days, the last day the
 holdout) written by ``fleetbrake.synth`` with the **full finite-element model** (``solver =
@@ -62,9 +62,9 @@ DAYS = 3
 FE_REFINEMENT = 0.6
 """The full model's mesh that writes the fleets: 6,131 hex20 nodes, the mesh the reduced model
 of the tests is reduced from (``conftest.TEST_REFINEMENT``), so the world is not coarser than
-the model that identifies it (it was 0.2, 409 nodes, until session 9: part of the "truth" was
-then the writer's own mesh error, docs/closeloop.md). The model differs from the writer by its
-reduction and its time integration, not by a coarser mesh."""
+the model that identifies it (on a coarser writer's mesh, such as 0.2 with 409 nodes, part of
+the "truth" would be the writer's own mesh error, docs/closeloop.md). The model differs from
+the writer by its reduction and its time integration, not by a coarser mesh."""
 NOISE_K = 0.1
 """The sensor noise the fleets are read with (``SynthConfig.sensor_noise_k``'s default)."""
 SOLAR_PEAK_W_M2 = (40.0, 90.0)
@@ -402,7 +402,7 @@ def refit_through_meshes(
     each of ``meshes`` a reduced model's refinement (``"0.4"``) or ``"full<refinement>"``
     (the full FE model, slow): mesh -> ``effect.parameter`` -> value. A diagnostic of the
     numerical term (docs/closeloop.md), on a kept fleet (:func:`outcome_in`)."""
-    from fleetbrake.closeloop.evidence import event_sets, load_wagons
+    from fleetbrake.closeloop import evidence
     from fleetbrake.closeloop.fitdata import FitData
     from fleetbrake.closeloop.leastsquares import FitTask, fit_task
     from fleetbrake.simulation.predictions import revision, stored_wagons
@@ -418,8 +418,8 @@ def refit_through_meshes(
         base = revision(wh, report["baseline_revision"])
         sim = outcome.loop.simulation
         events = wh.con.sql(sql("q_closeloop_events")).pl()
-        loaded = load_wagons(wh, wagons, events, sim)
-        fit, _, _ = event_sets(wh, base.name, outcome.loop, unknown)
+        loaded = evidence.load_wagons(wh, wagons, events, sim)
+        fit, _, _ = evidence.event_sets(wh, base.name, outcome.loop, unknown)
         for mesh in meshes:
             solver, refinement = ("full", mesh[4:]) if mesh.startswith("full") else ("rom", mesh)
             other = dataclasses.replace(base, solver=solver, refinement=float(refinement))

@@ -36,6 +36,7 @@ from fleetbrake.model.effects import (
     effect_from_dict,
     parse_effect,
 )
+from fleetbrake.model.effects.base import FAMILY_LAWS
 from fleetbrake.model.physics import heat_partition_alpha, time_resolved_flux_series_w_m2
 from fleetbrake.model.rom import first_order_lag
 from fleetbrake.model.timeline import FixedPointError, simulate_timeline
@@ -263,7 +264,7 @@ def test_friction_speed_needs_the_registry_mu():
         FrictionSpeed().apply_to_inputs(inputs)
 
 
-def test_the_normalised_friction_speed_of_stored_revisions_still_acts_as_before(default_rom, base):
+def test_the_normalised_friction_speed_scales_the_declared_mu_by_its_speed_law(default_rom, base):
     effect = FrictionSpeedNormalised(speed_scale_kmh=120.0, force_exponent=0.2)
     result = _run(default_rom, [effect])
     force = float(base.block_force_n[90])
@@ -504,9 +505,12 @@ def test_the_whole_vocabulary_is_here_with_its_laws():
         }
     )
     assert {cls.law for cls in LAWS["convection_speed"]} == {"power", "flat_plate"}
+    # each family's laws in the order an effect's text infers its law from
+    assert {name: tuple(laws) for name, laws in FAMILY_LAWS.items()} == dict(LAWS)
     assert EFFECTS["friction_speed"] is FrictionSpeed
     assert EFFECTS["heat_partition"] is HeatPartitionEffusivity
-    # the candidates: one of each name at least, legacy laws out, empirical last
+    # the candidates: one of each name at least, the laws kept for stored sets out, empirical
+    # last
     assert {cls.name for cls in EFFECT_ORDER} == set(EFFECTS)
     assert FrictionSpeedNormalised not in EFFECT_ORDER and HeatPartition not in EFFECT_ORDER
     for cls in EFFECT_CLASSES:
@@ -518,8 +522,8 @@ def test_the_whole_vocabulary_is_here_with_its_laws():
             assert limits[0] is None or limits[0] <= low
             assert limits[1] is None or high <= limits[1]
     assert len({(cls.name, cls.law) for cls in EFFECT_CLASSES}) == len(EFFECT_CLASSES)
-    # a fade is a fade: the fit may not turn it into a friction rising with the heat (an
-    # hour-of-day misfit was fitted as fade_per_k -3.7e-5 through the face temperature)
+    # a fade is a fade: the fit may not turn it into a friction rising with the heat (else an
+    # hour-of-day misfit can be fitted as a negative fade_per_k through the face temperature)
     assert FrictionTemperature.LIMITS["fade_per_k"][0] == 0.0
 
 
@@ -566,8 +570,8 @@ def test_effect_sets_are_ordered_unique_and_serialisable(which):
         EffectSet((ConvectionSpeed(), ConvectionFlatPlate()))
 
 
-def test_effect_sets_stored_before_the_laws_still_load():
-    # parameters_json of revisions written before the laws: no "law" key
+def test_effect_sets_stored_without_laws_load_by_their_parameter_names():
+    # parameters_json of revisions without a "law" key
     stored = json.dumps(
         [
             {
@@ -594,7 +598,7 @@ def test_effect_sets_stored_before_the_laws_still_load():
     assert loaded.get("friction_temperature") == FrictionTemperature(fade_per_k=0.001)
     # and written again, with their laws, they read back the same
     assert EffectSet.from_json(loaded.to_json()) == loaded
-    # the command line's old spellings too
+    # the command line's spellings without a law too
     assert parse_effect("heat_partition:alpha=0.8") == HeatPartition(alpha=0.8)
     assert parse_effect("friction_speed:speed_scale_kmh=80,force_exponent=0.2") == (
         FrictionSpeedNormalised(speed_scale_kmh=80.0, force_exponent=0.2)

@@ -207,7 +207,7 @@ def test_keys_that_moved_to_the_simulation_say_where(tmp_path: Path) -> None:
 
 
 def test_a_toml_override_of_a_named_threshold_changes_a_detector(tmp_path: Path) -> None:
-    """The thresholds that were literals in the detectors are keys like any other: here the
+    """Every threshold of the detectors is a key like any other: here the
     pairs of readings a frozen sensor's noise is judged from, and the speed above which a data
     gap may hide brakings."""
     n = 3000

@@ -31,8 +31,8 @@ which).
 as each stage begins), as is ``peak_rss_by_stage_mb`` (each stage's largest writer and
 worker resident sets: the stage that holds more than a partition shows there). Not
 ``getrusage(RUSAGE_CHILDREN)``: Linux hands a child that ``exec``s the high-water mark of
-the process it was started from, so every worker looked as large as the writer was when the
-pool started. ``cpu_s`` is the processor time of the writer and of its descendants (the
+the process it was started from, so every worker would look as large as the writer was when
+the pool started. ``cpu_s`` is the processor time of the writer and of its descendants (the
 workers, and a local Ray instance's processes; sampled with the memory, so what a process
 spends in its last ``SAMPLE_S`` is missed), ``cpu_s_by_stage`` the same per stage:
 figures a loaded machine distorts far less than the seconds. The figures
@@ -189,8 +189,8 @@ def _generate(
         return truth
     config = SynthConfig(wagons=wagons, days=days, seed=seed, refinement=refinement)
     # in a process of its own: the generator's memory (5.6 GB at 1,000 wagons) stays resident
-    # in the process that ran it, and a peak reset cannot go below the resident set, so
-    # generated here it was counted as the writer's peak (docs/benchmarks.md, session 17)
+    # in the process that ran it, and a peak reset cannot go below the resident set, so a
+    # fleet generated here would count as the writer's peak (docs/benchmarks.md)
     spawn = multiprocessing.get_context("spawn")  # never fork a process polars threads run in
     with ProcessPoolExecutor(1, mp_context=spawn) as child:
         child.submit(_generate_here, fleet_dir, config, show).result()

@@ -11,8 +11,8 @@ the single writer of the warehouse::
         for result in engine.map(parse_partition, partitions):   # in the order given
             write(result)                                          # one transaction each
 
-The interface (:class:`Engine`), which the distributed engine implements too (issue 15:
-``--engine ray``):
+The interface (:class:`Engine`), which the distributed engine implements too
+(``--engine ray``):
 
 * ``map(fn, items, *, name=None)``: the results of ``fn(item)``, yielded in the order of
   ``items``; ``items`` is consumed lazily and at most ``in_flight`` items are submitted but

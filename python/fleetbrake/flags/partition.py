@@ -211,9 +211,9 @@ def flag_task(
 
 FLAG_CHUNK_ROWS = 200_000
 """Samples per chunk of wagons the flags read together (:class:`FlagChunk`): one query per
-table and chunk instead of one per table and wagon (the per-wagon queries decompressed the
-stored row groups a wagon shares with its neighbours once per wagon: 35 ms of the writer's
-processor time per wagon-day, against about 10 ms per chunk's share)."""
+table and chunk instead of one per table and wagon (per-wagon queries decompress the stored
+row groups a wagon shares with its neighbours once per wagon: 35 ms of the writer's processor
+time per wagon-day, against about 10 ms per chunk's share)."""
 
 
 @dataclass(frozen=True)

@@ -372,7 +372,7 @@ def event_stats(
             pl.col("brake_pressure_bar").cast(pl.Float64).fill_null(0.0),
             pl.col("speed_kmh").cast(pl.Float64).fill_null(0.0),
             (pl.col("phase") == "heating").fill_null(False).alias("heating"),
-        ).collect(engine="in-memory")  # the engine of the eager calls it replaces
+        ).collect(engine="in-memory")  # the engine eager calls run on
     )
     ids = rows["event_id"]
     times = _times(rows["time_utc"])

@@ -247,7 +247,7 @@ def wagon_residual_spread(predictions: pl.DataFrame) -> float | None:
         .agg(pl.col("sq").mean().sqrt().alias("rms_k"), pl.len().alias("readings"))
         .filter(pl.col("readings") >= RESIDUAL_MIN_READINGS)
         .select(pl.col("rms_k").median())
-        .collect(engine="in-memory")  # the engine of the eager calls it replaces
+        .collect(engine="in-memory")  # the engine eager calls run on
     )
     value = spread.item() if spread.height else None
     if value is None:

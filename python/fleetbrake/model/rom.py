@@ -17,8 +17,8 @@ Derivation (Galerkin projection of the full model ``M T' + K(h) T = B u``):
    reduced and full models, integrated with the same Crank-Nicolson scheme on a training
    loading (a braking, a drag application, cooling, a varying ambient), agree within
    ``tol_sensor_k`` at the probes and ``tol_face_k`` on the friction-face mean and maximum.
-   (Truncating modes of a Krylov space instead was measured to be erratic: a 48-vector space
-   was exact to 1e-4 K where dropping a few of its modes left errors of tenths of a kelvin.)
+   (Truncating the modes of a larger Krylov space instead is erratic: a 48-vector space is
+   exact to 1e-4 K where dropping a few of its modes leaves errors of tenths of a kelvin.)
 
 What the closed loop changes is kept physical: a convection coefficient that differs from
 nominal, or varies in time, on any face set enters as ``Σ Δh_s(t) H̃_s`` (exact exponential
@@ -681,4 +681,3 @@ def _damped_mask(
             jumps = np.flatnonzero(np.abs(np.diff(s)) > 0.05 * scale) + 1
             mask[jumps] = True
     return mask
-

@@ -24,10 +24,11 @@ anchoring's seconds and every step under a sensor lag are computed whatever it s
 is stepped alike, so the outputs it gives are those of the full run bit for bit, the others
 NaN, and it gives no timeline but the sensor's the anchoring reads.
 
-It lives beside ``simulate_chain`` (its call of the kernel is the same but for the output rows
-and the keys) only because ``model/rom.py`` is a writer source: a change there rewrites every
-cached acceptance fleet (hours). When the writer's version changes next, fold it into
-``simulate_chain`` (an ``outputs`` argument, the keys from ``rom_chain_systems``).
+It is a module of its own beside ``simulate_chain`` (its call of the kernel is the same but
+for the output rows and the keys) because ``model/rom.py`` is a writer source: a change there
+changes the version of every cached acceptance fleet (hours to write again). With such a
+change it can fold into ``simulate_chain`` (an ``outputs`` argument, the keys from
+``rom_chain_systems``).
 """
 
 from __future__ import annotations

@@ -6,8 +6,8 @@ One function per picture:
   the wheel and from the holder, and the cut through the sensor seat (the paper's figures
   4, 5, 7 and 8);
 * :func:`plot_sensor_curve`: the sensor temperature over time, with the friction face's mean
-  and maximum (the paper's figures 6 and 9, simulated curves only: the measured ones were
-  never published);
+  and maximum (the paper's figures 6 and 9, simulated curves only: the paper publishes no
+  measured ones);
 * :func:`plot_calibration`: time to peak against sensor depth, with the paper's values;
 * :func:`plot_study`: time to peak and rise against depth, convection and cylinder bore.
 

@@ -1,5 +1,5 @@
 """The paper's manoeuvres A and B in the declared model and a calibration of the sensor depth
-(issue 3; ``fleetbrake paper``); the study its conclusion asks for is in
+(``fleetbrake paper``); the study its conclusion asks for is in
 :mod:`fleetbrake.paper.study`, the results' types in :mod:`fleetbrake.paper.results`.
 
 Usage::

@@ -32,21 +32,22 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Collection
+from typing import NamedTuple
 
 import numpy as np
 
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.chaintypes import CHAIN_ANCHORS, ChainPieces, ChainRule
+from fleetbrake.model.chaintypes import CHAIN_ANCHORS, ChainPieces, ChainRun
 from fleetbrake.model.effects import EffectSet
 from fleetbrake.model.rom import ReducedModel
 from fleetbrake.model.timeline import H_QUANTUM_W_M2K, drive_inputs
 from fleetbrake.simulation.chains import (
-    ANCHOR_TOLERANCE_K,
     ChainParams,
     EventWindow,
     Model,
     SegmentState,
     SpanResult,
+    chain_rule,
     event_windows,
     segment_bounds,
     simulate_span,
@@ -64,6 +65,18 @@ def batchable(model: Model, effects: EffectSet) -> bool:
 
 def _step_mean(samples: FloatArray) -> FloatArray:
     return 0.5 * (samples[:-1] + samples[1:])
+
+
+class _Segment(NamedTuple):
+    """One segment of the span as the kernel runs it: samples ``a .. b`` (``b`` the last
+    sample, ``stop`` the segment's end), its kind, and whether it is a long gap run on a
+    coarse grid."""
+
+    a: int
+    stop: int
+    b: int
+    kind: str
+    coarse: bool
 
 
 def simulate_span_batched(
@@ -88,137 +101,181 @@ def simulate_span_batched(
         if event_ids is None or w.event_id in event_ids
     }
     end = n if until is None else min(n, until + 1)
-    segments: list[tuple[int, int, int, str, bool]] = []  # a, stop, b, kind, coarse
+    segments: list[_Segment] = []
     for (a, stop), kind in zip(itertools.pairwise(bounds), kinds, strict=True):
         if a >= end:
             break
         b = min(stop, n - 1)
         if b > a:
-            segments.append((a, stop, b, kind, kind == "gap" and b - a > 2 * chain.gap_step_s))
-    if any(coarse and a in windows for a, _, _, _, coarse in segments):
+            segments.append(
+                _Segment(a, stop, b, kind, kind == "gap" and b - a > 2 * chain.gap_step_s)
+            )
+    if any(s.coarse and s.a in windows for s in segments):
         return simulate_span(series, wagon, model, effects, chain, event_ids=event_ids, until=until)
 
     speed = running_median(series.speed_kmh, chain.speed_median_samples)
     lag = effects.get("sensor_lag")
     block_effects = EffectSet(tuple(e for e in effects if e.name != "sensor_lag"))
-    faces = model.face_names
+    builder = _PieceBuilder(series, wagon, model, block_effects, chain, speed)
+    for seg in segments:
+        builder.add(seg.a, seg.b, seg.coarse)
+    continuation: list[int] = []
+    length: list[int] = []
+    for seg in segments:
+        window = windows.get(seg.a)
+        length.append(0 if window is None else window.stop - seg.a + 1)
+        continuation.append(
+            builder.add(seg.b, window.stop, False) if window and window.stop > seg.b else -1
+        )
+    run = model.simulate_chain(
+        builder.pieces(continuation, length),
+        trusted_c=trusted_readings(series, chain),
+        ambient_c=series.ambient_c,
+        rule=chain_rule(chain, lag),
+    )
+    states = _segment_states(series, segments, run)
+    done = _event_windows(segments, length, windows, run, builder.sample_flux)
+    return SpanResult(run.sensor_c, run.contact_mean_c, run.contact_max_c, speed, states, done)
+
+
+class _PieceBuilder:
+    """The chain's pieces, gathered one by one: each piece's steps' flux, air and convection
+    (the declared loading with the effects applied once, in numpy), the span's 1 s steps
+    computed once and each fine piece taking its stretch of them, a coarse piece on a grid of
+    its own with its inputs interpolated to it."""
+
+    def __init__(
+        self,
+        series: WagonSeries,
+        wagon: WagonConfig,
+        model: ReducedModel,
+        effects: EffectSet,
+        chain: ChainParams,
+        speed: FloatArray,
+    ) -> None:
+        self.series, self.wagon, self.model = series, wagon, model
+        self.effects, self.chain, self.speed = effects, chain, speed
+        self.faces = model.face_names
+        # the span's 1 s steps, once; each piece takes its stretch of them
+        self.fine_flux, self.fine_air, self.fine_h, self.sample_flux = self.loading(
+            1.0, series.pressure_bar, speed, series.ambient_c
+        )
+        self.flux_parts: list[FloatArray] = []
+        self.air_parts: list[FloatArray] = []
+        self.h_parts: list[FloatArray] = []
+        self.at_parts: list[FloatArray] = []
+        self.piece_a: list[int] = []
+        self.piece_b: list[int] = []
+        self.piece_dt: list[float] = []
+        self.step_counts: list[int] = []
+        self.at_counts: list[int] = []
 
     def loading(
-        dt_s: float, p: FloatArray, v: FloatArray, air: FloatArray
+        self, dt_s: float, p: FloatArray, v: FloatArray, air: FloatArray
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Step flux, air and raw step convection (S, F) of samples, and the flux at the
         samples, effects applied."""
-        inputs = block_effects.apply_to_inputs(
-            drive_inputs(model, wagon, dt_s=dt_s, p_bar=p, speed_kmh=v, ambient_c=air)
+        inputs = self.effects.apply_to_inputs(
+            drive_inputs(self.model, self.wagon, dt_s=dt_s, p_bar=p, speed_kmh=v, ambient_c=air)
         )
-        h = np.zeros((p.size - 1, len(faces)))
-        for j, face in enumerate(faces):
+        h = np.zeros((p.size - 1, len(self.faces)))
+        for j, face in enumerate(self.faces):
             if face in inputs.h_w_m2k:
                 h[:, j] = _step_mean(np.asarray(inputs.h_w_m2k[face], dtype=np.float64))
         flux = np.asarray(inputs.flux_w_m2, dtype=np.float64)
         return _step_mean(flux), _step_mean(inputs.ambient_c), h, flux
 
-    # the span's 1 s steps, once; each piece takes its stretch of them
-    fine_flux, fine_air, fine_h, sample_flux = loading(
-        1.0, series.pressure_bar, speed, series.ambient_c
-    )
-    flux_parts: list[FloatArray] = []
-    air_parts: list[FloatArray] = []
-    h_parts: list[FloatArray] = []
-    at_parts: list[FloatArray] = []
-    piece_a: list[int] = []
-    piece_b: list[int] = []
-    piece_dt: list[float] = []
-    step_counts: list[int] = []
-    at_counts: list[int] = []
-
-    def add_piece(a: int, b: int, coarse: bool) -> int:
+    def add(self, a: int, b: int, coarse: bool) -> int:
+        """Add the piece of samples ``a .. b``; its index."""
+        series, speed = self.series, self.speed
         if coarse:
-            steps = math.ceil((b - a) / chain.gap_step_s)
+            steps = math.ceil((b - a) / self.chain.gap_step_s)
             at = np.linspace(a, b, steps + 1)
             dt_s = (b - a) / steps
             k = np.arange(a, b + 1)
-            flux, air, h, _ = loading(
+            flux, air, h, _ = self.loading(
                 dt_s,
                 np.interp(at, k, series.pressure_bar[a : b + 1]),
                 np.interp(at, k, speed[a : b + 1]),
                 np.interp(at, k, series.ambient_c[a : b + 1]),
             )
-            at_parts.append(at)
-            at_counts.append(at.size)
+            self.at_parts.append(at)
+            self.at_counts.append(at.size)
         else:
             dt_s = 1.0
-            flux, air, h = fine_flux[a:b], fine_air[a:b], fine_h[a:b]
-            at_counts.append(0)
+            flux, air, h = self.fine_flux[a:b], self.fine_air[a:b], self.fine_h[a:b]
+            self.at_counts.append(0)
         varying = np.any(h != h[0], axis=0)
         if varying.any():  # a convection varying in the run: rounded, as simulate_timeline
             h = h.copy()
             h[:, varying] = np.round(h[:, varying] / H_QUANTUM_W_M2K) * H_QUANTUM_W_M2K
-        flux_parts.append(flux)
-        air_parts.append(air)
-        h_parts.append(h)
-        piece_a.append(a)
-        piece_b.append(b)
-        piece_dt.append(dt_s)
-        step_counts.append(flux.size)
-        return len(piece_a) - 1
+        self.flux_parts.append(flux)
+        self.air_parts.append(air)
+        self.h_parts.append(h)
+        self.piece_a.append(a)
+        self.piece_b.append(b)
+        self.piece_dt.append(dt_s)
+        self.step_counts.append(flux.size)
+        return len(self.piece_a) - 1
 
-    for a, _, b, _, coarse in segments:
-        add_piece(a, b, coarse)
-    continuation: list[int] = []
-    length: list[int] = []
-    for a, _, b, _, _ in segments:
-        window = windows.get(a)
-        length.append(0 if window is None else window.stop - a + 1)
-        continuation.append(add_piece(b, window.stop, False) if window and window.stop > b else -1)
+    def pieces(self, continuation: list[int], length: list[int]) -> ChainPieces:
+        """The pieces gathered, with each segment's window continuation and length."""
 
-    def offsets(counts: list[int]) -> np.ndarray:
-        return np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
+        def offsets(counts: list[int]) -> np.ndarray:
+            return np.concatenate([[0], np.cumsum(counts, dtype=np.int64)]).astype(np.int64)
 
-    empty = np.zeros(0)
-    pieces = ChainPieces(
-        a=np.array(piece_a, dtype=np.int64),
-        b=np.array(piece_b, dtype=np.int64),
-        dt_s=np.array(piece_dt, dtype=np.float64),
-        step_offsets=offsets(step_counts),
-        at=np.concatenate(at_parts) if at_parts else empty,
-        at_offsets=offsets(at_counts),
-        flux_w_m2=np.concatenate(flux_parts) if flux_parts else empty,
-        ambient_c=np.concatenate(air_parts) if air_parts else empty,
-        h_w_m2k=np.concatenate(h_parts) if h_parts else np.zeros((0, len(faces))),
-        window_continuation=np.array(continuation, dtype=np.int64),
-        window_length=np.array(length, dtype=np.int64),
-    )
-    rule = ChainRule(
-        anchor_s=chain.anchor_s,
-        anchor_min_readings=chain.anchor_min_readings,
-        window_s=chain.window_s,
-        tolerance_k=ANCHOR_TOLERANCE_K,
-        lag_tau_s=None if lag is None else float(getattr(lag, "tau_s", 0.0)),
-    )
-    run = model.simulate_chain(
-        pieces, trusted_c=trusted_readings(series, chain), ambient_c=series.ambient_c, rule=rule
-    )
+        empty = np.zeros(0)
+        return ChainPieces(
+            a=np.array(self.piece_a, dtype=np.int64),
+            b=np.array(self.piece_b, dtype=np.int64),
+            dt_s=np.array(self.piece_dt, dtype=np.float64),
+            step_offsets=offsets(self.step_counts),
+            at=np.concatenate(self.at_parts) if self.at_parts else empty,
+            at_offsets=offsets(self.at_counts),
+            flux_w_m2=np.concatenate(self.flux_parts) if self.flux_parts else empty,
+            ambient_c=np.concatenate(self.air_parts) if self.air_parts else empty,
+            h_w_m2k=(
+                np.concatenate(self.h_parts) if self.h_parts else np.zeros((0, len(self.faces)))
+            ),
+            window_continuation=np.array(continuation, dtype=np.int64),
+            window_length=np.array(length, dtype=np.int64),
+        )
+
+
+def _segment_states(
+    series: WagonSeries, segments: list[_Segment], run: ChainRun
+) -> list[SegmentState]:
+    """Each segment's chain state as the kernel anchored it."""
     event_at = {a: event_id for event_id, a, _, _ in series.events}
-    states = [
+    return [
         SegmentState(
-            start=a,
-            stop=stop,
-            kind=kind,
-            event_id=event_at.get(a) if kind == "braking" else None,
+            start=seg.a,
+            stop=seg.stop,
+            kind=seg.kind,
+            event_id=event_at.get(seg.a) if seg.kind == "braking" else None,
             anchor=CHAIN_ANCHORS[int(code)],  # type: ignore[arg-type]  # one of the literals
             shift_k=float(shift),
             reference_c=float(reference),
         )
-        for (a, stop, _, kind, _), code, shift, reference in zip(
+        for seg, code, shift, reference in zip(
             segments, run.anchor, run.shift_k, run.reference_c, strict=True
         )
     ]
+
+
+def _event_windows(
+    segments: list[_Segment],
+    length: list[int],
+    windows: dict[int, EventWindow],
+    run: ChainRun,
+    sample_flux: FloatArray,
+) -> list[EventWindow]:
+    """The event windows the kernel continued, cut out of its concatenated outputs."""
     done: list[EventWindow] = []
     at = 0
-    for (a, _, _, _, _), size in zip(segments, length, strict=True):
+    for seg, size in zip(segments, length, strict=True):
         if size:
-            w = windows[a]
+            w = windows[seg.a]
             part = slice(at, at + size)
             done.append(
                 EventWindow(
@@ -230,8 +287,8 @@ def simulate_span_batched(
                     contact_mean_c=run.window_mean_c[part],
                     contact_max_c=run.window_max_c[part],
                     # the flux is an input: the span's own at the window's seconds
-                    flux_w_m2=sample_flux[a : w.stop + 1],
+                    flux_w_m2=sample_flux[seg.a : w.stop + 1],
                 )
             )
             at += size
-    return SpanResult(run.sensor_c, run.contact_mean_c, run.contact_max_c, speed, states, done)
+    return done

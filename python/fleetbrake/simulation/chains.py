@@ -56,7 +56,8 @@ import numpy as np
 from fleetbrake.errors import ConfigError
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.ingest.config import EventConfig
-from fleetbrake.model.effects import EffectSet
+from fleetbrake.model.chaintypes import ChainRule
+from fleetbrake.model.effects import Effect, EffectSet
 from fleetbrake.model.fullmodel import FullModelRunner
 from fleetbrake.model.rom import ReducedModel, first_order_lag
 from fleetbrake.model.timeline import TimelineResult, simulate_timeline
@@ -77,6 +78,7 @@ __all__ = [
     "Model",
     "SegmentState",
     "SpanResult",
+    "chain_rule",
     "constant_runs",
     "data_gaps",
     "event_windows",
@@ -105,23 +107,24 @@ class ChainParams:
     """Every number of the chain/re-anchor algorithm, named once (see the module docstring).
 
     Predictions, the timeline the flags judge and the close loop's re-simulations all use
-    these; the values were chosen where two copies of the algorithm disagreed, as each
-    docstring says.
+    these, so that the three agree; each docstring says why its value is what it is.
+
+    Read by: ``fleetbrake run``, ``fleetbrake watch``, ``fleetbrake close-loop``.
     """
 
     max_gap_s: float = EventConfig.max_gap_s
     """s: two samples further apart than this have a data gap between them: an event window
     ends at it, and it is a ``gap`` segment, re-anchored after. The event detection's value
     (``EventConfig.max_gap_s``, 15 s), so that a gap too short to end an event does not cut
-    its simulation either (the predictions broke their chains at 10 s: an event holding a
-    12 s hole had its window cut there)."""
+    its simulation either (a shorter value, such as 10 s, would cut the window of an event
+    holding a 12 s hole)."""
     bridge_max_s: float = 6 * 3600
     """s: a gap up to this long is simulated through, speed, pressure and air interpolated
     across it (the logger sleeps while the wagon stands); after a longer one the block starts
     afresh, uniform at its first reading. It is also how far back an event's state reaches:
-    the whole span before it, and nothing before the span (the predictions looked back a
-    fixed 12 h, so an event's prediction depended on which other events were simulated with
-    it). 6 h: after that long at rest a block has lost nearly all the heat and the uneven
+    the whole span before it, and nothing before the span (a fixed look-back, such as 12 h,
+    would make an event's prediction depend on which other events are simulated with it).
+    6 h: after that long at rest a block has lost nearly all the heat and the uneven
     field its brakings left, so a uniform start at the first reading is as good, and spans
     stay independent of each other."""
     anchor_s: int = 30
@@ -138,8 +141,8 @@ class ChainParams:
     quiet_after_release_s: int = 120
     """s: a braking's segment of the timeline ends this long after its release, where quiet
     windows begin: the heat of the braking still spreading to the sensor (and any sensor lag)
-    is the braking's. The flags' ``after_release_s`` of before; the predictions used the same
-    name for the other meaning, ``event_after_release_s``."""
+    is the braking's. Not to be confused with ``event_after_release_s``, the end of an
+    event's prediction window."""
     event_after_release_s: int = 600
     """s: an event's prediction window runs from activation until this long after its
     release (or the next activation, or a data gap, whichever is first), not re-anchored
@@ -148,7 +151,7 @@ class ChainParams:
     """The speed driving the model is the running median over this many 1 Hz samples of the
     logged speed (the event detection's value, 7): a GPS jump of a few seconds would put a
     burst of friction heat into a braking, and a median removes it without blunting real
-    changes of speed. The flags' simulation filtered the speed, the predictions' did not."""
+    changes of speed. Predictions, timeline and close loop all drive the model with it."""
     gap_step_s: int = 60
     """s: a ``gap`` segment longer than twice this is simulated in steps of about this length
     (its inputs are interpolated anyway), and the result interpolated to seconds."""
@@ -296,6 +299,18 @@ def constant_runs(
         (int(first), int(last) + 1, float(value))
         for first, last, value in zip(idx[a[long]], idx[b[long]], v[a[long]], strict=True)
     ]
+
+
+def chain_rule(chain: ChainParams, sensor_lag: Effect | None) -> ChainRule:
+    """The re-anchoring rule the chain kernel runs (:class:`ChainRule`): the chain's numbers
+    and the time constant of the effects' sensor lag (None: no lag)."""
+    return ChainRule(
+        anchor_s=chain.anchor_s,
+        anchor_min_readings=chain.anchor_min_readings,
+        window_s=chain.window_s,
+        tolerance_k=ANCHOR_TOLERANCE_K,
+        lag_tau_s=None if sensor_lag is None else float(getattr(sensor_lag, "tau_s", 0.0)),
+    )
 
 
 def trusted_readings(series: WagonSeries, chain: ChainParams) -> FloatArray:

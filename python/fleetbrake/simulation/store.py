@@ -251,9 +251,10 @@ def wagon_parts(
     with ``wagon_ix`` (its wagon's 1-based position in ``positions_of``, the list the query
     was given: ``q_simulation_chunk_samples.sql``, the flags' large chunk queries) is cut at
     the runs of the positions, and loses ``wagon_ix`` instead. The parent reads and ships the
-    4-byte position instead of the name (a third of its processor time reading the chunk,
-    and a sixth of the bytes shipped: ``docs/benchmarks.md``, session 13), and the worker
-    never makes a name per row (half the processor time of cutting by names: session 15)."""
+    4-byte position instead of the name (a third less processor time reading the chunk than
+    with names, and a sixth of the bytes shipped: ``docs/benchmarks.md``), and the worker
+    never makes a name per row (cutting by positions takes half the processor time of cutting
+    by names)."""
     key = "wagon_id" if positions_of is None else "wagon_ix"
     column = table.column(key)
     runs: dict[str, list[pa.Table]] = {w: [] for w in wagon_ids}

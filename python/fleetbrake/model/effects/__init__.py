@@ -21,17 +21,17 @@ effect                    law              what it changes                      
 ``empirical``             ``linear``       a linear correction, tried last           heat input, h
 ========================  ===============  ========================================  ===============
 
-Laws kept to read what was stored before them (``candidate = False``: parsed and simulated,
+Laws kept for the revisions stored with them (``candidate = False``: parsed and simulated,
 never tried by the close loop):
 ``friction_speed``/``normalised`` (mu normalised to the registry's), ``heat_partition``/
 ``alpha`` (the wheel's share itself: the same family as ``effusivity``, reparametrised).
 ``sensor_lag``/``two_stage`` (seat contact, then the thermistor's body) acts in
 :func:`~fleetbrake.model.timeline.simulate_timeline` and in the synthetic generator, but the
-chain simulation carries one lag state, so it is not a close-loop candidate yet
+chain simulation carries one lag state, so it is not a close-loop candidate
 (``candidate = False``) and the chain simulation refuses it rather than drop it.
 
 A law is written ``{"name": ..., "law": ..., "parameters": {...}}`` (:meth:`Effect.to_dict`);
-a stored set without ``law`` (written before the laws) is read by its parameter names
+a stored set without ``law`` is read by its parameter names
 (:func:`effect_from_dict`): ``friction_speed`` with ``force_exponent`` is the normalised law,
 ``heat_partition`` with ``alpha`` the plain alpha, and so on.
 

@@ -93,8 +93,8 @@ class Effect:
     """True for a data-driven correction (``empirical``): the close loop tries it last, only
     when no physical effect leaves an adequate fit; the synthetic generator never draws it."""
     candidate: ClassVar[bool] = True
-    """False for a law that is read and simulated but not tried by the close loop (legacy
-    parameter sets, or a law the chain simulation cannot carry yet)."""
+    """False for a law that is read and simulated but not tried by the close loop (a law kept
+    for the revisions stored with it, or one the chain simulation cannot carry)."""
 
     def __post_init__(self) -> None:
         owner = type(self).__name__
