@@ -46,7 +46,8 @@ def _use_refinement(monkeypatch: pytest.MonkeyPatch, refinement: float) -> list[
     returns the keyword arguments ``run_fleet`` was called with, call after call."""
     import fleetbrake.app.run as run_module
     import fleetbrake.closeloop.loop as loop_module
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.closeloop.config import CloseLoopConfig
+    from fleetbrake.simulation.config import SimulationConfig
 
     real_run, real_loop = run_module.run_fleet, loop_module.run_close_loop
     calls: list[dict[str, Any]] = []
@@ -57,7 +58,7 @@ def _use_refinement(monkeypatch: pytest.MonkeyPatch, refinement: float) -> list[
         return real_run(*args, simulation=simulation, **kwargs)
 
     def run_close_loop(db: Any, holdout: Any, json_out: Any, **kwargs: Any) -> Any:
-        config = loop_module.CloseLoopConfig(
+        config = CloseLoopConfig(
             holdout_from=holdout, simulation=SimulationConfig(refinement=refinement)
         )
         return real_loop(db, holdout, json_out, config=config, **kwargs)

@@ -64,8 +64,8 @@ if TYPE_CHECKING:
 
     from fleetbrake.app.run import RunReport
     from fleetbrake.engine import Engine
-    from fleetbrake.ingest.files import FileResult
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.ingest.ledger import FileResult
+    from fleetbrake.simulation.config import SimulationConfig
     from fleetbrake.viz.live import LiveTimelines
 
 __all__ = ["FileOutcome", "WatchConfig", "WatchError", "WatchReport", "watch_fleet"]
@@ -79,7 +79,10 @@ class WatchError(FleetbrakeError):
 
 @dataclass(frozen=True)
 class WatchConfig:
-    """How the service watches; every duration in seconds."""
+    """How the service watches; every duration in seconds.
+
+    Read by: ``fleetbrake watch``.
+    """
 
     poll_s: float | None = None
     """None: the platform's native observer (inotify); else poll the tree every ``poll_s``."""
@@ -460,7 +463,7 @@ class _Service:
         self.next_health = time.monotonic() + self.config.health_s
 
     def _rescan(self) -> None:
-        from fleetbrake.ingest.files import scan_logs
+        from fleetbrake.ingest.scan import scan_logs
 
         try:
             ledger = _ledger(self.db_path, self.config.wait_s)
