@@ -26,8 +26,9 @@ only readings the steps before found good):
    braking over ``contact_limit_c``.
 5. **The virtual sensor's opinion** (:mod:`fleetbrake.flags.estimated`, ``config.estimator``):
    the stored estimates of the revision when current (``contact_estimates``; none otherwise:
-   the estimation stage is the one place a wagon is estimated); its dragging and weak brakes combined with steps 3's into one flag per
-   anomaly, its innovations dating the sensor faults of steps 1-2.
+   the estimation stage is the one place a wagon is estimated); its dragging and weak brakes
+   combined with step 3's into one flag per anomaly, its innovations dating the sensor faults
+   of steps 1-2.
 
 Every threshold in kelvin a model error could reach is first raised to ``residual_factor`` x
 the wagon's residual spread for the revision (:func:`~fleetbrake.flags.wagon.wagon_residual_spread`,
