@@ -8,12 +8,13 @@ beyond the fit's own uncertainty makes the revision again (:func:`new_revision` 
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import json
 import logging
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import wait as wait_for
 from dataclasses import dataclass
@@ -43,7 +44,7 @@ from fleetbrake.simulation.estimates import (
     estimate_wagons,
     fit_revision_noise,
 )
-from fleetbrake.simulation.predictions import Revision, simulate_events
+from fleetbrake.simulation.predictions import Revision, WagonData, simulate_events
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
@@ -77,6 +78,18 @@ class NewRevision:
     verdict: Verdict
 
 
+@dataclass(frozen=True)
+class _Standing:
+    """The chosen fit as the revision stands: the candidate, the data and events it is fitted
+    on, and the fit and holdout events the flags leave."""
+
+    chosen: Candidate
+    data: FitData
+    events: pl.DataFrame
+    fit: pl.DataFrame
+    holdout: pl.DataFrame
+
+
 def new_revision(
     wh: Warehouse,
     chosen: Candidate,
@@ -91,80 +104,42 @@ def new_revision(
     """The close loop's sixth phase (see the module); ``ahead``: the interval terms started
     ahead (:func:`~fleetbrake.closeloop.verdict.start_terms`), released once the flags are
     judged."""
-    base, sim, timing = evidence.base, config.simulation, workers.timing
-    fit, holdout = evidence.events.fit, evidence.events.holdout
+    base, fit = evidence.base, evidence.events.fit
     loaded = dict(evidence.loaded)
-    best, best_data, best_events = chosen, evidence.fit_data, fit
-    added = families.added(best.effects)
-    name = _new_revision_name(wh, best.label)
-    record_revision(wh, name, base, best)
-    new_rev = Revision(name, best.effects, base.solver, base.refinement)
+    name = _new_revision_name(wh, chosen.label)
+    record_revision(wh, name, base, chosen)
+    new_rev = Revision(name, chosen.effects, base.solver, base.refinement)
     event_ids = evidence.all_events["event_id"].to_list()
-    fit_ids = fit["event_id"].to_list()
-    flags_judged_with = base.name
     release = ahead.release if ahead is not None else (lambda: None)
     t = time.perf_counter()
     try:
-        make_revision(wh, evidence.wagons, new_rev, sim, event_ids, fit, engine)
+        make_revision(wh, evidence.wagons, new_rev, config.simulation, event_ids, fit, engine)
     except BaseException:
         release()
         raise
-    timing["revision_s"] = time.perf_counter() - t
-    if not config.reflag:
-        release()
+    workers.timing["revision_s"] = time.perf_counter() - t
+    standing = _Standing(chosen, evidence.fit_data, fit, fit, evidence.events.holdout)
+    flags_judged_with = base.name
     if config.reflag:
-        # the flags were judged with the baseline, which lacks the effect: a fleet-wide misfit
-        # looks like weak brakes or failing sensors. Judge them again with the new revision,
-        # and refit on the events that are usable now.
-        t = time.perf_counter()
-        try:
-            reflag(wh, evidence.wagons, new_rev, sim, engine)
-        finally:  # the terms' work may start (the workers are the flags' until now)
-            release()
-        fit, holdout, _ = event_sets(wh, base.name, config, evidence.unknown_heat)
-        timing["reflag_s"] = time.perf_counter() - t
-        changed = set(fit["event_id"].to_list()) ^ set(fit_ids)
-        if fit.height and len(changed) >= config.refit_changed_fraction * max(1, len(fit_ids)):
-            t = time.perf_counter()
-            loaded.update(load_wagons(wh, evidence.wagons, fit, sim, have=loaded))
-            refit_data = FitData.build(loaded, fit, sim, base)
-            (res,) = workers.fit(
-                [
-                    fitted.requests.task(
-                        refit_data,
-                        [type(e) for e in added],
-                        added,
-                        max(1, config.max_nfev // 2),
-                        refit=True,
-                    )
-                ],
-                "reflag_refit",
-            )
-            moved = refit_moved(best, res, fit_intervals(res, refit_data), config.refit_tolerance)
-            timing["reflag_refit_s"] = time.perf_counter() - t
-            logger.debug(
-                "refitted on %d events after re-flagging: %s, chosen %s (moved beyond "
-                "tolerance: %s)",
-                fit.height,
-                res.effects,
-                best.effects,
-                ", ".join(moved) or "none",
-            )
-            if moved:
-                # the answer changed: the revision made again with the refitted parameters
-                t = time.perf_counter()
-                best_data, best_events = refit_data, fit
-                best = scored(res, best.n_parameters, "fit", evidence.n_eff)
-                added = families.added(best.effects)
-                _set_revision_effects(wh, name, best.effects)
-                new_rev = Revision(name, best.effects, base.solver, base.refinement)
-                make_revision(wh, evidence.wagons, new_rev, sim, event_ids, fit, engine)
-                reflag(wh, evidence.wagons, new_rev, sim, engine)
-                fit, holdout, _ = event_sets(wh, base.name, config, evidence.unknown_heat)
-                timing["remake_s"] = time.perf_counter() - t
+        standing = _judged_again(
+            wh,
+            new_rev,
+            standing,
+            loaded,
+            event_ids,
+            release,
+            evidence,
+            families,
+            fitted,
+            config,
+            engine,
+            workers,
+        )
         flags_judged_with = name
-    fit_ids = fit["event_id"].to_list()
-    hold_ids = holdout["event_id"].to_list()
+    else:
+        release()
+    fit_ids = standing.fit["event_id"].to_list()
+    hold_ids = standing.holdout["event_id"].to_list()
     rmse = {
         (key, rev): rmse_from_predictions(wh, rev, idset) if idset else None
         for key, idset in (("fit", fit_ids), ("holdout", hold_ids))
@@ -178,10 +153,93 @@ def new_revision(
             "rmse_holdout_k": rmse[("holdout", name)],
         },
     )
+    best = standing.chosen
     verdict = chosen_verdict(
-        best, best_data, best_events, loaded, ahead, evidence, families, fitted, config, workers
+        best,
+        standing.data,
+        standing.events,
+        loaded,
+        ahead,
+        evidence,
+        families,
+        fitted,
+        config,
+        workers,
     )
+    added = families.added(best.effects)
     return NewRevision(name, best, added, fit_ids, hold_ids, flags_judged_with, rmse, verdict)
+
+
+def _judged_again(
+    wh: Warehouse,
+    made: Revision,
+    standing: _Standing,
+    loaded: dict[str, WagonData],
+    event_ids: Sequence[str],
+    release: Callable[[], None],
+    evidence: Evidence,
+    families: Families,
+    fitted: Fitted,
+    config: CloseLoopConfig,
+    engine: Engine | None,
+    workers: Workers,
+) -> _Standing:
+    """The flags judged again with the ``made`` revision (the baseline's, which lacks the
+    effect, take a fleet-wide misfit for weak brakes or failing sensors; ``release``d then),
+    and the chosen effect refitted on the events usable now when they changed enough; a refit
+    that moves the answer beyond the fit's own uncertainty makes the revision again. The
+    wagons of the new fit events are added to ``loaded``."""
+    base, sim, timing, wagons = evidence.base, config.simulation, workers.timing, evidence.wagons
+    best = standing.chosen
+    fit_ids = standing.fit["event_id"].to_list()
+    t = time.perf_counter()
+    try:
+        reflag(wh, wagons, made, sim, engine)
+    finally:  # the terms' work may start (the workers are the flags' until now)
+        release()
+    fit, holdout, _ = event_sets(wh, base.name, config, evidence.unknown_heat)
+    timing["reflag_s"] = time.perf_counter() - t
+    standing = dataclasses.replace(standing, fit=fit, holdout=holdout)
+    changed = set(fit["event_id"].to_list()) ^ set(fit_ids)
+    if not (fit.height and len(changed) >= config.refit_changed_fraction * max(1, len(fit_ids))):
+        return standing
+    t = time.perf_counter()
+    loaded.update(load_wagons(wh, wagons, fit, sim, have=loaded))
+    refit_data = FitData.build(loaded, fit, sim, base)
+    added = families.added(best.effects)
+    (res,) = workers.fit(
+        [
+            fitted.requests.task(
+                refit_data,
+                [type(e) for e in added],
+                added,
+                max(1, config.max_nfev // 2),
+                refit=True,
+            )
+        ],
+        "reflag_refit",
+    )
+    moved = refit_moved(best, res, fit_intervals(res, refit_data), config.refit_tolerance)
+    timing["reflag_refit_s"] = time.perf_counter() - t
+    logger.debug(
+        "refitted on %d events after re-flagging: %s, chosen %s (moved beyond tolerance: %s)",
+        fit.height,
+        res.effects,
+        best.effects,
+        ", ".join(moved) or "none",
+    )
+    if not moved:
+        return standing
+    # the answer changed: the revision made again with the refitted parameters
+    t = time.perf_counter()
+    best = scored(res, best.n_parameters, "fit", evidence.n_eff)
+    _set_revision_effects(wh, made.name, best.effects)
+    remade = Revision(made.name, best.effects, base.solver, base.refinement)
+    make_revision(wh, wagons, remade, sim, event_ids, fit, engine)
+    reflag(wh, wagons, remade, sim, engine)
+    after, holdout, _ = event_sets(wh, base.name, config, evidence.unknown_heat)
+    timing["remake_s"] = time.perf_counter() - t
+    return _Standing(best, refit_data, fit, after, holdout)
 
 
 def reflag(
@@ -217,8 +275,8 @@ def make_revision(
     the samples, not the predictions; they write other tables), so the simulation runs on a
     second connection (a cursor of ``wh``'s, its writes on its own writer thread) in a thread
     of its own while sigma_w is fitted and the wagons are estimated: the partitions of both
-    share the engine's workers, which no longer wait between the three steps for the
-    parent's reads and last commits. The same rows as the three one after the other (the
+    share the engine's workers, which do not wait between the three steps for the parent's
+    reads and last commits. The same rows as the three one after the other (the
     same pure functions of the same partitions); the simulation's progress bar is not shown
     (one live display at a time)."""
     config = EstimationConfig(chain=sim.chain)
