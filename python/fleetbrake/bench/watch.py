@@ -108,7 +108,8 @@ def _make_fleet(
         log_relpath,
         to_csv_bytes,
     )
-    from fleetbrake.ingest.files import Quarantine, read_log
+    from fleetbrake.ingest.quarantine import Quarantine
+    from fleetbrake.ingest.reading import read_log
     from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
     config = SynthConfig(wagons=wagons, days=history_days + 1, seed=seed, refinement=refinement)
@@ -404,7 +405,7 @@ def bench_watch(
     from fleetbrake.engine import make_engine
     from fleetbrake.fleet.registry import WagonConfig
     from fleetbrake.model.rom import ReducedModel
-    from fleetbrake.simulation.predictions import SimulationConfig
+    from fleetbrake.simulation.config import SimulationConfig
 
     make_engine(engine, workers).close()  # a bad engine or count: refused before any work
     say = echo or (lambda _line: None)
