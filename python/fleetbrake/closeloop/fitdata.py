@@ -67,15 +67,12 @@ import polars as pl
 
 from fleetbrake.closeloop.spans import Span, prepare_span, steps_of
 from fleetbrake.fleet.registry import WagonConfig
-from fleetbrake.model.chaintypes import ChainPieces, ChainRule
+from fleetbrake.model.chaintypes import ChainPieces
 from fleetbrake.model.effects import EffectSet
 from fleetbrake.model.rom import ReducedModel
 from fleetbrake.model.romchain import chain_convection, simulate_chain_sensor
 from fleetbrake.model.timeline import H_QUANTUM_W_M2K
-from fleetbrake.simulation.chains import (
-    ANCHOR_TOLERANCE_K,
-    Model,
-)
+from fleetbrake.simulation.chains import Model, chain_rule
 from fleetbrake.simulation.config import SimulationConfig
 from fleetbrake.simulation.predictions import (
     Revision,
@@ -484,14 +481,7 @@ class FitData:
             window_continuation=span.continuation,
             window_length=span.length,
         )
-        chain = self.config.chain
-        rule = ChainRule(
-            anchor_s=chain.anchor_s,
-            anchor_min_readings=chain.anchor_min_readings,
-            window_s=chain.window_s,
-            tolerance_k=ANCHOR_TOLERANCE_K,
-            lag_tau_s=None if lag is None else float(getattr(lag, "tau_s", 0.0)),
-        )
+        rule = chain_rule(self.config.chain, lag)
         # the sensor and the face mean only (what an evaluation reads): the same as
         # ``model.simulate_chain``'s, bit for bit; summed at the seconds read only (the face
         # mean of every second for a state-dependent effect's next pass)

@@ -23,13 +23,12 @@ from fleetbrake.simulation.estimates.config import EstimationConfig
 from fleetbrake.simulation.estimates.store import StoredNoise, store_noise, stored_noise
 from fleetbrake.simulation.estimates.wagon import (
     estimator_series,
-    samples_frame,
     wagon_estimate,
     wagon_noise,
     wagon_rom,
 )
 from fleetbrake.simulation.predictions import Revision
-from fleetbrake.simulation.store import Mapper, chunk_table, sample_parts
+from fleetbrake.simulation.store import Mapper, arrow_frame, chunk_table, sample_parts
 from fleetbrake.warehouse.connection import Warehouse
 
 __all__ = [
@@ -105,9 +104,7 @@ def fit_wagon_noise(task: NoiseFitTask) -> WagonNoiseFit | None:
     readings. No database: a pure function of the task (the reduced model made, or read
     from its cache, once per process)."""
     config, wagon, rev = task.config, task.wagon, task.rev
-    samples = samples_frame(task.samples).filter(
-        pl.col("time_utc").dt.date().is_in(list(task.days))
-    )
+    samples = arrow_frame(task.samples).filter(pl.col("time_utc").dt.date().is_in(list(task.days)))
     series, _ = estimator_series(
         wagon, samples, config.chain, max_s=config.noise_fit_s, config=config
     )

@@ -29,7 +29,7 @@ from fleetbrake.simulation.estimates.config import EstimationConfig
 from fleetbrake.simulation.estimates.rows import estimate_rows
 from fleetbrake.simulation.predictions import Revision
 from fleetbrake.simulation.series import WagonSeries, running_median
-from fleetbrake.simulation.store import chunk_name, sample_parts
+from fleetbrake.simulation.store import arrow_frame, chunk_name, sample_parts
 
 __all__ = [
     "EstimateChunk",
@@ -41,7 +41,6 @@ __all__ = [
     "estimator_series",
     "frozen_readings",
     "reading_noise_k",
-    "samples_frame",
     "wagon_estimate",
     "wagon_noise",
     "wagon_rom",
@@ -184,13 +183,6 @@ class EstimateResult:
         return int(self.rows.num_rows)
 
 
-def samples_frame(table: pa.Table) -> pl.DataFrame:
-    """A partition's samples (Arrow) as polars."""
-    frame = pl.from_arrow(table)
-    assert isinstance(frame, pl.DataFrame)
-    return frame
-
-
 def wagon_estimate(
     wagon: WagonConfig,
     series: EstimatorSeries,
@@ -220,7 +212,7 @@ def estimate_wagon(task: EstimateTask) -> EstimateResult:
     reduced model made, or read from its cache, once per process)."""
     wagon = task.wagon
     series, t0 = estimator_series(
-        wagon, samples_frame(task.samples), task.config.chain, config=task.config
+        wagon, arrow_frame(task.samples), task.config.chain, config=task.config
     )
     noise = wagon_noise(series, task.config, task.power_noise_w_per_sqrt_s)
     est = wagon_estimate(wagon, series, task.rev, task.config, noise)
