@@ -24,7 +24,7 @@ __all__ = ["bench_app"]
 bench_app = typer.Typer(
     cls=FleetbrakeGroup,
     help="Benchmarks that print their figures (last line: one JSON object). Their meters and "
-    'peers: pip install "fleetbrake[bench]".',
+    'peers: pip install "fleetbrake\\[bench]".',
     no_args_is_help=True,
 )
 

@@ -213,7 +213,7 @@ def close_loop_command(
             "--engine",
             help="Where candidates are fitted and the new revision simulated: local (worker "
             "processes on this machine, default); inline (this process); ray (Ray tasks: pip "
-            'install "fleetbrake[ray]").',
+            'install "fleetbrake\\[ray]").',
         ),
     ] = "local",
     workers: WorkersOption = None,

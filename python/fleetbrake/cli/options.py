@@ -93,7 +93,7 @@ EngineOption = Annotated[
     typer.Option(
         "--engine",
         help="Where partitions run: local (worker processes on this machine, default); "
-        'ray (Ray tasks: pip install "fleetbrake[ray]").',
+        'ray (Ray tasks: pip install "fleetbrake\\[ray]").',
     ),
 ]
 AddressOption = Annotated[
