@@ -421,7 +421,7 @@ def test_chains_and_windows() -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The stage's reads and the smoothed speed (docs/benchmarks.md)
+# The stage's reads and the smoothed speed (docs/decisions/0007-reading-and-writing-in-chunks.md)
 
 
 @pytest.mark.parametrize("window", [1, 2, 3, 4, 5, 7, 9])

@@ -53,10 +53,10 @@ STAGE_MODULES = (
 
 WRITER_MEMORY_LIMIT = "256MB"
 """DuckDB's buffer pool in the writer during a run (the ingestion lowers it further for its
-own stage). The buffer pool keeps the blocks the run writes and reads: left at the
-connection's 1 GB it grew with the fleet (the writer's peak 448, 619, 1,029 MB at 30, 100,
+own stage). The buffer pool keeps the blocks the run writes and reads: at the
+connection's 1 GB it grows with the fleet (the writer's peak 448, 619, 1,029 MB at 30, 100,
 300 wagon-days); bounded, the writer holds a partition's data and this cache, whatever the
-fleet (``docs/benchmarks.md``)."""
+fleet (``docs/decisions/0007-reading-and-writing-in-chunks.md``)."""
 
 WRITER_THREADS = 2
 """DuckDB's threads in the writer: its bulk inserts and per-wagon reads use two; more would
@@ -203,7 +203,7 @@ def _wagons_to_judge(
     timeline or estimates were last written (a run stopped before its flags), with another
     revision or other thresholds than ``flag_config``, or their flags removed since). A
     wagon's flags depend only on its own data, its registry entry (a changed one
-    re-simulates the wagon; a removed one is not seen: ``docs/flags.md``), the revision and
+    re-simulates the wagon; a removed one is not seen), the revision and
     the thresholds: no detector compares wagons, so the others' stored flags stand."""
     from fleetbrake.flags.storage import stale_wagons
 

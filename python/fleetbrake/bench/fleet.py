@@ -71,8 +71,8 @@ SAMPLE_S = 0.05
 CHILDREN_EVERY = 20
 """The sampler lists this process's descendants every this many samples (and as each stage
 begins), and reads the listed ones' resident sets at every sample: listing them walks every
-process of the machine (``/proc``), which at every sample cost the writer about 2 processor
-seconds per 100 wagon-days (``docs/benchmarks.md``)."""
+process of the machine (``/proc``), which at every sample costs the writer about 2 processor
+seconds per 100 wagon-days."""
 
 
 class _MemorySampler:
@@ -190,7 +190,7 @@ def _generate(
     config = SynthConfig(wagons=wagons, days=days, seed=seed, refinement=refinement)
     # in a process of its own: the generator's memory (5.6 GB at 1,000 wagons) stays resident
     # in the process that ran it, and a peak reset cannot go below the resident set, so a
-    # fleet generated here would count as the writer's peak (docs/benchmarks.md)
+    # fleet generated here would count as the writer's peak
     spawn = multiprocessing.get_context("spawn")  # never fork a process polars threads run in
     with ProcessPoolExecutor(1, mp_context=spawn) as child:
         child.submit(_generate_here, fleet_dir, config, show).result()

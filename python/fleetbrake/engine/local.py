@@ -74,7 +74,8 @@ def _ship_table(table: Any) -> tuple[Any, ...]:
     large one is written once as an Arrow IPC file in the engine's directory (in memory,
     ``/dev/shm`` where there is one) and the other side maps it (:func:`_load_shipped`),
     instead of being copied into a pickle, through the pipe and out of the pickle again
-    (the writer spent about a third of its processor time on that: ``docs/benchmarks.md``)."""
+    (a 36 MB table: 68 ms pickled and unpickled, 24 ms written, mapped and read:
+    ``docs/decisions/0007-reading-and-writing-in-chunks.md``)."""
     import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
     if _ship_dir is None or table.nbytes < SHIPPED_MIN_BYTES:

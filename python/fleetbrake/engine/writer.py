@@ -3,10 +3,11 @@
 A stage's parent process is the warehouse's one writer; it also reads the next partitions
 and keeps the engine's workers fed. With its transactions on a thread of their own (DuckDB
 releases the GIL while it inserts), its reads, its workers and its inserts overlap instead of
-adding up (``docs/benchmarks.md``). Used by the simulation and the estimate
-(:func:`fleetbrake.simulation.store.chunk_pipeline`), the event detection
+adding up (a writer blocked in its inserts leaves the workers idle:
+``docs/decisions/0007-reading-and-writing-in-chunks.md``). Used by the simulation and the
+estimate (:func:`fleetbrake.simulation.store.chunk_pipeline`), the event detection
 (:func:`fleetbrake.ingest.events.update_events`) and the ingestion's batches of files
-(``fleetbrake.ingest.files``); knows nothing of the warehouse: ``write``
+(:class:`fleetbrake.ingest.ledger.Batch`); knows nothing of the warehouse: ``write``
 is the stage's.
 """
 

@@ -42,7 +42,7 @@ class IngestConfig:
     batch_rows: int = 1_000_000
     """Whole partitions are committed together until they hold this many rows: DuckDB's writer
     spends about half the processor time per row on transactions of 0.7 M rows and more as on
-    transactions of 0.2 M (``docs/benchmarks.md``)."""
+    transactions of 0.2 M (``docs/decisions/0007-reading-and-writing-in-chunks.md``)."""
     batch_files: int = 500
     """Whole partitions are also committed once they hold this many files."""
     verify_hashes: bool = False

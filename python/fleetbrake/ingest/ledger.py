@@ -175,8 +175,9 @@ class Batch:
 
     The transactions run on a thread of their own (:class:`~fleetbrake.engine.writer.WriteBehind`),
     one at a time and in order, while the caller gathers the next batch and keeps the
-    engine's workers fed (a writer blocked in an insert would leave them idle for about a
-    third of the ingestion's seconds, ``docs/benchmarks.md``). The caller must not use the
+    engine's workers fed (a writer blocked in its inserts leaves them idle: the ingestion
+    waits 3.3-3.7 s on writes per 100 wagon-days that way, 0.6-0.8 s with the thread,
+    ``docs/decisions/0007-reading-and-writing-in-chunks.md``). The caller must not use the
     warehouse's connection until the block ends (the ingestion's loop does not).
     """
 

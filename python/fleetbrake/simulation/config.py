@@ -46,7 +46,7 @@ class SimulationConfig:
     (a larger one is written alone), so each stays whole-old or whole-new. 1: one wagon per
     transaction. Changes no row. DuckDB's writer spends about half the processor time per
     row on transactions of 0.7 M rows and more as on transactions of 0.2 M
-    (``docs/benchmarks.md``)."""
+    (``docs/decisions/0007-reading-and-writing-in-chunks.md``)."""
     chunk_rows: int = 200_000
     """The parent reads the wagons' samples and events a chunk of wagons at a time, about
     this many samples (one query per table and chunk,

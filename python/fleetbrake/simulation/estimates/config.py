@@ -59,7 +59,8 @@ class EstimationConfig:
     batch_rows: int = 1_000_000
     """Several wagons per transaction, up to about this many rows (a wagon never split; the
     simulation's transactions: DuckDB's insert costs about half the processor time per row
-    at 1 M rows that it does at 0.2 M, ``docs/benchmarks.md``). Changes no row."""
+    at 1 M rows that it does at 0.2 M,
+    ``docs/decisions/0007-reading-and-writing-in-chunks.md``). Changes no row."""
     chunk_rows: int = 200_000
     """The parent reads the wagons' samples a chunk of whole wagons at a time, about this
     many samples (one query, :func:`~fleetbrake.simulation.estimates.store.estimation_chunk`),
