@@ -63,8 +63,8 @@ FE_REFINEMENT = 0.6
 """The full model's mesh that writes the fleets: 6,131 hex20 nodes, the mesh the reduced model
 of the tests is reduced from (``conftest.TEST_REFINEMENT``), so the world is not coarser than
 the model that identifies it (on a coarser writer's mesh, such as 0.2 with 409 nodes, part of
-the "truth" would be the writer's own mesh error, docs/closeloop.md). The model differs from
-the writer by its reduction and its time integration, not by a coarser mesh."""
+the "truth" would be the writer's own mesh error, docs/estimator.md, "Accuracy"). The model
+differs from the writer by its reduction and its time integration, not by a coarser mesh."""
 NOISE_K = 0.1
 """The sensor noise the fleets are read with (``SynthConfig.sensor_noise_k``'s default)."""
 SOLAR_PEAK_W_M2 = (40.0, 90.0)

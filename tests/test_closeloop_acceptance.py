@@ -27,7 +27,7 @@ report says ``adequate: false``, ``unexplained`` names the hour of day, and noth
 
 Every case takes half an hour or more on a shared 2-core machine, most of it the full model
 at refinement 0.6 writing the fleet (26 min for ambient_offset under load 7-10; 54 s at
-refinement 0.2; docs/closeloop.md), then ``run`` and the close loop: the module is
+refinement 0.2), then ``run`` and the close loop: the module is
 ``slow``; run one case at a time.
 
 A written fleet is kept: under ``$FLEETBRAKE_ACCEPTANCE_CACHE`` (default

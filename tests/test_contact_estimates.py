@@ -721,7 +721,7 @@ def test_identity_on_a_full_fe_fleet_following_the_declared_model(
     braking's peak on the face, within 0.01 K at the seat).
 
     Written at the model's mesh because the defaults have σ_q 0.03 W/√s and the braking's power
-    ``P_b`` (docs/estimator.md, "The defaults: a documented tuning"): the 409-node mesh of
+    ``P_b`` (docs/estimator.md, "How each noise is set"): the 409-node mesh of
     ``FE_REFINEMENT`` (0.2) puts its own error of 0.1-0.2 K at the seat in hard brakings,
     which the tight quiet noise then follows into the face (with the defaults there: 48 s
     outside the band + 0.5 K, by up to 0.37 K; the power band holding 0 for 0.948 / 0.900 of

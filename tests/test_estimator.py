@@ -3,7 +3,7 @@
 The data are made by the FULL finite-element model (hex20 on the reduced model's own mesh,
 ``TEST_REFINEMENT``, not reduced, and integrated by Crank-Nicolson where the filter's model is
 exact in time; a coarser writer's mesh puts its own error at the seat, which the identity
-check would measure: ``docs/estimator.md``): a wagon's 8 hours as the
+check would measure: ``docs/estimator.md``, "Accuracy"): a wagon's 8 hours as the
 synthetic fleet's wagons run them (standing, trips with brakings and stops; the unit logging
 while the wagon moves, so the standstill between sessions is not logged), with dragging brakes
 of a power drawn at random in a physical range on cruising stretches with the cylinder
@@ -74,7 +74,7 @@ power ``P_b``, σ_o 3 mK/√s, the mode off at 2 σ, no smoother's lead, the ste
 against this filter set it explicitly: on the benchmark wagon-day with a reading missing every
 400 s it keeps 26 % of the seconds steady and replays 33 %, where the defaults at 1e-7 keep
 none steady (σ_q 0.03 and ``P_b`` settle more slowly than a reading goes missing;
-docs/estimator.md)."""
+docs/estimator.md, "The covariance path")."""
 
 
 def simple_filter(noise: EstimatorNoise, **changes: object) -> EstimatorConfig:
@@ -505,8 +505,8 @@ def test_the_rust_kernel_is_the_numpy_reference(
         assert switches >= 8 and 0.02 < fast.manoeuvre.mean() < 0.5, switches
     if steady == "default":
         # with P_b a braking leaves P's variance raised, and it takes 1,300-1,900 s to pass
-        # the 1e-7 test again (docs/estimator.md): 0.16 at 1e-7 / 1e-5; at the quiet mode's
-        # 1e-3 / 1e-3, 0.42
+        # the 1e-7 test again (docs/estimator.md, "The covariance path"): 0.16 at 1e-7 / 1e-5;
+        # at the quiet mode's 1e-3 / 1e-3, 0.42
         assert fast.frozen_fraction == slow.frozen_fraction > 0.3
     if steady == "simple":
         assert fast.frozen_fraction == slow.frozen_fraction > 0.3
@@ -574,7 +574,8 @@ def test_rust_is_numpy_with_switching_convection_and_a_lag(
 
 
 OPTIONS = EstimatorConfig(standstill_speed_kmh=0.5, seat_error_sd_k=0.05)
-"""The two options off by default (``docs/estimator.md``: what they gain, what they cost)."""
+"""The two options off by default (what they gain, what they cost:
+``docs/decisions/0002-estimator-noise.md``)."""
 
 
 @pytest.fixture(scope="module")
@@ -1094,7 +1095,7 @@ def test_rust_is_numpy_with_the_braking_power_state(rom: ReducedModel, tau_b_s: 
     slow = estimate([problem], config=config, kernel=numpy_kernel)[0]
     _assert_same(fast, slow)
     # the same seconds steady (few: a braking leaves P's variance raised, and with σ_q 0.03
-    # it settles slowly; docs/estimator.md)
+    # it settles slowly; docs/estimator.md, "The covariance path")
     assert fast.frozen_fraction == slow.frozen_fraction
     # the option off (set explicitly: the defaults have it): the problem and the filter
     # without it

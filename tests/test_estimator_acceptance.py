@@ -10,7 +10,7 @@ The writer is the close loop's (``acceptance_fleets.writer_for``, ``FE_REFINEMEN
 ``FLEETBRAKE_ACCEPTANCE_CACHE=off`` writes them afresh). Not at a mesh coarser than the
 model's, such as 0.2 (409 nodes): in a hard braking that writer's seat is 0.1-0.2 K off the
 0.6 mesh's, while the reduced model's is within 0.01 K, so most of the seat's disagreement the
-filter would chase is the writer's mesh error (docs/estimator.md). The bars:
+filter would chase is the writer's mesh error (docs/estimator.md, "Accuracy"). The bars:
 
 - contact-mean RMSE against the truth over normal operation, filtered and smoothed, at most
   the open-loop prediction's (the stored timeline);
@@ -30,8 +30,7 @@ the held-out seed 5). The filtered RMSE on seed 4 has the thinnest margin (0.4 %
 loop's). The simpler filter with σ_q 0.3 and no ``P_b`` fails the filtered RMSE on seed 3 and
 the band over normal operation (too wide).
 
-Run with ``-s`` to see the figures (``docs/estimator.md`` quotes them, "The defaults: a
-documented tuning").
+Run with ``-s`` to see the figures (``docs/estimator.md``, "Accuracy", quotes them).
 """
 
 from __future__ import annotations
@@ -65,7 +64,7 @@ pytestmark = pytest.mark.slow
 FE_REFINEMENT = acceptance_fleets.FE_REFINEMENT
 """The full model's mesh that writes the fleets: the close loop's writer (0.6, 6,131 hex20
 nodes, the mesh the reduced model is reduced from), so the fleets' truth is not the writer's
-own mesh error (docs/estimator.md)."""
+own mesh error (docs/estimator.md, "Accuracy")."""
 SEEDS = (3, 4)
 """Two fleets of 4 wagons x 2 days (wagon 1 clean, a dragging brake on 2, a weak brake on 3,
 sensor faults on 2-4; synth's unregistered and badly registered wagons besides)."""

@@ -158,7 +158,7 @@ def rom_simulate_batch(
     t_ref: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]: ...
 
-# ``problems``: the dicts of ``fleetbrake.model.estimator._as_kernel_args``; the optional keys
+# ``problems``: the dicts of ``fleetbrake.model.estimator.kernel._as_kernel_args``; the optional keys
 # ("applied", "q_modes", "power_noise", "brake_phi"/"brake_q": the braking's power P_b per
 # transition) absent or None when the option is off. ``manoeuvre_tolerances``: the filter's
 # and the smoother's steady tolerances for the steps in the manoeuvre mode (None: the two

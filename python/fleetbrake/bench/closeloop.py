@@ -11,8 +11,8 @@ candidates fitted and the calls of the chain kernel (``cost`` in the JSON report
 
 The figures carry the machine's CPU count and load average: other processes on the machine
 slow them down; ``processor_s`` (user + system seconds of the command and its workers) is
-what the work cost whatever the load. ``docs/benchmarks.md`` (Close loop) has the figures
-before and after.
+what the work cost whatever the load. ``docs/benchmarks.md`` ("``fleetbrake bench
+close-loop``: the closed loop") has the current figures.
 """
 
 from __future__ import annotations

@@ -83,8 +83,8 @@ class CloseLoopConfig:
     start, on the effective sample size), without evaluating it
     (:func:`~fleetbrake.closeloop.leastsquares.fit_parameters`; 0: scipy's
     default relative tolerance only). Such a step moves no parameter by more than a fifth of
-    ``refit_tolerance`` (at least 0.49 standard errors) (docs/closeloop.md, "The refits'
-    stopping rule")."""
+    ``refit_tolerance`` (at least 0.49 standard errors) (docs/closeloop.md, "3. Fit": "Refits
+    stop at the fit's resolution")."""
     refit_tolerance: float = 0.25
     """A re-flag refit whose every parameter moved by less than this share of its 95 %
     interval's half-width (:func:`~fleetbrake.closeloop.revision.refit_moved`) keeps the
@@ -122,7 +122,8 @@ class CloseLoopConfig:
     in quadrature to the statistical half-width with the numerical term. Why: a GPS speed is
     a magnitude, so where the wagon stands it reads about its noise, not 0, and a convection
     law steep at low speed turns that into a bias of its exponent the same on every
-    wagon-day, which no resampling sees (docs/closeloop.md). False: no such term."""
+    wagon-day, which no resampling sees (docs/closeloop.md, "6. New revision"). False: no
+    such term."""
     input_step_tolerance: float = 0.05
     """The input term's steps stop when a step is at most this share of the
     shift in every parameter (:func:`~fleetbrake.closeloop.terms.input_shift`)."""
@@ -133,7 +134,7 @@ class CloseLoopConfig:
     (the numerical term's coarse fits on the workers, the input term's evaluations and the
     refit in this process), and computed again after it only when the refit moved the
     answer (``refit_moved``): the same report and stored values as one after another
-    (False); figures in docs/benchmarks.md."""
+    (False), in less time (the report's ``cost`` gives each phase's seconds)."""
     candidates: tuple[str, ...] | None = None
     """The effects to try, by vocabulary name (None: every effect of
     :data:`fleetbrake.model.effects.EFFECT_ORDER`)."""

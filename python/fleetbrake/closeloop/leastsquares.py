@@ -130,7 +130,7 @@ def fit_parameters(
     (:func:`~fleetbrake.closeloop.stats.standard_errors`, on the effective sample size of
     the start's residual over ``blocks``, evaluator seconds; every second its own block when
     None): such a step, accepted or not, moves no parameter by more than that share of its
-    own uncertainty (docs/closeloop.md, "The refits' stopping rule")."""
+    own uncertainty (docs/closeloop.md, "3. Fit": "Refits stop at the fit's resolution")."""
     from scipy.optimize import least_squares
 
     names: list[tuple[type[Effect], str]] = []

@@ -269,7 +269,7 @@ def make_revision(
 ) -> None:
     """Simulate ``event_ids`` with the new ``revision`` and re-estimate the virtual sensor
     with it (every wagon), its sigma_w fitted first on the days of the ``fit`` events (a
-    property of the revision: docs/estimator.md).
+    property of the revision: docs/estimator.md, "How each noise is set").
 
     The simulation and the estimate are independent (the estimate and the sigma_w fit read
     the samples, not the predictions; they write other tables), so the simulation runs on a

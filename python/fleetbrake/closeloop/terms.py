@@ -199,7 +199,7 @@ def input_shift(
     residual responds by 30-50 % of what that Jacobian says (a convection varying inside a
     piece is rounded, so on that scale the residual is a step function of the parameters),
     and the chord then contracts by only 0.5-0.7 a step: on the bench fleet it runs to its 5
-    steps 5 % short of its own limit (docs/closeloop.md). A parameter on a bound
+    steps 5 % short of its own limit. A parameter on a bound
     the step would cross stays there. Returns the shift and the evaluations spent."""
     jac = fitted.jacobian
     norms = _column_norms(jac)

@@ -241,7 +241,7 @@ class FlagConfig:
     residual_factor: float = 4.0
     """Thresholds in kelvin of the brake and drift detectors are at least this many times the
     wagon's residual spread for the revision (the median over its brakings of the rms of
-    measured - predicted, :func:`fleetbrake.flags.judge.wagon_residual_spread`): with a model
+    measured - predicted, :func:`fleetbrake.flags.wagon.wagon_residual_spread`): with a model
     no better than that, smaller differences are model error."""
 
     # ---- overheating
@@ -284,7 +284,7 @@ class FlagConfig:
         configurations (a number given as an integer or a real alike), whatever the file or
         call they came from. ``flagged_wagons.config_key`` records it with each wagon's
         flags, so a run with other thresholds judges every wagon again
-        (:func:`fleetbrake.flags.judge.stale_wagons`)."""
+        (:func:`fleetbrake.flags.storage.stale_wagons`)."""
         content = json.dumps(dataclasses.asdict(self), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(content.encode("utf-8")).hexdigest()
 

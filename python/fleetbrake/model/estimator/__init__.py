@@ -56,12 +56,12 @@ the seat's model error ``b`` as one coordinate more), the unexplained heat power
   braking's unexplained power (an input error of the logged pressure heats only while the
   declared inputs brake), heating the face as ``P`` does; the reported power is
   ``P + P_b``.
-* Options (off by default: they cost speed, ``docs/estimator.md``): ``P`` held at
-  standstill, friction heating only while the wheel turns (``standstill_speed_kmh``: over
-  such a step and over an unlogged standstill ``γ = 0``, ``φ = 1``, no noise, and 0 W
-  reported); ``b' = φ_b b + η``, the reduced model's own error at the sensor seat
-  (``seat_error_sd_k``, a Gauss-Markov process, a coordinate appended to ``ξ`` that the
-  face does not see).
+* Options (off by default: they cost speed,
+  ``docs/decisions/0002-estimator-noise.md``): ``P`` held at standstill, friction
+  heating only while the wheel turns (``standstill_speed_kmh``: over such a step and over an
+  unlogged standstill ``γ = 0``, ``φ = 1``, no noise, and 0 W reported);
+  ``b' = φ_b b + η``, the reduced model's own error at the sensor seat (``seat_error_sd_k``,
+  a Gauss-Markov process, a coordinate appended to ``ξ`` that the face does not see).
 
 **Measurement.** ``y = T_seat (+ b) + v`` (or ``s + v`` with a lag, ``s`` lagging
 ``T_seat (+ b)``), ``var v = σ_v²``; a missing or faulty reading (NaN) skips the update.
@@ -72,7 +72,7 @@ of the fit data, maximised over ``(log σ_v, log σ_w)`` by Nelder-Mead. ``σ_w`
 (``min_power_noise_w_per_sqrt_s``, 3 W/√s by default): on data where nothing unexplained
 happens the likelihood keeps rising as ``σ_w`` falls, and a filter tuned that way is
 overconfident when a dragging brake comes (at 1 W/√s the band holds the truth for 81-91 % of
-a day with drags, at 3 W/√s for 90-96 %; ``docs/estimator.md`` has the evidence).
+a day with drags, at 3 W/√s for 90-96 %; ``docs/estimator.md``, "How each noise is set").
 
 **Two modes of the power's noise.** The likelihood's ``σ_w`` is the manoeuvre mode's: the
 filter runs in a quiet mode (``σ_q``, ``EstimatorNoise.quiet_power_w_per_sqrt_s``, 0.03 W/√s)
@@ -84,7 +84,7 @@ switch-on. The declared model's own error is a random walk of the block's unifor
 (``model_offset_sd_k_per_sqrt_s``, 1.5 mK/√s). ``fit_noise`` fits σ_v and σ_w with one mode.
 σ_q, σ_b, τ_b, σ_o and the test's settings are a documented tuning (chosen on two full-FE
 acceptance fleets against their truth, checked on a held-out third; ``docs/estimator.md``,
-"The defaults: a documented tuning").
+"How each noise is set", and ``docs/decisions/0002-estimator-noise.md``).
 
 **Prior.** ``θ`` uniform with standard deviation ``initial_temperature_sd_k`` around the first
 valid reading; ``P`` at its stationary distribution ``N(0, σ_w² τ/2)``; ``P_b`` exactly 0.

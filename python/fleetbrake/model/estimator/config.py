@@ -28,8 +28,8 @@ class EstimatorNoise:
     quiet_power_w_per_sqrt_s: float | None = 0.03
     """σ_q: the quiet mode's diffusion, where the declared model explains the readings (most
     of the time). A documented tuning with the braking's power ``P_b`` and σ_o
-    (``docs/estimator.md``, "The defaults: a documented tuning"); None: one mode, σ_w at
-    every second."""
+    (``docs/estimator.md``, "How each noise is set"; the sweep behind it:
+    ``docs/decisions/0002-estimator-noise.md``); None: one mode, σ_w at every second."""
 
     def __post_init__(self) -> None:
         for name in ("measurement_k", "power_w_per_sqrt_s", "quiet_power_w_per_sqrt_s"):
@@ -56,7 +56,8 @@ class ManoeuvreTest:
     where ``|m|`` exceeds ``on_sigma`` of those, and holds while ``|m|`` exceeds
     ``off_sigma`` or the estimated power is more than ``hold_power_sigma`` of its standard
     deviations from zero (a drag, once followed, explains the readings: the innovations are
-    white again, the power is not zero). ``docs/estimator.md`` has the evidence.
+    white again, the power is not zero). ``docs/estimator.md``, "Two modes of the power's
+    noise", has the evidence.
 
     Read by: ``fleetbrake run``, ``fleetbrake watch``, ``fleetbrake close-loop``."""
 
@@ -67,7 +68,8 @@ class ManoeuvreTest:
     off_sigma: float = 1.0
     """The manoeuvre mode holds while ``|m|`` exceeds this many of its standard deviations: with
     σ_q 0.03 the band shrinks to ±0.05 K within a minute of the switch-off, so the mode holds
-    until the innovations are white (``docs/estimator.md``)."""
+    until the innovations are white (0.823 of the truth in the filtered band after a drag,
+    0.784 at 2 σ: ``docs/decisions/0002-estimator-noise.md``)."""
     hold_power_sigma: float = 2.0
     """... or while the estimated power is more than this many of its standard deviations from
     zero."""
@@ -78,12 +80,14 @@ class ManoeuvreTest:
     changes the sequence, the smoother runs on a second forward pass with it; the filter and
     its reported modes are unchanged. Counted in steps (``smoother_lead_s / dt_s``), as the
     window is. 0: the filter's sequence. 120 s by default: with σ_q 0.03 the smoother without
-    it spreads a drag's onset over the half hour before it (``docs/estimator.md``)."""
+    it spreads a drag's onset over the half hour before it (``docs/estimator.md``, "Two modes
+    of the power's noise")."""
     applied_quiet_w_per_sqrt_s: float | None = None
     """The quiet mode's diffusion over a step with the cylinder applied
     (:attr:`EstimatorConfig.applied_pressure_bar`), W/√s: a braking's heat depends on the
     logged pressure's scale, whose error (0.4 % on the synthetic fleets) acts only while the
-    cylinder is applied. None: σ_q there as elsewhere (``docs/estimator.md``)."""
+    cylinder is applied. None: σ_q there as elsewhere (why it is off:
+    ``docs/decisions/0002-estimator-noise.md``)."""
 
     def __post_init__(self) -> None:
         applied = self.applied_quiet_w_per_sqrt_s
@@ -155,7 +159,8 @@ class EstimatorConfig:
     """σ_o: the declared model's own error as a random walk of the block's uniform offset
     (variance ``σ_o² L`` over a step of L seconds, along the gap's direction): the reduced
     model is not the block (another mesh, another integrator, the face's law); without it the
-    smoothed band is narrower than that error (``docs/estimator.md``). 1.5 mK/√s with the
+    smoothed band is narrower than that error (``docs/estimator.md``, "The state-space
+    model"). 1.5 mK/√s with the
     other defaults; 0: the model is exact."""
     steady_tolerance: float = 1e-3
     """The filter's covariance counts as steady when no element changed in a step by more
@@ -167,7 +172,7 @@ class EstimatorConfig:
     1e-3 (with ``smoother_tolerance`` 1e-3) against 1e-7 / 1e-5, on 8 bench wagon-days: the
     filtered mean moves by at most 4.2 mK, its sd by 2.2 mK, the power by 71 mW, the smoothed
     by 2.2 mK, 1.5 mK and 53 mW; every acceptance bar is met on seeds 3, 4 and 5
-    (``docs/estimator.md``)."""
+    (``docs/decisions/0001-estimator-covariance-path.md``)."""
     smoother_tolerance: float = 1e-3
     """The same for the smoother's information matrix, which only the smoothed standard
     deviations use (the smoothed means do not depend on it), in the quiet mode (the manoeuvre
@@ -180,8 +185,8 @@ class EstimatorConfig:
     2 K rise of the reading, 1e-3 there moves the filtered mean by up to 0.103 K and the
     smoothed by 68 mK against 1e-7 / 1e-5, while 1e-7 / 1e-5 there (the quiet mode at 1e-3)
     moves the smoothed mean by at most 3.3 mK, at the same speed (1.3 % of those seconds are
-    in the manoeuvre mode; ``docs/estimator.md``). An exact recursion sets it,
-    ``manoeuvre_smoother_tolerance`` and the two quiet ones to 0."""
+    in the manoeuvre mode; ``docs/decisions/0001-estimator-covariance-path.md``). An exact
+    recursion sets it, ``manoeuvre_smoother_tolerance`` and the two quiet ones to 0."""
     manoeuvre_smoother_tolerance: float | None = 1e-5
     """``smoother_tolerance`` for the smoother's steps inside the filter's steady states of
     the manoeuvre mode; None: ``smoother_tolerance`` there too (evidence at
@@ -199,8 +204,8 @@ class EstimatorConfig:
     ``φ = 1``, no noise; the readings there may still revise it through its correlation
     with the block's state), and the power reported for such a second is 0 (no friction
     heat). None (the default): ``P`` heats and diffuses at every step. An option, not the
-    default, because it costs speed (stops break the steady state); ``docs/estimator.md``
-    has the figures, and why the cylinder's pressure does not count as turning."""
+    default: it costs speed (stops break the steady state) and does not meet every
+    acceptance bar alone (``docs/decisions/0002-estimator-noise.md``)."""
     seat_error_sd_k: float = 0.0
     """The reduced model's error at the sensor seat as a coordinate of its own (``b``, a
     Gauss-Markov process of this stationary standard deviation, K, read as
@@ -210,7 +215,7 @@ class EstimatorConfig:
     offset) where the open-loop prediction is right. 0 (the default): no such coordinate.
     0.05 K with ``seat_error_time_constant_s`` 600 s meets the smoothed-RMSE bar on the
     full-FE acceptance fleets, but the covariance then settles about half as often (the
-    kernel 45 % slower per CPU-second); ``docs/estimator.md`` has the figures."""
+    kernel 45 % slower per CPU-second; ``docs/decisions/0002-estimator-noise.md``)."""
     seat_error_time_constant_s: float = 600.0
     """τ_b of ``seat_error_sd_k``: how long the seat's model error persists."""
     applied_pressure_bar: float | None = None
@@ -225,7 +230,7 @@ class EstimatorConfig:
     1/√s: the declared input's own error (a scale error of the logged pressure, 0.4 % on the
     synthetic fleets) is in proportion to it, so the filter is loose where, and as much as,
     the declared heat can be wrong, and tight while released (where the steady path stays).
-    0: none (``docs/estimator.md``)."""
+    0: none (why it is off: ``docs/decisions/0002-estimator-noise.md``)."""
     brake_power_w_per_sqrt_s: float | None = 0.3
     """σ_b: the braking's unexplained power as a state of its own, ``P_b`` (W into the block
     through the friction face, the same ``γ`` as ``P``): over a step whose declared friction
@@ -237,7 +242,8 @@ class EstimatorConfig:
     of the release, instead of persisting in ``P`` (τ 1 h) into the released seconds. The
     reported unexplained power is ``P + P_b``. 0.3 W/√s by default (the 7 mbar pressure
     sensor's error followed within 20 %; below 0.2 it is not); None: no such state (faster;
-    ``docs/estimator.md``, "The defaults: a documented tuning")."""
+    ``docs/estimator.md``, "The state-space model"; the choice:
+    ``docs/decisions/0002-estimator-noise.md``)."""
     brake_power_time_constant_s: float = 0.0
     """τ_b of ``brake_power_w_per_sqrt_s``: how fast ``P_b`` decays once released, s; 0 (the
     default): it is forgotten at the first step without declared heat (its variance exactly

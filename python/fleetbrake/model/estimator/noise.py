@@ -182,7 +182,7 @@ def measurement_noise(
     consecutive seconds with valid readings, divided by √6 (white noise's second difference
     has variance 6 σ²; the block's temperature, smooth at 1 Hz, adds only its curvature, and
     the median ignores the few seconds where that is sharp). The idea of
-    ``closeloop.selection.noise_from_residual``, on the reading instead of a residual. None
+    ``fleetbrake.closeloop.stats.noise_from_residual``, on the reading instead of a residual. None
     with fewer than ``min_differences`` such triples."""
     t = np.asarray(time_s, dtype=np.float64)
     y = np.asarray(reading_c, dtype=np.float64)

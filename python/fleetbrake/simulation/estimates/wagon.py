@@ -194,7 +194,7 @@ def wagon_estimate(
 ) -> ContactEstimate | None:
     """The wagon's estimate under ``rev`` (None without seconds); ``smooth=False``: filtered
     only (the filtered values are the same either way, the smoother costs more than the
-    filter: ``docs/benchmarks.md``)."""
+    filter: ``docs/estimator.md``, "Speed")."""
     if series.time_s.size == 0:
         return None
     return estimate_contact(
