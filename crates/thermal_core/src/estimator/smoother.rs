@@ -3,7 +3,8 @@
 //! them.
 
 use super::basis::rotate_vec;
-use super::covariance::{Checkpoint, FULL};
+use super::basis::Rows;
+use super::covariance::{Checkpoint, Steady, FULL};
 use super::filter::Forward;
 use super::kernel::{Kernel, Work};
 use super::linalg::{dot, dot4, gemv_rows3};
@@ -161,16 +162,18 @@ pub(super) fn smooth<const FMA: bool>(
     let mut rep = Replay::new(block.min(n_t), n);
     let mut lam = vec![0.0; n];
     let mut lam_t = vec![0.0; n];
-    let mut big = vec![0.0; nn];
-    let mut big_new = vec![0.0; nn];
-    let mut work = Work::new(n);
+    let mut info = Information {
+        big: vec![0.0; nn],
+        big_new: vec![0.0; nn],
+        work: Work::new(n),
+        back: None,
+    };
     let mut xs_t = vec![0.0; n];
     let mut sc_mean = vec![0.0; n];
     let mut sc_node = vec![0.0; n];
     let mut sc_power = vec![0.0; n];
     let mut q = [vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]];
     let mut node_values = vec![0.0; k.m.next_multiple_of(4)];
-    let mut back: Option<BackSteady> = None;
     let mut frozen_steps = 0;
     // the largest smoothed face node of the second after (the guess of the fused pass)
     let mut j_next = 0;
@@ -184,7 +187,7 @@ pub(super) fn smooth<const FMA: bool>(
             let measured = p.reading_c[t].is_finite();
             let gain = &rep.gains[i * n..(i + 1) * n];
             let x = &rep.xs[i * n..(i + 1) * n];
-            let frozen = mode != FULL && back.as_ref().is_some_and(|bs| bs.cache == mode);
+            let frozen = mode != FULL && info.back.as_ref().is_some_and(|bs| bs.cache == mode);
             let rows = k.rows_at(t);
             // the smoothed state's outputs: c x - (Σ c)·λ
             let (top, j, mean, power);
@@ -233,29 +236,14 @@ pub(super) fn smooth<const FMA: bool>(
                     &cov[r * n..(r + 1) * n]
                 };
             }
-            let (mean_var, node_var, power_var) = match back.as_ref().filter(|_| frozen) {
+            let (mean_var, node_var, power_var) = match info.back.as_ref().filter(|_| frozen) {
                 Some(bs) => {
                     frozen_steps += 1;
                     (bs.mean_var, bs.node_var[j], bs.power_var)
                 }
                 None => {
-                    // one pass over Λ (symmetric): its rows dotted with Σc for the three
-                    // outputs and with K; the quadratic forms (Σc)ᵀΛ(Σc), and ΛK
-                    let u = &mut q[3];
-                    let mut quad = [0.0f64; 3];
-                    for (row_i, row) in big.chunks_exact(n).enumerate() {
-                        let [dm, dn, dp, du] =
-                            dot4::<FMA>(row, sig_mean, sig_node, sig_power, gain);
-                        quad[0] = madd::<FMA>(sig_mean[row_i], dm, quad[0]);
-                        quad[1] = madd::<FMA>(sig_node[row_i], dn, quad[1]);
-                        quad[2] = madd::<FMA>(sig_power[row_i], dp, quad[2]);
-                        u[row_i] = du;
-                    }
-                    (
-                        dot::<FMA>(&rows.cm, &sig_mean[..r]) - quad[0],
-                        dot::<FMA>(rows.node_row(j), &sig_node[..r]) - quad[1],
-                        k.power_of(sig_power) - quad[2],
-                    )
+                    let sig = [sig_mean, sig_node, sig_power];
+                    info.variances::<FMA>(k, rows, j, sig, gain, &mut q[3])
                 }
             };
             j_next = j;
@@ -285,74 +273,158 @@ pub(super) fn smooth<const FMA: bool>(
             if let Some(rot) = change {
                 rotate_vec::<FMA>(&rot.rt, r, &mut lam, &mut lam_t);
             }
-            if frozen {
-                if let Some(rot) = change {
-                    // (the steady stretch's first step) Λ stays the steady one: Tᵀ Λ T
-                    rot.back_cov::<FMA>(&k.d, &big, &mut big_new, &mut work.pad);
-                    std::mem::swap(&mut big, &mut big_new);
-                }
-                continue; // Λ stays the steady one
-            }
-            back = None;
-            let corr = if measured {
-                let u = &q[3];
-                Some((&u[..], dot::<FMA>(gain, u) + 1.0 / rep.s_vars[i]))
-            } else {
-                None
-            };
-            match &k.dense[p.index[t - 1] as usize] {
-                Some(df) => {
-                    df.back_cov::<FMA>(&k.d, &big, &rows.h, corr, &mut big_new, &mut work.pad)
-                }
-                None => tr.back_cov::<FMA>(
-                    &k.d,
-                    &big,
-                    &rows.h,
-                    corr,
-                    &mut big_new,
-                    &mut work.four,
-                    &mut work.big,
-                ),
-            }
-            if let Some(rot) = change {
-                // Tᵀ Λ T
-                rot.back_cov::<FMA>(&k.d, &big_new, &mut work.big, &mut work.pad);
-                std::mem::swap(&mut big_new, &mut work.big);
-            }
-            if mode != FULL
-                && change.is_none()
-                && k.converged_own::<FMA>(
-                    k.basis_at(t),
-                    &big_new,
-                    &big,
-                    k.tols_of(caches[mode as usize].key).1,
-                    &mut work,
-                )
-            {
-                let c = &caches[mode as usize];
-                let mean_var = dot::<FMA>(&rows.cm, &c.sig_mean[..r])
-                    - k.quad::<FMA>(&big_new, &c.sig_mean, &mut work.a);
-                let mut node_var = Vec::with_capacity(k.m);
-                for jj in 0..k.m {
-                    let sn = &c.sig_nodes[jj * n..(jj + 1) * n];
-                    node_var.push(
-                        dot::<FMA>(rows.node_row(jj), &sn[..r])
-                            - k.quad::<FMA>(&big_new, sn, &mut work.a),
-                    );
-                }
-                let power_var =
-                    k.power_of(&c.sig_power) - k.quad::<FMA>(&big_new, &c.sig_power, &mut work.a);
-                back = Some(BackSteady {
-                    cache: mode,
-                    mean_var,
-                    node_var,
-                    power_var,
-                });
-            }
-            std::mem::swap(&mut big, &mut big_new);
+            let update = measured.then(|| (gain, &q[3][..], rep.s_vars[i]));
+            info.step_back::<FMA>(k, caches, t, mode, frozen, update);
         }
     }
     (est, frozen_steps)
+}
+
+/// The smoother's information matrix `Λ` (`big`; `big_new`: the next one), the scratch of
+/// its steps, and its steady state inside a steady stretch of the filter.
+struct Information {
+    big: Vec<f64>,
+    big_new: Vec<f64>,
+    work: Work,
+    back: Option<BackSteady>,
+}
+
+impl Information {
+    /// The smoothed variances `c Σ cᵀ - (Σc)ᵀ Λ (Σc)` of the face mean, face node `j` and the
+    /// reported power (`sig`: their `Σc`), in one pass over Λ (symmetric): its rows dotted
+    /// with Σc for the three outputs and with K (`gain`), the quadratic forms, and ΛK into
+    /// `u`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn variances<const FMA: bool>(
+        &self,
+        k: &Kernel,
+        rows: &Rows,
+        j: usize,
+        sig: [&[f64]; 3],
+        gain: &[f64],
+        u: &mut [f64],
+    ) -> (f64, f64, f64) {
+        let (r, n) = (k.d.r, k.d.n);
+        let [sig_mean, sig_node, sig_power] = sig;
+        let mut quad = [0.0f64; 3];
+        for (row_i, row) in self.big.chunks_exact(n).enumerate() {
+            let [dm, dn, dp, du] = dot4::<FMA>(row, sig_mean, sig_node, sig_power, gain);
+            quad[0] = madd::<FMA>(sig_mean[row_i], dm, quad[0]);
+            quad[1] = madd::<FMA>(sig_node[row_i], dn, quad[1]);
+            quad[2] = madd::<FMA>(sig_power[row_i], dp, quad[2]);
+            u[row_i] = du;
+        }
+        (
+            dot::<FMA>(&rows.cm, &sig_mean[..r]) - quad[0],
+            dot::<FMA>(rows.node_row(j), &sig_node[..r]) - quad[1],
+            k.power_of(sig_power) - quad[2],
+        )
+    }
+
+    /// `Λ` back through the reading at `t` and the transition into `t`: `Λ̃ = Ĉᵀ Λ Ĉ + h hᵀ/S`
+    /// (`update` = Some((K, ΛK, S)) at a reading), `Fᵀ Λ̃ F`, back into the basis of the state
+    /// at `t - 1`; `frozen`: Λ stays the steady one. Where it stops changing inside a steady
+    /// stretch of the filter (cache `mode`), its steady state is kept.
+    #[inline(always)]
+    fn step_back<const FMA: bool>(
+        &mut self,
+        k: &Kernel,
+        caches: &[Steady],
+        t: usize,
+        mode: u32,
+        frozen: bool,
+        update: Option<(&[f64], &[f64], f64)>,
+    ) {
+        let p = k.p;
+        let rows = k.rows_at(t);
+        let tr = &k.trs[p.index[t - 1] as usize];
+        let change = k.change(t);
+        let Information {
+            big,
+            big_new,
+            work,
+            back,
+        } = self;
+        if frozen {
+            if let Some(rot) = change {
+                // (the steady stretch's first step) Λ stays the steady one: Tᵀ Λ T
+                rot.back_cov::<FMA>(&k.d, big, big_new, &mut work.pad);
+                std::mem::swap(big, big_new);
+            }
+            return; // Λ stays the steady one
+        }
+        *back = None;
+        let corr = update.map(|(gain, u, s_var)| (u, dot::<FMA>(gain, u) + 1.0 / s_var));
+        match &k.dense[p.index[t - 1] as usize] {
+            Some(df) => df.back_cov::<FMA>(&k.d, big, &rows.h, corr, big_new, &mut work.pad),
+            None => tr.back_cov::<FMA>(
+                &k.d,
+                big,
+                &rows.h,
+                corr,
+                big_new,
+                &mut work.four,
+                &mut work.big,
+            ),
+        }
+        if let Some(rot) = change {
+            // Tᵀ Λ T
+            rot.back_cov::<FMA>(&k.d, big_new, &mut work.big, &mut work.pad);
+            std::mem::swap(big_new, &mut work.big);
+        }
+        if mode != FULL
+            && change.is_none()
+            && k.converged_own::<FMA>(
+                k.basis_at(t),
+                big_new,
+                big,
+                k.tols_of(caches[mode as usize].key).1,
+                work,
+            )
+        {
+            let c = &caches[mode as usize];
+            *back = Some(BackSteady::new::<FMA>(
+                k,
+                c,
+                mode,
+                rows,
+                big_new,
+                &mut work.a,
+            ));
+        }
+        std::mem::swap(big, big_new);
+    }
+}
+
+impl BackSteady {
+    /// The smoothed variances of filter cache `c` (its `Σc`) with the steady `Λ` (`lam`;
+    /// `tmp`: n scratch).
+    #[inline(always)]
+    fn new<const FMA: bool>(
+        k: &Kernel,
+        c: &Steady,
+        mode: u32,
+        rows: &Rows,
+        lam: &[f64],
+        tmp: &mut [f64],
+    ) -> Self {
+        let (r, n) = (k.d.r, k.d.n);
+        let mean_var =
+            dot::<FMA>(&rows.cm, &c.sig_mean[..r]) - k.quad::<FMA>(lam, &c.sig_mean, tmp);
+        let mut node_var = Vec::with_capacity(k.m);
+        for jj in 0..k.m {
+            let sn = &c.sig_nodes[jj * n..(jj + 1) * n];
+            node_var.push(dot::<FMA>(rows.node_row(jj), &sn[..r]) - k.quad::<FMA>(lam, sn, tmp));
+        }
+        let power_var = k.power_of(&c.sig_power) - k.quad::<FMA>(lam, &c.sig_power, tmp);
+        BackSteady {
+            cache: mode,
+            mean_var,
+            node_var,
+            power_var,
+        }
+    }
 }
 
 #[cfg(test)]

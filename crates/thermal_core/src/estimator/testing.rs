@@ -264,7 +264,15 @@ pub(super) fn problem_from(
             p.cov0[(i + 1) * n + i] = 0.05;
         }
     }
-    // readings of a truth stepped by the model, with an unexplained power of 2 W
+    read_truth(&mut p, power_from, &mut rng);
+    p
+}
+
+/// The readings of `p` (its length's worth): a truth stepped by the model from rest, with an
+/// unexplained power of 2 W from step `power_from` on, read with noise and missing stretches.
+fn read_truth(p: &mut Problem<'static>, power_from: usize, rng: &mut Rng) {
+    let (r, n, lag) = (p.order, p.n_state(), p.lag);
+    let n_t = p.reading_c.len();
     let mut x = vec![0.0; n];
     let mut h = vec![0.0; n];
     if lag {
@@ -274,7 +282,7 @@ pub(super) fn problem_from(
     }
     for t in 0..n_t {
         if t > 0 {
-            let f = dense_f(&p, p.index[t - 1] as usize);
+            let f = dense_f(p, p.index[t - 1] as usize);
             let mut nx = vec![0.0; n];
             for i in 0..n {
                 nx[i] = dot(&f[i * n..(i + 1) * n], &x);
@@ -298,7 +306,6 @@ pub(super) fn problem_from(
             dot(&h, &x) + p.t_ref_c + 0.05 * rng.normal()
         };
     }
-    p
 }
 
 pub(super) struct Naive {

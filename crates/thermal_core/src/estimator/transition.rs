@@ -172,45 +172,16 @@ impl Transition {
             let o = &mut out[i * n..(i + 1) * n];
             // `gap`: the mode rows' share of `q_gap u uᵀ` (the caller's pass, done here)
             let gap = gap.filter(|u| u[i] != 0.0).map(|u| (self.q_gap * u[i], u));
+            let (t, eg) = (&*t, (ei, gi));
             match (ph.as_mut(), gap) {
                 (Some((h, acc)), Some((c, u))) => {
-                    let hi = h[i];
-                    for ((((oj, &tj), &pj), aj), &uj) in o
-                        .iter_mut()
-                        .zip(t.iter())
-                        .zip(tpow.iter())
-                        .zip(acc.iter_mut())
-                        .zip(u)
-                    {
-                        let v = madd::<FMA>(ei, tj, gi * pj);
-                        *aj = madd::<FMA>(hi, v, *aj);
-                        *oj = madd::<FMA>(c, uj, v);
-                    }
+                    mode_row::<FMA, true, true>(o, t, tpow, eg, acc, h[i], c, u)
                 }
                 (Some((h, acc)), None) => {
-                    let hi = h[i];
-                    for (((oj, &tj), &pj), aj) in o
-                        .iter_mut()
-                        .zip(t.iter())
-                        .zip(tpow.iter())
-                        .zip(acc.iter_mut())
-                    {
-                        *oj = madd::<FMA>(ei, tj, gi * pj);
-                        *aj = madd::<FMA>(hi, *oj, *aj);
-                    }
+                    mode_row::<FMA, true, false>(o, t, tpow, eg, acc, h[i], 0.0, tpow)
                 }
-                (None, Some((c, u))) => {
-                    for (((oj, &tj), &pj), &uj) in
-                        o.iter_mut().zip(t.iter()).zip(tpow.iter()).zip(u)
-                    {
-                        *oj = madd::<FMA>(c, uj, madd::<FMA>(ei, tj, gi * pj));
-                    }
-                }
-                (None, None) => {
-                    for ((oj, &tj), &pj) in o.iter_mut().zip(t.iter()).zip(tpow.iter()) {
-                        *oj = madd::<FMA>(ei, tj, gi * pj);
-                    }
-                }
+                (None, Some((c, u))) => mode_row::<FMA, false, true>(o, t, tpow, eg, z, 0.0, c, u),
+                (None, None) => mode_row::<FMA, false, false>(o, t, tpow, eg, z, 0.0, 0.0, tpow),
             }
         }
         for (oj, &pj) in out[r * n..(r + 1) * n].iter_mut().zip(tp.iter()) {
@@ -375,6 +346,32 @@ impl Transition {
         if d.brake {
             out[ib * n..].copy_from_slice(accb);
         }
+    }
+}
+
+/// Row i of `F T` for a diagonal transition from a whole row `t` of `T = X Fᵀ`: each entry
+/// `v = e_i T_ij + γ_i T_Pj` (`eg` = (e_i, γ_i); `tpow`: `T_P (+ T_Pb)`); `ACC`: `h_i v` added
+/// into `acc` (Σh); `GAP`: the entry is `v + c u_j` (the mode row's share of `q_gap u uᵀ`).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn mode_row<const FMA: bool, const ACC: bool, const GAP: bool>(
+    o: &mut [f64],
+    t: &[f64],
+    tpow: &[f64],
+    (ei, gi): (f64, f64),
+    acc: &mut [f64],
+    hi: f64,
+    c: f64,
+    u: &[f64],
+) {
+    let n = o.len();
+    let (t, tpow, acc, u) = (&t[..n], &tpow[..n], &mut acc[..n], &u[..n]);
+    for j in 0..n {
+        let v = madd::<FMA>(ei, t[j], gi * tpow[j]);
+        if ACC {
+            acc[j] = madd::<FMA>(hi, v, acc[j]);
+        }
+        o[j] = if GAP { madd::<FMA>(c, u[j], v) } else { v };
     }
 }
 

@@ -257,14 +257,7 @@ impl Propagators {
         let timeline = |len: usize| if trimmed { Vec::new() } else { vec![nan; len] };
         // the samples of the timeline the anchoring reads (None: every output wanted)
         let windows = windows.filter(|_| rule.lag_tau_s.is_none());
-        let anchored: Option<Vec<bool>> = windows.map(|_| {
-            let mut read = vec![false; n];
-            for j in 0..n_seg {
-                let (a, b) = (steps.piece_a[j], steps.piece_b[j]);
-                read[a.saturating_sub(rule.anchor_s)..(a + rule.anchor_s).min(b + 1)].fill(true);
-            }
-            read
-        });
+        let anchored = windows.map(|_| anchored_samples(steps, rule, n));
         // the rows wanted of the piece about to run (scratch)
         let mut need: Vec<bool> = Vec::new();
         let mut out = ChainOutputs {
@@ -289,9 +282,7 @@ impl Propagators {
             let mut reference = match t_ref {
                 Some(v) => v,
                 None => {
-                    let ahead = &trusted[a..(a + rule.window_s).min(n)];
-                    let first = ahead.iter().copied().find(|v| v.is_finite());
-                    let v = first.unwrap_or(ambient[a]);
+                    let v = start_reference(trusted, ambient, a, rule.window_s);
                     t_first = v;
                     xi.fill(0.0);
                     anchor = ANCHOR_START;
@@ -352,9 +343,7 @@ impl Propagators {
             out.reference_c[j] = reference;
             if size > 0 {
                 let own = size.min(piece.sensor.len());
-                out.window_sensor_c.extend_from_slice(&piece.sensor[..own]);
-                out.window_mean_c.extend_from_slice(&piece.mean[..own]);
-                out.window_max_c.extend_from_slice(&piece.max[..own]);
+                out.extend_windows(&piece, 0..own);
                 let c = steps.seg_cont[j];
                 if own < size && c != usize::MAX {
                     // its row i is the window's second own + i - 1 (row 0: the segment's end)
@@ -378,10 +367,7 @@ impl Propagators {
                         &mut more,
                     );
                     let rest = (size - own).min(more.sensor.len() - 1);
-                    out.window_sensor_c
-                        .extend_from_slice(&more.sensor[1..=rest]);
-                    out.window_mean_c.extend_from_slice(&more.mean[1..=rest]);
-                    out.window_max_c.extend_from_slice(&more.max[1..=rest]);
+                    out.extend_windows(&more, 1..rest + 1);
                 }
             }
             std::mem::swap(&mut xi, &mut piece.xi);
@@ -393,6 +379,36 @@ impl Propagators {
             }
         }
         out
+    }
+}
+
+/// The samples of a chain's timeline its anchoring reads: the `anchor_s` before each segment
+/// and its first `anchor_s` (n samples).
+fn anchored_samples(steps: &ChainSteps, rule: &AnchorRule, n: usize) -> Vec<bool> {
+    let mut read = vec![false; n];
+    for j in 0..steps.seg_cont.len() {
+        let (a, b) = (steps.piece_a[j], steps.piece_b[j]);
+        read[a.saturating_sub(rule.anchor_s)..(a + rule.anchor_s).min(b + 1)].fill(true);
+    }
+    read
+}
+
+/// The reference temperature of a chain's start at sample `a`: the first reading within
+/// `window_s` samples, else the air temperature there.
+fn start_reference(trusted: &[f64], ambient: &[f64], a: usize, window_s: usize) -> f64 {
+    let ahead = &trusted[a..(a + window_s).min(trusted.len())];
+    let first = ahead.iter().copied().find(|v| v.is_finite());
+    first.unwrap_or(ambient[a])
+}
+
+impl ChainOutputs {
+    /// The rows `rows` of a piece onto the event windows.
+    fn extend_windows(&mut self, piece: &Piece, rows: std::ops::Range<usize>) {
+        self.window_sensor_c
+            .extend_from_slice(&piece.sensor[rows.clone()]);
+        self.window_mean_c
+            .extend_from_slice(&piece.mean[rows.clone()]);
+        self.window_max_c.extend_from_slice(&piece.max[rows]);
     }
 }
 
@@ -451,6 +467,70 @@ mod tests {
                 }
                 apply_step_by_step(props, steps.prop[s], xi, &u, &mut w, &mut v);
                 emit(xi, job.wants(s + 1 - job.s0));
+            }
+        }
+    }
+
+    /// The chain read at the `wanted` window seconds only (`simulate_chain_reading`) against
+    /// the whole chain, without and with the sensor's lag: the wanted seconds and those the
+    /// anchoring reads bit for bit, the others NaN; the timeline the sensor's only.
+    fn check_reading_only(
+        props: &Propagators,
+        two: &ChainModel,
+        steps: &ChainSteps,
+        trusted: &[f64],
+        air: &[f64],
+        rule: &AnchorRule,
+        wanted: &[bool],
+    ) {
+        let n = trusted.len();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for lag in [None, Some(20.0)] {
+            let rule = AnchorRule {
+                lag_tau_s: lag,
+                ..*rule
+            };
+            let full = props
+                .simulate_chain(two, steps, trusted, air, &rule)
+                .unwrap();
+            let read = props
+                .simulate_chain_reading(two, steps, trusted, air, &rule, Some(wanted))
+                .unwrap();
+            assert_eq!(read.anchor, full.anchor);
+            assert_eq!(bits(&read.shift_k), bits(&full.shift_k));
+            assert_eq!(bits(&read.reference_c), bits(&full.reference_c));
+            for (i, &w) in wanted.iter().enumerate() {
+                for (a, b) in [
+                    (read.window_sensor_c[i], full.window_sensor_c[i]),
+                    (read.window_mean_c[i], full.window_mean_c[i]),
+                ] {
+                    // under a lag every output is computed (the filter runs through them);
+                    // without, the wanted ones and those the anchoring reads: window second
+                    // i is sample 40 + i, of the second segment up to 40, of its
+                    // continuation after
+                    let anchoring = i <= 40 && (35..45).chain(75..85).any(|k| k == 40 + i);
+                    if w || anchoring || lag.is_some() {
+                        assert_eq!(a.to_bits(), b.to_bits(), "window second {i}");
+                    } else {
+                        assert!(a.is_nan(), "window second {i} not wanted: {a}");
+                    }
+                }
+            }
+            assert!(read.contact_mean_c.is_empty() && read.contact_max_c.is_empty());
+            assert_eq!(read.sensor_c.len(), n);
+            if lag.is_none() {
+                // the timeline where the anchoring reads it, at the wanted window seconds
+                // and on the coarse piece (80 ..= 120) only
+                for (k, v) in read.sensor_c.iter().enumerate() {
+                    let window = (40..=80).contains(&k) && wanted[k - 40];
+                    let expected = k < 5 || (35..45).contains(&k) || k >= 75 || window;
+                    assert_eq!(v.is_finite(), expected, "sample {k}: {v}");
+                }
+                for k in 35..40 {
+                    assert_eq!(read.sensor_c[k].to_bits(), full.sensor_c[k].to_bits());
+                }
+            } else {
+                assert_eq!(bits(&read.sensor_c), bits(&full.sensor_c));
             }
         }
     }
@@ -586,54 +666,7 @@ mod tests {
         // segment and in its continuation) bit for bit, the others NaN; the anchoring (from
         // the seconds before the second segment, from the first ones of the first) the same
         let wanted: Vec<bool> = (0..60).map(|i| i % 7 == 2 || i == 0 || i == 59).collect();
-        for lag in [None, Some(20.0)] {
-            let rule = AnchorRule {
-                lag_tau_s: lag,
-                ..rule
-            };
-            let full = props
-                .simulate_chain(&two, &steps, &trusted, &air, &rule)
-                .unwrap();
-            let read = props
-                .simulate_chain_reading(&two, &steps, &trusted, &air, &rule, Some(&wanted))
-                .unwrap();
-            assert_eq!(read.anchor, full.anchor);
-            assert_eq!(bits(&read.shift_k), bits(&full.shift_k));
-            assert_eq!(bits(&read.reference_c), bits(&full.reference_c));
-            for (i, &w) in wanted.iter().enumerate() {
-                for (a, b) in [
-                    (read.window_sensor_c[i], full.window_sensor_c[i]),
-                    (read.window_mean_c[i], full.window_mean_c[i]),
-                ] {
-                    // under a lag every output is computed (the filter runs through them);
-                    // without, the wanted ones and those the anchoring reads: window second
-                    // i is sample 40 + i, of the second segment up to 40, of its
-                    // continuation after
-                    let anchoring = i <= 40 && (35..45).chain(75..85).any(|k| k == 40 + i);
-                    if w || anchoring || lag.is_some() {
-                        assert_eq!(a.to_bits(), b.to_bits(), "window second {i}");
-                    } else {
-                        assert!(a.is_nan(), "window second {i} not wanted: {a}");
-                    }
-                }
-            }
-            assert!(read.contact_mean_c.is_empty() && read.contact_max_c.is_empty());
-            assert_eq!(read.sensor_c.len(), n);
-            if lag.is_none() {
-                // the timeline where the anchoring reads it, at the wanted window seconds
-                // and on the coarse piece (80 ..= 120) only
-                for (k, v) in read.sensor_c.iter().enumerate() {
-                    let window = (40..=80).contains(&k) && wanted[k - 40];
-                    let expected = k < 5 || (35..45).contains(&k) || k >= 75 || window;
-                    assert_eq!(v.is_finite(), expected, "sample {k}: {v}");
-                }
-                for k in 35..40 {
-                    assert_eq!(read.sensor_c[k].to_bits(), full.sensor_c[k].to_bits());
-                }
-            } else {
-                assert_eq!(bits(&read.sensor_c), bits(&full.sensor_c));
-            }
-        }
+        check_reading_only(&props, &two, &steps, &trusted, &air, &rule, &wanted);
         assert!(props
             .simulate_chain_reading(&two, &steps, &trusted, &air, &rule, Some(&wanted[1..]))
             .is_err());
