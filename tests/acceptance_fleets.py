@@ -192,14 +192,16 @@ code runs while a fleet is written by the full model is here), and the Rust of t
 model (its mesh, elements, assembly and time stepping, and their bindings). A directory
 stands for its ``.py`` and ``.rs`` files; ``WRITER_SOURCES_EXCLUDED`` are left out. The
 built extension is not hashed: a run uses the one built from these sources."""
-WRITER_SOURCES_EXCLUDED: frozenset[str] = frozenset({"estimator.rs"})
-"""Files that do not write a fleet: the Kalman filter's kernel and its bindings (the
-pipeline's estimator, not the generator's)."""
-FULL_WRITER_EXCLUDED: frozenset[str] = frozenset({"rom.rs"})
-"""Files that do not write a fleet of the full model (``solver="full"``, every acceptance
-fleet): the reduced model's Rust and its bindings (``_ext.rom_*``), which the full model's
-writer never calls (``test_the_full_writer_calls_no_reduced_model_rust`` writes a fleet with
-them made to raise). A fleet of the reduced model (``solver="rom"``) hashes them."""
+WRITER_SOURCES_EXCLUDED: frozenset[str] = frozenset({"estimator.rs", "estimator"})
+"""Files (by name) and Rust module directories (every file below them) that do not write a
+fleet: the Kalman filter's kernel (``thermal_core/src/estimator/``) and its bindings
+(``fleetbrake_py/src/estimator.rs``), the pipeline's estimator, not the generator's."""
+FULL_WRITER_EXCLUDED: frozenset[str] = frozenset({"rom.rs", "rom"})
+"""Files and directories that do not write a fleet of the full model (``solver="full"``,
+every acceptance fleet): the reduced model's Rust (``thermal_core/src/rom/``) and its
+bindings (``_ext.rom_*``), which the full model's writer never calls
+(``test_the_full_writer_calls_no_reduced_model_rust`` writes a fleet with them made to
+raise). A fleet of the reduced model (``solver="rom"``) hashes them."""
 WRITER_FUNCTIONS: tuple[Callable[..., Any], ...] = (
     candidate_laws,
     draw_case_effect,
@@ -215,7 +217,8 @@ def writer_source_files(
     excluded: frozenset[str] = WRITER_SOURCES_EXCLUDED,
 ) -> list[Path]:
     """The files of ``sources`` (a directory: its ``.py`` and ``.rs`` files at any depth, but
-    those named in ``excluded``), sorted; a source that does not exist is an error."""
+    those named in ``excluded`` and those below a directory named there), sorted; a source
+    that does not exist is an error."""
     files: list[Path] = []
     for name in sources:
         path = root / name
@@ -225,7 +228,9 @@ def writer_source_files(
             files += [
                 f
                 for f in path.rglob("*")
-                if f.suffix in {".py", ".rs"} and f.is_file() and f.name not in excluded
+                if f.suffix in {".py", ".rs"}
+                and f.is_file()
+                and excluded.isdisjoint(f.relative_to(path).parts)
             ]
         else:
             raise FileNotFoundError(f"{path}: a writer source that does not exist")

@@ -58,6 +58,10 @@ def sources(tmp_path: Path) -> Iterator[tuple[Path, list[str]]]:
     (root / "pkg" / "a.py").write_text("A = 1\n")
     (root / "pkg" / "estimator.rs").write_text("// not the writer\n")
     (root / "pkg" / "rom.rs").write_text("// not the full model's writer\n")
+    (root / "pkg" / "rom").mkdir()
+    (root / "pkg" / "rom" / "chain.rs").write_text("// a module of the reduced model\n")
+    (root / "pkg" / "estimator").mkdir()
+    (root / "pkg" / "estimator" / "filter.rs").write_text("// a module of the estimator\n")
     (root / "b.rs").write_text("fn b() {}\n")
     yield root, ["pkg", "b.rs"]
 
@@ -95,13 +99,18 @@ def test_the_writer_version_changes_with_each_of_its_inputs(
     assert len(set(versions)) == len(versions), changed
     # the estimator does not write fleets: its source is not part of the version
     (root / "pkg" / "estimator.rs").write_text("// changed\n")
+    (root / "pkg" / "estimator" / "filter.rs").write_text("// changed\n")
     assert af.writer_version(config, 0.6, names, root) == changed["a new source file"]
     # the reduced model's Rust does not write a fleet of the full model, but one of its own
     reduced = dataclasses.replace(config, solver="rom")
     before = af.writer_version(reduced, 0.6, names, root)
     (root / "pkg" / "rom.rs").write_text("// changed\n")
     assert af.writer_version(config, 0.6, names, root) == changed["a new source file"]
-    assert af.writer_version(reduced, 0.6, names, root) != before
+    after_bindings = af.writer_version(reduced, 0.6, names, root)
+    assert after_bindings != before
+    (root / "pkg" / "rom" / "chain.rs").write_text("// changed\n")
+    assert af.writer_version(config, 0.6, names, root) == changed["a new source file"]
+    assert af.writer_version(reduced, 0.6, names, root) != after_bindings
     # every acceptance case has its own version, and the repository's sources all exist
     real = {c.name: af.writer_version(af.synth_config(c)) for c in af.CASES}
     assert len(set(real.values())) == len(af.CASES)
