@@ -112,6 +112,7 @@ def test_views_have_exactly_the_interface_columns(fleet: Path, db: Path) -> None
         ("wagon_id", "VARCHAR"),
         ("status", "VARCHAR"),
         ("rows", "BIGINT"),
+        ("rows_rejected", "BIGINT"),
         ("reason", "VARCHAR"),
         ("ingested_utc", "TIMESTAMP"),
     ]
@@ -136,7 +137,7 @@ def test_clean_file_is_stored_exactly(fleet: Path, db: Path) -> None:
     path = relpath_of(WAGON, T0_UTC)
     assert [(r.path, r.status, r.rows) for r in report.results] == [(path, "ingested", ROWS)]
     assert query(db, "SELECT * EXCLUDE (ingested_utc) FROM v_files") == [
-        (path, WAGON, "ingested", ROWS, None)
+        (path, WAGON, "ingested", ROWS, 0, None)
     ]
     samples = stored(db, path)
     assert samples.select(frame.columns).equals(frame)
@@ -264,7 +265,9 @@ CASES: dict[str, Case] = {
     ),
     "crlf": Case(_crlf, gzip=False),
     "byte order mark": Case(_bom, gzip=False),
-    "more cells than the header": Case(_extra_cells, gzip=False),
+    "more cells than the header": Case(
+        _extra_cells, {"rows_rejected": 1}, gzip=False, note="line 11 has 11"
+    ),
     "rows outside the session": Case(_rows_outside_session, {"rows_outside_session": 2}),
     "columns shuffled, extra, no ambient": Case(
         lambda f, r: (
@@ -294,6 +297,8 @@ def test_repairable_file_keeps_every_good_row(name: str, fleet: Path, db: Path) 
             expected -= 2
     elif name.startswith("truncated"):
         expected = lf.complete_rows(written)
+    elif name == "more cells than the header":
+        expected = ROWS - 1
     else:
         expected = ROWS
     assert 0 < expected
@@ -735,7 +740,7 @@ def test_cli_reports_and_exits_zero_with_bad_files(fleet: Path, db: Path) -> Non
     (fleet / "logs" / WAGON / f"{WAGON}_20240302T000000Z.csv").write_bytes(b"\x00\x01garbage")
     result = CliRunner().invoke(app, ["ingest", str(fleet), "--db", str(db)])
     assert result.exit_code == 0, result.output
-    assert "1 ingested (600 rows), 1 quarantined" in result.output
+    assert "1 ingested (600 rows, 0 rejected), 1 quarantined" in result.output
     assert f"logs/{WAGON}/{WAGON}_20240302T000000Z.csv: " in result.output
     assert "events: 1 new or changed" in result.output
 

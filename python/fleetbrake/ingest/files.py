@@ -30,8 +30,16 @@ ignored: they are temporary files of copies in progress):
   every run, so it is taken once the registry is fixed), an empty file, a gzip stream that is
   corrupt or truncated (its rows up to the cut could be read, but nothing vouches for them: no
   end of stream, no checksum), content that is not text, a first line that is not a header
-  with every required column (or names one twice). Whether a file is gzip is decided by its
-  content, not its name (a mismatch is noted in ``repairs``).
+  with every required column (or names one twice), data rows read of which none is kept
+  (``quarantine_code = 'rows'``, the reason naming each rejected line and why). Whether a file
+  is gzip is decided by its content, not its name (a mismatch is noted in ``repairs``).
+* **Every row accounted for**: a row read is stored or rejected (``rows_in_file = rows +
+  rows_rejected``). The rejected rows are those of the repairs below that drop a row, and a
+  row with more or fewer fields than the header (a cell added or lost moves the others out of
+  their columns). ``reason`` of an ingested file with rejected rows says how many, which lines
+  and why (``"<path>: 2 rows rejected: ..."``); ``file_rejections`` (``v_file_rejections``)
+  holds every run of rejected lines with why; each such file is logged (a warning naming it
+  and the count) and the run's report counts them (:attr:`IngestReport.rows_rejected`).
 * **Repairs** (file ingested, counted in ``files`` and described in ``files.repairs`` with line
   numbers): a last row cut short (the file does not end in a newline) is dropped; a row whose
   time cell is empty or not a time is dropped; a row timed before the file name's time or more
@@ -40,9 +48,8 @@ ignored: they are temporary files of copies in progress):
   its channel can physically take (``fleet.logfile.PLAUSIBLE_RANGES``: a speed of 1e308 km/h,
   a pressure of -5 bar), becomes empty (the row is kept; both counted in ``cells_unparsable``);
   a ``block_temp_c`` reading outside [-60, 600] °C is a broken wire: stored as
-  ``block_temp_raw_c`` with ``block_temp_fault = true``, ``block_temp_c`` null. A
-  line with fewer cells than the header has empty trailing cells, one with more has its extra
-  cells ignored.
+  ``block_temp_raw_c`` with ``block_temp_fault = true``, ``block_temp_c`` null. A blank line
+  is a row without a time.
 
 Speed: the new files are cut into partitions (a wagon directory's files, at most
 ``partition_files`` of them), which an engine (:mod:`fleetbrake.engine`) reads, hashes,
@@ -58,6 +65,7 @@ their own, in order, while the next partitions are parsed. A few partitions (the
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import sys
 import time
@@ -98,6 +106,8 @@ __all__ = [
 
 REGISTRY_FILE = "fleet.toml"
 
+logger = logging.getLogger(__name__)
+
 
 class FleetDirError(FleetbrakeError):
     """The fleet directory cannot be used at all (missing, not a directory)."""
@@ -136,6 +146,11 @@ class IngestReport:
     def rows(self) -> int:
         """Samples stored by this run."""
         return sum(r.rows for r in self.results)
+
+    @property
+    def rows_rejected(self) -> int:
+        """Rows read by this run but not stored (each named in its file's reason)."""
+        return sum(r.rows_rejected for r in self.results)
 
 
 def _show_progress(progress: bool | None) -> bool:
@@ -225,8 +240,16 @@ def ingest_fleet(
                         report.files_unchanged += 1
                         batch.refresh(prepared, before)
                     else:
-                        report.results.append(batch.add(prepared, before, next_id))
+                        result = batch.add(prepared, before, next_id)
+                        report.results.append(result)
                         next_id += 1
+                        if result.rows_rejected:
+                            logger.warning(
+                                "%s: %d rows rejected, %d stored (see v_file_rejections)",
+                                result.path,
+                                result.rows_rejected,
+                                result.rows,
+                            )
                     bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
                 batch.end_partition()
         report.write_s = batch.write_s
@@ -306,7 +329,8 @@ def print_report(report: IngestReport, console: Console | None = None) -> None:
     ingested, quarantined = report.ingested, report.quarantined
     out.print(
         f"{report.fleet_dir} -> {report.db_path}: {report.files_seen} files seen, "
-        f"{len(ingested)} ingested ({report.rows:,} rows), {len(quarantined)} quarantined, "
+        f"{len(ingested)} ingested ({report.rows:,} rows, {report.rows_rejected:,} rejected), "
+        f"{len(quarantined)} quarantined, "
         f"{report.files_unchanged} already held, in {report.seconds:.1f} s"
     )
     repaired = [r for r in ingested if r.repairs]

@@ -5,6 +5,10 @@ A file's ``files`` row, its samples and the time range whose events must be reco
 (``event_dirty``) are always written in the same transaction, with the removal of what its
 path held before (:class:`Batch`). A file recorded with the same bytes is not stored again
 (:func:`unchanged`): its row only takes the size and modification time it has now.
+
+Every row read is stored or rejected: ``files.rows_rejected`` counts the rejected ones,
+``files.reason`` sums them up (each kind with its lines) and ``file_rejections`` holds every
+rejected run of lines with why (``v_file_rejections``), written with the file's row.
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ class FileResult:
     """``ingested`` or ``quarantined``."""
     rows: int
     reason: str | None = None
+    """Why it is quarantined; for an ingested file, which rows were rejected and why."""
+    rows_rejected: int = 0
+    """Rows read but not stored (each named in ``reason``)."""
     repairs: str | None = None
     replaced: bool = False
     """The path was recorded before: with other bytes, or quarantined for a cause that is
@@ -91,6 +98,7 @@ _FILES_SCHEMA = pl.Schema(
         "reason": pl.String(),
         "rows": pl.Int64(),
         "rows_in_file": pl.Int64(),
+        "rows_rejected": pl.Int64(),
         "rows_no_time": pl.Int64(),
         "rows_outside_session": pl.Int64(),
         "rows_duplicate": pl.Int64(),
@@ -115,6 +123,17 @@ _DIRTY_SCHEMA = pl.Schema(
     }
 )
 
+_REJECTIONS_SCHEMA = pl.Schema(
+    {
+        "file_id": pl.Int64(),
+        "first_line": pl.Int64(),
+        "last_line": pl.Int64(),
+        "rows": pl.Int64(),
+        "reason": pl.String(),
+    }
+)
+"""Columns of a ``file_rejections`` row: a run of rejected lines of one file."""
+
 _REFRESH_SCHEMA = pl.Schema(
     {"file_id": pl.Int64(), "size_bytes": pl.Int64(), "mtime_ns": pl.Int64()}
 )
@@ -125,6 +144,11 @@ def _file_row(prepared: Prepared, file_id: int) -> dict[str, object]:
     """The ``files`` row of a prepared file."""
     entry, parsed, problem = prepared.entry, prepared.parsed, prepared.quarantine
     repairs = parsed.repairs if parsed is not None else Repairs()
+    rejected = repairs.rejected_text()
+    if problem is not None:
+        reason: str | None = problem.reason
+    else:
+        reason = f"{entry.relpath}: {rejected}" if rejected is not None else None
     return {
         "file_id": file_id,
         "path": entry.relpath,
@@ -132,11 +156,12 @@ def _file_row(prepared: Prepared, file_id: int) -> dict[str, object]:
         "sha256": prepared.sha256,
         "size_bytes": entry.size_bytes,
         "mtime_ns": entry.mtime_ns,
-        "status": "ingested" if parsed is not None else "quarantined",
+        "status": "quarantined" if problem is not None else "ingested",
         "quarantine_code": problem.code if problem else None,
-        "reason": problem.reason if problem else None,
+        "reason": reason,
         "rows": parsed.frame.height if parsed is not None else 0,
         "rows_in_file": repairs.rows_in_file if parsed is not None else None,
+        "rows_rejected": repairs.rows_rejected if parsed is not None else None,
         "rows_no_time": repairs.rows_no_time,
         "rows_outside_session": repairs.rows_outside_session,
         "rows_duplicate": repairs.rows_duplicate,
@@ -154,10 +179,11 @@ def _file_row(prepared: Prepared, file_id: int) -> dict[str, object]:
 @dataclass(frozen=True)
 class _Held:
     """A batch handed to the writer thread (:meth:`Batch.flush`): its files' rows, samples,
-    dirty ranges, the file ids they replace and the ledger refreshes."""
+    rejected runs of lines, dirty ranges, the file ids they replace and the ledger refreshes."""
 
     files: list[dict[str, object]]
     samples: list[pl.DataFrame]
+    rejections: list[dict[str, object]]
     dirty: list[dict[str, object]]
     replaced: list[int]
     refreshed: list[dict[str, object]]
@@ -193,6 +219,7 @@ class Batch:
     def _clear(self) -> None:
         self._files: list[dict[str, object]] = []
         self._samples: list[pl.DataFrame] = []
+        self._rejections: list[dict[str, object]] = []
         self._dirty: list[dict[str, object]] = []
         self._replaced: list[int] = []
         self._refreshed: list[dict[str, object]] = []
@@ -209,6 +236,17 @@ class Batch:
                 )
         self._files.append(row)
         parsed = prepared.parsed
+        if parsed is not None:
+            self._rejections.extend(
+                {
+                    "file_id": file_id,
+                    "first_line": run.first_line,
+                    "last_line": run.last_line,
+                    "rows": run.rows,
+                    "reason": run.why,
+                }
+                for run in parsed.repairs.rejected
+            )
         if parsed is not None and parsed.frame.height:
             self._samples.append(
                 parsed.frame.with_columns(
@@ -226,6 +264,7 @@ class Batch:
             status=str(row["status"]),
             rows=int(row["rows"]),  # type: ignore[call-overload]
             reason=row["reason"],  # type: ignore[arg-type]
+            rows_rejected=int(row["rows_rejected"] or 0),  # type: ignore[call-overload]
             repairs=row["repairs"],  # type: ignore[arg-type]
             replaced=known is not None,
             size_bytes=prepared.entry.size_bytes,
@@ -260,7 +299,14 @@ class Batch:
         (after the batch before it, which this waits for)."""
         if not self._files and not self._refreshed:
             return
-        held = _Held(self._files, self._samples, self._dirty, self._replaced, self._refreshed)
+        held = _Held(
+            self._files,
+            self._samples,
+            self._rejections,
+            self._dirty,
+            self._replaced,
+            self._refreshed,
+        )
         self._clear()
         began = time.perf_counter()
         self._writer.submit(held)
@@ -272,16 +318,20 @@ class Batch:
         files = pl.DataFrame(held.files, schema=_FILES_SCHEMA, orient="row")
         dirty = pl.DataFrame(held.dirty, schema=_DIRTY_SCHEMA, orient="row")
         refreshed = pl.DataFrame(held.refreshed, schema=_REFRESH_SCHEMA, orient="row")
+        rejections = pl.DataFrame(held.rejections, schema=_REJECTIONS_SCHEMA, orient="row")
         samples = pl.concat(held.samples) if held.samples else None
         with self._wh.transaction():
             if held.replaced:
                 ids = {"ids": held.replaced}
                 con.execute(sql("q_ingest_delete_samples"), ids)
+                con.execute(sql("q_ingest_delete_rejections"), ids)
                 con.execute(sql("q_ingest_delete_files"), ids)
             if files.height:
                 _insert(con, "file_batch", files, sql("q_insert_files"))
             if samples is not None:
                 _insert(con, "sample_batch", samples, sql("q_insert_samples"))
+            if rejections.height:
+                _insert(con, "rejection_batch", rejections, sql("q_insert_file_rejections"))
             if dirty.height:
                 _insert(con, "dirty_batch", dirty, sql("q_insert_event_dirty"))
             if refreshed.height:

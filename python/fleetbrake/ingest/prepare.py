@@ -27,7 +27,9 @@ __all__ = ["FilePartition", "Prepared", "partitions", "prepare_partition"]
 
 @dataclass(frozen=True)
 class Prepared:
-    """A file read by a worker: its identity and either its samples or why it is quarantined."""
+    """A file read by a worker: its identity and either its samples or why it is quarantined
+    (both when its rows were read and every one was rejected: ``parsed`` then says which and
+    why, and holds no sample)."""
 
     entry: LogEntry
     sha256: str
@@ -95,6 +97,10 @@ def _judge(entry: LogEntry, problems: Mapping[str, str | None], config: IngestCo
     except Exception as error:  # a reader bug must not stop the fleet: the file says which
         reason = f"{entry.relpath}: could not be read ({type(error).__name__}: {error})"
         return Prepared(entry, sha256, name.wagon_id, quarantine=Quarantine("error", reason))
+    rejected = parsed.repairs.rejected_text()
+    if rejected is not None and not parsed.frame.height:  # every row read is bad: nothing kept
+        nothing_kept = Quarantine("rows", f"{entry.relpath}: no row kept, {rejected}")
+        return Prepared(entry, sha256, name.wagon_id, parsed=parsed, quarantine=nothing_kept)
     return Prepared(entry, sha256, name.wagon_id, parsed=parsed)
 
 

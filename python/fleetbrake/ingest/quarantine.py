@@ -2,8 +2,9 @@
 
 A quarantined file is recorded in the ledger (``files.status = 'quarantined'``, ``rows = 0``)
 with a :class:`Quarantine`'s ``code`` (the kind of problem: ``name``, ``size``, ``registry``,
-``unreadable``, ``empty``, ``gzip``, ``binary``, ``header``, ``error``) and its ``reason`` (a
-sentence naming the file). The codes of :data:`RETRIED_CODES` depend on something outside the
+``unreadable``, ``empty``, ``gzip``, ``binary``, ``header``, ``error``, and ``rows`` for a file
+whose data rows were read and every one rejected) and its ``reason`` (a sentence naming the
+file; for ``rows``, each rejected line and why). The codes of :data:`RETRIED_CODES` depend on something outside the
 file's bytes, so such a file is read and judged again at every run.
 """
 

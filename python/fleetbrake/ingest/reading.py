@@ -12,6 +12,7 @@ import datetime as dt
 import zlib
 from dataclasses import dataclass
 
+import numpy as np
 import polars as pl
 
 from fleetbrake.fleet.logfile import FLOAT_COLUMNS, OPTIONAL_COLUMNS, REQUIRED_COLUMNS
@@ -21,6 +22,8 @@ from fleetbrake.ingest.validation import (
     Repairs,
     clear_implausible,
     clear_unparsable,
+    field_counts,
+    reject_ragged,
     repair_times,
     split_block_temp_faults,
 )
@@ -110,7 +113,11 @@ def _complete_rows(body: bytes, repairs: Repairs) -> bytes:
     kept = body[: end + 1]
     line = kept.count(b"\n") + 2
     repairs.partial_row_dropped = True
-    repairs.notes.append(f"file ends inside line {line} (cut short): that partial row dropped")
+    repairs.reject(
+        f"file ends inside line {line} (cut short): that partial row dropped",
+        np.array([line]),
+        "cut short: the file ends inside it",
+    )
     return kept
 
 
@@ -175,14 +182,15 @@ def read_log(
     names, body = _header(data, relpath)
     body = _complete_rows(body, repairs)
     frame, text = _parse_cells(body, names)
-    repairs.rows_in_file = frame.height
+    repairs.rows_in_file = frame.height + int(repairs.partial_row_dropped)
+    frame, text, ragged = reject_ragged(frame, text, field_counts(body), len(names), repairs)
     frame = clear_unparsable(frame, text, repairs)
     frame = clear_implausible(frame, config.plausible_ranges, repairs)
     for name in OPTIONAL_COLUMNS:
         if name not in frame.columns:
             frame = frame.with_columns(pl.lit(None, dtype=pl.Float64).alias(name))
     text_time = (text if text is not None else frame)["time_utc"]
-    frame = repair_times(frame, text_time, start_utc, config, repairs)
+    frame = repair_times(frame, text_time, start_utc, config, repairs, ragged)
     frame = split_block_temp_faults(frame, config, repairs)
     frame = frame.select("time_utc", *FLOAT_COLUMNS, "block_temp_raw_c", "block_temp_fault")
     return ParsedLog(frame, repairs)

@@ -4,11 +4,14 @@ Each check takes the frame of one file (:func:`fleetbrake.ingest.reading.read_lo
 in order) and returns it repaired, counting what it changed in a :class:`Repairs` with a note
 naming the file's line numbers:
 
+* :func:`reject_ragged`: a row with more or fewer fields than the header is rejected (its
+  cells cannot be trusted to be in their columns);
 * :func:`clear_unparsable`: a numeric cell that is not a finite number becomes empty;
 * :func:`clear_implausible`: a numeric cell outside the range its channel can physically take
   (``IngestConfig.plausible_ranges``) becomes empty, counted with the unparsable ones;
 * :func:`repair_times`: rows without a usable time, timed outside the session or repeating an
-  earlier row's time are dropped, rows out of order sorted;
+  earlier row's time are rejected (dropped, each run of lines named in a :class:`RejectedRun`),
+  rows out of order sorted;
 * :func:`split_block_temp_faults`: a ``block_temp_c`` reading outside its valid range is a
   broken wire: kept as ``block_temp_raw_c`` with ``block_temp_fault``, not as a temperature.
 """
@@ -18,6 +21,7 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import polars as pl
@@ -26,9 +30,12 @@ from fleetbrake.fleet.logfile import BLOCK_TEMP_VALID_C, FLOAT_COLUMNS, TIME_FOR
 from fleetbrake.ingest.config import IngestConfig
 
 __all__ = [
+    "RejectedRun",
     "Repairs",
     "clear_implausible",
     "clear_unparsable",
+    "field_counts",
+    "reject_ragged",
     "repair_times",
     "split_block_temp_faults",
 ]
@@ -36,13 +43,47 @@ __all__ = [
 _EPOCH = dt.datetime(1970, 1, 1)
 _EXAMPLES = 5
 """How many line numbers (or values) a repair note lists before 'and N more'."""
+_SHOWN_CHARS = 40
+"""How much of a cell a repair note quotes (a 1 MB cell is not copied into the ledger)."""
+
+
+class RejectedRun(NamedTuple):
+    """Consecutive lines of a file rejected for the same reason (the header is line 1)."""
+
+    first_line: int
+    last_line: int
+    why: str
+    """What is wrong with these rows, a short phrase (\"no time\", \"cut short\", ...)."""
+
+    @property
+    def rows(self) -> int:
+        """How many rows the run holds."""
+        return self.last_line - self.first_line + 1
+
+
+def rejected_runs(lines: np.ndarray, why: str) -> list[RejectedRun]:
+    """Sorted line numbers cut into runs of consecutive lines, each with ``why``."""
+    if not lines.size:
+        return []
+    breaks = np.flatnonzero(np.diff(lines) != 1)
+    firsts = np.concatenate(([lines[0]], lines[breaks + 1]))
+    lasts = np.concatenate((lines[breaks], [lines[-1]]))
+    return [RejectedRun(int(a), int(b), why) for a, b in zip(firsts, lasts, strict=True)]
 
 
 @dataclass
 class Repairs:
-    """What was repaired in one file; every count is also described in :meth:`text`."""
+    """What was repaired in one file; every count is also described in :meth:`text`.
+
+    A row is read (``rows_in_file``) and then stored or rejected: the rejected ones are those
+    without a time, outside the session, repeating an earlier row's time, and a last row cut
+    short (:attr:`rows_rejected`), each named in :attr:`rejected` and :meth:`rejected_text`.
+    """
 
     rows_in_file: int = 0
+    """Data lines read (after the header), a last one cut short included."""
+    rows_ragged: int = 0
+    """Rows rejected for holding more or fewer fields than the header."""
     rows_no_time: int = 0
     rows_outside_session: int = 0
     rows_duplicate: int = 0
@@ -52,10 +93,38 @@ class Repairs:
     block_temp_faults: int = 0
     partial_row_dropped: bool = False
     notes: list[str] = field(default_factory=list)
+    rejected: list[RejectedRun] = field(default_factory=list)
+    """Every rejected row, as runs of lines, in the order the checks found them."""
+    rejection_notes: list[str] = field(default_factory=list)
+    """The notes (also in :attr:`notes`) that say which rows were rejected and why."""
+
+    @property
+    def rows_rejected(self) -> int:
+        """Rows read but not stored."""
+        return (
+            self.rows_ragged
+            + self.rows_no_time
+            + self.rows_outside_session
+            + self.rows_duplicate
+            + int(self.partial_row_dropped)
+        )
 
     def text(self) -> str | None:
         """The notes as one sentence list, or None when nothing was repaired."""
         return "; ".join(self.notes) if self.notes else None
+
+    def rejected_text(self) -> str | None:
+        """``"2 rows rejected: ..."`` with the lines and why, or None when none was."""
+        count = self.rows_rejected
+        if not count:
+            return None
+        return f"{count} row{'s' if count > 1 else ''} rejected: " + "; ".join(self.rejection_notes)
+
+    def reject(self, note: str, lines: np.ndarray, why: str) -> None:
+        """Record rejected rows: ``note`` for people, ``lines`` (sorted) as runs of ``why``."""
+        self.notes.append(note)
+        self.rejection_notes.append(note)
+        self.rejected.extend(rejected_runs(lines, why))
 
 
 def _lines(line_numbers: list[int], total: int) -> str:
@@ -63,6 +132,74 @@ def _lines(line_numbers: list[int], total: int) -> str:
     more = total - min(total, _EXAMPLES)
     word = "line" if total == 1 else "lines"
     return f"{word} {shown}" + (f" and {more} more" if more else "")
+
+
+def _shown(value: object) -> str:
+    """``repr(value)``, cut to :data:`_SHOWN_CHARS` characters."""
+    text = repr(value)
+    if len(text) <= _SHOWN_CHARS:
+        return text
+    return f"{text[: _SHOWN_CHARS - 3]}... ({len(str(value))} characters)"
+
+
+def field_counts(body: bytes) -> np.ndarray:
+    """The number of fields of each line of ``body`` (complete lines, ending in a newline),
+    0 for a blank line (judged by the time check: no time)."""
+    raw = np.frombuffer(body, dtype=np.uint8)
+    ends = np.flatnonzero(raw == ord("\n"))
+    commas = np.flatnonzero(raw == ord(","))
+    counts = np.diff(np.searchsorted(commas, ends), prepend=0) + 1
+    starts = np.concatenate(([0], ends[:-1] + 1))
+    carriage = (ends > starts) & (raw[np.maximum(ends - 1, 0)] == ord("\r"))
+    blank = (counts == 1) & (ends - starts - carriage <= 0)
+    return np.where(blank, 0, counts)
+
+
+def reject_ragged(
+    frame: pl.DataFrame,
+    text: pl.DataFrame | None,
+    fields: np.ndarray,
+    expected: int,
+    repairs: Repairs,
+) -> tuple[pl.DataFrame, pl.DataFrame | None, np.ndarray | None]:
+    """Reject the rows whose line has other than the header's ``expected`` fields (``fields``:
+    of each line, :func:`field_counts`): a cell added or lost moves the others out of their
+    columns. Their cells are emptied (the later checks skip them); returns the frames and the
+    rejected rows' mask (None if none)."""
+    if fields.size != frame.height:
+        return frame, text, None
+    ragged = (fields != expected) & (fields != 0)
+    count = int(ragged.sum())
+    if not count:
+        return frame, text, None
+    rows = np.flatnonzero(ragged)
+    lines = rows + 2
+    shown = ", ".join(
+        f"line {n} has {fields[r]}" for n, r in zip(lines[:_EXAMPLES], rows, strict=False)
+    )
+    more = count - min(count, _EXAMPLES)
+    repairs.rows_ragged = count
+    note = (
+        f"{count} row{'s' if count > 1 else ''} with other than the header's {expected} fields "
+        f"dropped (cells out of their columns): {shown}" + (f" and {more} more" if more else "")
+    )
+    repairs.notes.append(note)
+    repairs.rejection_notes.append(note)
+    for n_fields in np.unique(fields[rows]):
+        repairs.rejected.extend(
+            rejected_runs(
+                lines[fields[rows] == n_fields], f"{n_fields} fields ({expected} expected)"
+            )
+        )
+    mask = pl.Series(ragged)
+    frame = frame.with_columns(
+        pl.when(mask).then(None).otherwise(pl.col(c)).alias(c) for c in frame.columns
+    )
+    if text is not None:
+        text = text.with_columns(
+            pl.when(mask).then(None).otherwise(pl.col(c)).alias(c) for c in text.columns
+        )
+    return frame, text, ragged
 
 
 def _line_numbers(frame: pl.DataFrame, mask: pl.Series) -> list[int]:
@@ -102,7 +239,7 @@ def clear_unparsable(
             continue
         rows = bad[c].arg_true().head(_EXAMPLES).to_list()
         source = text if text is not None else frame
-        shown = [repr(source[c][r]) for r in rows[:2]]
+        shown = [_shown(source[c][r]) for r in rows[:2]]
         examples.append(
             f"{c} {_lines([r + 2 for r in rows], count)} ({', '.join(shown)}"
             + (", ..." if count > 2 else "")
@@ -177,35 +314,41 @@ def repair_times(
     start_utc: dt.datetime,
     config: IngestConfig,
     repairs: Repairs,
+    ragged: np.ndarray | None = None,
 ) -> pl.DataFrame:
     """Parse ``time_utc``, drop rows without a usable time, keep the first of repeated times,
-    sort; counted and noted. Adds ``_line`` (file line numbers) when rows move or go."""
+    sort; counted and noted. Adds ``_line`` (file line numbers) when rows move or go.
+    ``ragged``: rows already rejected (:func:`reject_ragged`), dropped here too."""
     frame = frame.with_columns(
         pl.col("time_utc").str.to_datetime(TIME_FORMAT, time_unit="us", strict=False, cache=False)
     )
     latest_utc = start_utc + dt.timedelta(seconds=config.max_session_s)
-    if _in_order(frame["time_utc"], start_utc, latest_utc):
+    if ragged is None and _in_order(frame["time_utc"], start_utc, latest_utc):
         return frame
     frame = frame.with_columns(pl.int_range(2, frame.height + 2, dtype=pl.Int64).alias("_line"))
     # The repairs are judged in numpy on the times alone (each polars call on a column costs
     # about as much as the judgement); the whole frame is gathered once at the end.
     time_utc = frame["time_utc"]
-    no_time = time_utc.is_null().to_numpy()
     rows = np.arange(frame.height)
+    if ragged is not None:
+        rows = rows[~ragged]
+    no_time = time_utc.is_null().to_numpy()[rows]
     if no_time.any():
         lines = (rows[no_time] + 2).tolist()
-        raw = text_time.filter(pl.Series(no_time))
+        raw = text_time.gather(rows[no_time])
         empty = int((raw.is_null() | (raw.str.strip_chars() == "")).sum())
         repairs.rows_no_time = len(lines)
-        examples = [repr(v) for v in raw.drop_nulls().to_list() if v.strip()][:2]
+        examples = [_shown(v) for v in raw.drop_nulls().to_list() if v.strip()][:2]
         detail = f"{empty} empty" + (
             f", {len(lines) - empty} not a time ({', '.join(examples)})"
             if len(lines) > empty
             else ""
         )
-        repairs.notes.append(
+        repairs.reject(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} without a time dropped "
-            f"({detail}): {_lines(lines, len(lines))}"
+            f"({detail}): {_lines(lines, len(lines))}",
+            rows[no_time] + 2,
+            "no time: the time_utc cell is empty or not YYYY-MM-DDTHH:MM:SSZ",
         )
         rows = rows[~no_time]
     us = time_utc.to_physical().fill_null(0).to_numpy()[rows]
@@ -215,10 +358,14 @@ def repair_times(
     if outside.any():
         lines = (rows[outside] + 2).tolist()
         repairs.rows_outside_session = len(lines)
-        repairs.notes.append(
+        named = f"{start_utc:%Y-%m-%dT%H:%M:%SZ}"
+        repairs.reject(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} timed before the file name's "
-            f"time {start_utc:%Y-%m-%dT%H:%M:%SZ} or more than {config.max_session_s} s after "
-            f"it dropped: {_lines(lines, len(lines))}"
+            f"time {named} or more than {config.max_session_s} s after "
+            f"it dropped: {_lines(lines, len(lines))}",
+            rows[outside] + 2,
+            f"timed before the file name's time {named} or more than "
+            f"{config.max_session_s} s after it",
         )
         rows, us = rows[~outside], us[~outside]
     repeated = np.ones(us.size, dtype=bool)
@@ -226,9 +373,11 @@ def repair_times(
     if repeated.any():
         lines = (rows[repeated] + 2).tolist()
         repairs.rows_duplicate = len(lines)
-        repairs.notes.append(
+        repairs.reject(
             f"{len(lines)} row{'s' if len(lines) > 1 else ''} repeating an earlier row's time "
-            f"dropped (the first kept): {_lines(lines, len(lines))}"
+            f"dropped (the first kept): {_lines(lines, len(lines))}",
+            rows[repeated] + 2,
+            "repeats the time of an earlier row of the file (the first kept)",
         )
         rows, us = rows[~repeated], us[~repeated]
     if rows.size < frame.height:

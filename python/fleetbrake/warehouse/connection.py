@@ -57,8 +57,11 @@ __all__ = [
 DEFAULT_DB_PATH = Path("warehouse/fleet.duckdb")
 """Where the database is when ``--db`` is not given (relative to the working directory)."""
 
-SCHEMA_VERSION = 1
-"""Version of the tables in ``schema.sql``; a database of a newer version is not opened."""
+SCHEMA_VERSION = 2
+"""Version of the tables in ``schema*.sql``. A database of an older version is brought up to
+date when opened for writing, its rows kept (the statements only add what is missing: version
+2 adds ``files.rows_rejected``, null for the files recorded before it, and the
+``file_rejections`` table); a database of a newer version is not opened."""
 
 SQL_PACKAGE = "fleetbrake.warehouse.sql"
 """The package whose ``*.sql`` resources are the schema, views and queries (shipped in the wheel)."""
@@ -108,7 +111,8 @@ def _schema_files() -> list[str]:
 
 
 def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> None:
-    """Create what is missing (tables, then views) and record the schema version; idempotent.
+    """Create what is missing (tables, columns, then views) and record the schema version;
+    idempotent. An older database gains what its version lacks, in the same transaction.
 
     Raises :class:`WarehouseError` if the database was made by a newer schema version.
     """

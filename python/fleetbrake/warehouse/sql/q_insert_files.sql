@@ -4,7 +4,7 @@ INSERT INTO files (
     file_id, path, wagon_id, sha256, size_bytes, mtime_ns, status, quarantine_code, reason,
     rows, rows_in_file, rows_no_time, rows_outside_session, rows_duplicate, rows_out_of_order,
     cells_unparsable, block_temp_faults, partial_row_dropped, repairs, first_utc, last_utc,
-    ingested_utc
+    ingested_utc, rows_rejected
 )
 WITH staged AS (
     SELECT
@@ -29,13 +29,14 @@ WITH staged AS (
         CAST(repairs AS VARCHAR)               AS repairs,
         CAST(first_utc AS TIMESTAMP)           AS first_utc,
         CAST(last_utc AS TIMESTAMP)            AS last_utc,
-        CAST(ingested_utc AS TIMESTAMP)        AS ingested_utc
+        CAST(ingested_utc AS TIMESTAMP)        AS ingested_utc,
+        CAST(rows_rejected AS BIGINT)          AS rows_rejected
     FROM file_batch
 )
 SELECT
     file_id, path, wagon_id, sha256, size_bytes, mtime_ns, status, quarantine_code, reason,
     rows, rows_in_file, rows_no_time, rows_outside_session, rows_duplicate, rows_out_of_order,
     cells_unparsable, block_temp_faults, partial_row_dropped, repairs, first_utc, last_utc,
-    ingested_utc
+    ingested_utc, rows_rejected
 FROM staged
 ORDER BY file_id;

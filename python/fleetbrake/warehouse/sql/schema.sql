@@ -1,4 +1,4 @@
--- fleetbrake warehouse: tables of the ingestion and of the event detection (schema version 1).
+-- fleetbrake warehouse: tables of the ingestion and of the event detection (schema version 2).
 -- Applied at every open of the database; every statement is idempotent. Views are in v_*.sql,
 -- statements the code runs with bound parameters in q_*.sql.
 
@@ -19,10 +19,12 @@ CREATE TABLE IF NOT EXISTS files (
     mtime_ns             BIGINT    NOT NULL,              -- unchanged size and mtime: not re-read
     status               VARCHAR   NOT NULL CHECK (status IN ('ingested', 'quarantined')),
     quarantine_code      VARCHAR,  -- name, registry, size, empty, gzip, binary, header,
-                                   -- unreadable, error (the last two and registry: retried)
-    reason               VARCHAR,  -- why quarantined, naming the file (and line)
+                                   -- unreadable, error (the last two and registry: retried),
+                                   -- rows (every data row read was rejected)
+    reason               VARCHAR,  -- why quarantined, naming the file (and line); for an
+                                   -- ingested file, the rows rejected (lines and why)
     rows                 BIGINT    NOT NULL,              -- samples stored from this file
-    rows_in_file         BIGINT,   -- complete data lines read (after the header)
+    rows_in_file         BIGINT,   -- data lines read (after the header), = rows + rows_rejected
     rows_no_time         BIGINT,   -- dropped: time cell empty or not a time
     rows_outside_session BIGINT,   -- dropped: time before the file name's or > 48 h after it
     rows_duplicate       BIGINT,   -- dropped: time already seen in the file (first row kept)
@@ -35,6 +37,20 @@ CREATE TABLE IF NOT EXISTS files (
     first_utc            TIMESTAMP,  -- first and last stored sample
     last_utc             TIMESTAMP,
     ingested_utc         TIMESTAMP NOT NULL  -- when this row was written
+);
+-- Rows read but not stored (no time, outside the session, a repeated time, a last row cut
+-- short): rows_in_file = rows + rows_rejected. Null when no row was read (quarantined before
+-- its rows), and for files recorded by schema version 1, which did not count them.
+ALTER TABLE files ADD COLUMN IF NOT EXISTS rows_rejected BIGINT;
+
+-- One row per run of consecutive lines of a file rejected for the same reason (v_file_rejections):
+-- written and removed with the file's row.
+CREATE TABLE IF NOT EXISTS file_rejections (
+    file_id    BIGINT  NOT NULL,  -- files.file_id
+    first_line BIGINT  NOT NULL,  -- line numbers in the file, the header being line 1
+    last_line  BIGINT  NOT NULL,
+    rows       BIGINT  NOT NULL,  -- last_line - first_line + 1
+    reason     VARCHAR NOT NULL   -- why these rows were rejected
 );
 
 -- One row per stored sample (one second of one wagon), sorted by time within a file.
