@@ -54,8 +54,9 @@
 //!
 //! A dense transition (a convection other than the nominal one mixes the modes) is symmetric,
 //! `A = Q diag(e) Qᵀ` with Q orthogonal. Given that decomposition (`Transition::eigen`: the
-//! one `A` was made of, `prepare`'s `eigh` of the convection's operator, so the kernel steps
-//! the numpy reference's numbers) it is stepped as a diagonal one in the basis of its
+//! one `A` was made of, the `eigh` of the convection's operator in
+//! `fleetbrake.model.estimator.prepare`, so the kernel and the numpy oracle step the same
+//! numbers) it is stepped as a diagonal one in the basis of its
 //! eigenvectors (`in_own_basis`; Q leaves the seat's error a coordinate of its own), with
 //! `γ`, the lag's row, the reading's and the outputs' rows and the gap's direction rotated
 //! once per transition (`Rows`), `w` per step (`Qᵀw`), and the mode noise `Qᵀ diag(q) Q`

@@ -41,9 +41,9 @@ pub struct Transition {
     pub brake_phi: f64,
     /// Variance (W²) added to `P_b` over the step.
     pub brake_q: f64,
-    /// A dense `a`'s eigendecomposition as its maker computed it (`a = Q diag(e) Qᵀ`; the
-    /// numpy peer's `prepare`: the `eigh` that `a` is made of): the transition is stepped as
-    /// a diagonal one in that basis. None: it is stepped dense (`DenseF`).
+    /// A dense `a`'s eigendecomposition as its maker computed it (`a = Q diag(e) Qᵀ`: the
+    /// `eigh` in `fleetbrake.model.estimator.prepare` that `a` is made of): the transition is
+    /// stepped as a diagonal one in that basis. None: it is stepped dense (`DenseF`).
     pub eigen: Option<Eigen>,
 }
 
@@ -138,7 +138,7 @@ pub struct Settings {
     /// `smoother_tolerance` there too. A loose tolerance freezes the quiet mode's long
     /// settling after each release at little cost to the estimates, while in the manoeuvre
     /// mode, where the power's variance moves fast and the estimates follow it, the same
-    /// tolerance moves them by far more (`docs/estimator.md`).
+    /// tolerance moves them by far more (`docs/decisions/0001-estimator-covariance-path.md`).
     pub manoeuvre_tolerances: Option<(f64, f64)>,
     pub checkpoint_steps: usize,
     /// Whether to produce the per-second outputs (false: the likelihood only).
