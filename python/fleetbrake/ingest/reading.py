@@ -183,7 +183,12 @@ def read_log(
     body = _complete_rows(body, repairs)
     frame, text = _parse_cells(body, names)
     repairs.rows_in_file = frame.height + int(repairs.partial_row_dropped)
-    frame, text, ragged = reject_ragged(frame, text, field_counts(body), len(names), repairs)
+    ragged = None
+    # A line of more fields fails the typed parse (then ``text`` is set); one of fewer fields, or
+    # a blank one, makes the commas fewer than the header's: else every line has its fields.
+    if text is not None or body.count(b",") != (len(names) - 1) * frame.height:
+        fields = field_counts(body)
+        frame, text, ragged = reject_ragged(frame, text, fields, len(names), repairs)
     frame = clear_unparsable(frame, text, repairs)
     frame = clear_implausible(frame, config.plausible_ranges, repairs)
     for name in OPTIONAL_COLUMNS:
