@@ -12,6 +12,7 @@ import pytest
 from fleetbrake.fleet.block import BlockGeometry, sensor_point_m
 from fleetbrake.fleet.registry import (
     CONFIG_KEYS,
+    KEY_RANGES,
     SPEC_DEFAULTS,
     Registry,
     RegistryError,
@@ -200,8 +201,9 @@ def test_wagon_config_is_frozen_and_checks_itself() -> None:
 
 def test_check_value() -> None:
     assert check_value("cylinder_diameter_m", 0.3) is None
-    assert check_value("cylinder_diameter_m", 1) is None
-    assert "positive" in str(check_value("cylinder_diameter_m", 0.0))
+    assert check_value("regulator_force_n", 2500) is None  # an integer for a float key
+    assert "in [0.1, 0.6] m" in str(check_value("cylinder_diameter_m", 0.0))
+    assert "in [0.1, 0.6] m" in str(check_value("cylinder_diameter_m", 1))  # 1 m: a slip
     assert "number" in str(check_value("cylinder_diameter_m", False))
     assert "integer" in str(check_value("blocks_per_bogie", 16.0))
     assert "unknown key" in str(check_value("nonsense", 1))
@@ -218,25 +220,29 @@ BAD_WAGON_CASES = {
     "table-for-number": ("cylinder_diameter_m = {a = 1}", "cylinder_diameter_m", "a table"),
     "float-for-count": ("blocks_per_bogie = 16.0", "blocks_per_bogie", "must be an integer"),
     "bool-for-count": ("blocks_per_wheel = false", "blocks_per_wheel", "must be an integer"),
-    "negative-diameter": ("cylinder_diameter_m = -0.3", "cylinder_diameter_m", "positive"),
-    "zero-radius": ("wheel_radius_m = 0", "wheel_radius_m", "positive"),
-    "nan-radius": ("wheel_radius_m = nan", "wheel_radius_m", "positive"),
-    "inf-radius": ("wheel_radius_m = inf", "wheel_radius_m", "positive"),
-    "negative-ratio": ("rigging_ratio_total = -8.0", "rigging_ratio_total", "positive"),
+    "negative-diameter": ("cylinder_diameter_m = -0.3", "cylinder_diameter_m", "[0.1, 0.6] m"),
+    "zero-radius": ("wheel_radius_m = 0", "wheel_radius_m", "[0.3, 0.65] m"),
+    "nan-radius": ("wheel_radius_m = nan", "wheel_radius_m", "[0.3, 0.65] m"),
+    "inf-radius": ("wheel_radius_m = inf", "wheel_radius_m", "[0.3, 0.65] m"),
+    "negative-ratio": ("rigging_ratio_total = -8.0", "rigging_ratio_total", "(0, 40]"),
     "zero-ratio-ii": (
         "rigging_ratio_after_central = 0.0",
         "rigging_ratio_after_central",
-        "positive",
+        "(0, 40]",
     ),
-    "zero-count": ("blocks_per_bogie = 0", "blocks_per_bogie", "positive"),
+    "zero-count": ("blocks_per_bogie = 0", "blocks_per_bogie", "[1, 64]"),
     "zero-efficiency": ("rigging_efficiency = 0.0", "rigging_efficiency", "(0, 1]"),
     "efficiency-above-1": ("rigging_efficiency = 1.2", "rigging_efficiency", "(0, 1]"),
     "zero-friction": ("friction_coefficient = 0.0", "friction_coefficient", "(0, 1)"),
     "friction-of-1": ("friction_coefficient = 1.0", "friction_coefficient", "(0, 1)"),
-    "negative-regulator": ("regulator_force_n = -1.0", "regulator_force_n", ">= 0"),
-    "negative-spring": ("cylinder_spring_force_n = -1500.0", "cylinder_spring_force_n", ">= 0"),
-    "ambient-too-cold": ("ambient_temp_c = -61.0", "ambient_temp_c", "-60 and 60"),
-    "ambient-too-hot": ("ambient_temp_c = 60.5", "ambient_temp_c", "-60 and 60"),
+    "negative-regulator": ("regulator_force_n = -1.0", "regulator_force_n", "[0, 50000] N"),
+    "negative-spring": (
+        "cylinder_spring_force_n = -1500.0",
+        "cylinder_spring_force_n",
+        "[0, 50000] N",
+    ),
+    "ambient-too-cold": ("ambient_temp_c = -61.0", "ambient_temp_c", "[-60, 60] degC"),
+    "ambient-too-hot": ("ambient_temp_c = 60.5", "ambient_temp_c", "[-60, 60] degC"),
     "unknown-block": ('block = "disc"', "block", "cast-iron-bgu"),
     "block-not-string": ("block = 3", "block", "must be a string"),
     "more-per-wheel-than-per-bogie": ("blocks_per_wheel = 17", "blocks_per_wheel", "exceeds"),
@@ -290,7 +296,8 @@ def test_problem_reads_like_the_brief(tmp_path: Path, monkeypatch: pytest.Monkey
     problem = only_problem(load_registry("fleet.toml"))
     assert problem.file == "fleet.toml"
     assert str(problem).startswith(
-        "fleet.toml: wagon SGG-0002, key cylinder_diameter_m: must be a positive number, got -0.3"
+        "fleet.toml: wagon SGG-0002, key cylinder_diameter_m: must be a number in [0.1, 0.6] m, "
+        "got -0.3; the wagon is left out"
     )
 
 
@@ -498,3 +505,13 @@ def test_unknown_wagon_lookup(tmp_path: Path) -> None:
     assert "fleet.toml" in str(caught.value)
     assert "SGG-0099" in str(caught.value)
     assert "no entry" in str(caught.value)
+
+
+def test_each_key_documents_the_range_it_is_checked_against() -> None:
+    """The configuration reference states each key's allowed values as the table has them."""
+    from fleetbrake.cli.configref import CONFIG_CLASSES, describe
+
+    (entry,) = [e for e in CONFIG_CLASSES if e.path.endswith(":WagonConfig")]
+    meanings = {f.name: " ".join(f.meaning.split()) for f in describe(entry).fields}
+    for key, allowed in KEY_RANGES.items():
+        assert f"Allowed: {allowed.allowed()}" in meanings[key], key

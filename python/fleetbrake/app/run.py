@@ -131,7 +131,11 @@ def run_fleet(
     new event with the current model revision, raise flags; one writer at a time.
 
     Raises (before anything is written) what :func:`fleetbrake.ingest.files.run_ingest` raises for
-    an unusable fleet directory, registry or database, and
+    an unusable fleet directory, registry or database,
+    :class:`~fleetbrake.fleet.registry.InvalidRegistryError` when a registry entry of a wagon
+    the warehouse holds results of is invalid (:meth:`Registry.check_held
+    <fleetbrake.fleet.registry.Registry.check_held>`: every such wagon's entry is checked at
+    every run, with or without new files), and
     :class:`~fleetbrake.engine.EngineConfigError` for an unknown ``engine`` name, ``ray``
     without Ray installed, or ``workers < 1``. ``progress``: show progress bars (None: when stdout
     is a terminal).
@@ -172,6 +176,7 @@ def run_fleet(
         with open_warehouse(
             db_path, wait_s=wait_s, memory_limit=WRITER_MEMORY_LIMIT, threads=WRITER_THREADS
         ) as wh:
+            registry.check_held(_held_wagons(wh))  # before anything is written
             return _stages(
                 wh,
                 db_path,
@@ -186,6 +191,14 @@ def run_fleet(
                 estimation,
             )
     raise AssertionError("unreachable")  # ExitStack may swallow exceptions, for mypy
+
+
+def _held_wagons(wh: Warehouse) -> list[str]:
+    """The wagons whose registry entries a run stored: those with results in the warehouse,
+    whose entries every run checks, whether or not they have new files."""
+    from fleetbrake.warehouse.connection import sql
+
+    return [row[0] for row in wh.con.execute(sql("q_simulation_stored_wagons")).fetchall()]
 
 
 def _wagons_to_judge(

@@ -49,6 +49,7 @@ from fleetbrake.cli.options import (
     RefinementOption,
     WaitOption,
     WorkersOption,
+    existing_database,
     global_options,
     option_values,
 )
@@ -162,7 +163,8 @@ def run_command(
 
     Idempotent and incremental: a second run over the same directory adds nothing. Bad files
     are quarantined and reported (exit 0); exit 1 when the fleet directory, its registry or
-    the database cannot be used, 2 for a bad --flag-config, --solver, --engine or --workers,
+    the database cannot be used, 2 for a bad --flag-config, --solver, --engine or --workers
+    or an invalid registry value of a wagon the database holds results of (nothing written),
     75 when another process is writing the database.
     """
     from fleetbrake.app.run import run_fleet
@@ -223,13 +225,15 @@ def close_loop_command(
 
     Compares predictions with measurements, fits the effect on the events before the
     holdout date, records the new model revision, re-simulates, and writes the report. The last line of stdout is one JSON summary (the report itself is in --json's file).
-    Exit 1 when the database cannot be used for it, 2 for a bad --holdout-from, --engine or
+    Exit 1 when the database does not exist (nothing is created) or cannot be used for it,
+    2 for a bad --holdout-from, --engine or
     --workers, 75 when another process is writing the database.
     """
     from fleetbrake.app.progress import spinner
     from fleetbrake.closeloop.loop import run_close_loop
 
     holdout = _holdout_date(holdout_from)
+    existing_database(db)
     with spinner("finding the effect the model lacks", global_options(ctx).progress):
         report = run_close_loop(
             db, holdout, json_out, wait_s=wait_s, engine=engine, workers=workers, address=address
@@ -425,12 +429,14 @@ def record_command(
 ) -> None:
     """Write a rerun recording of a wagon's timeline (or one event) for incident review.
 
-    Exit 1 when the database cannot be read or the wagon, event or revision is unknown, 75
+    Exit 1 when the database does not exist (nothing is created) or cannot be read, or the
+    wagon, event or revision is unknown, 75
     when another process is writing the database. Open the file with ``rerun FILE.rrd``.
     """
     from fleetbrake.app.progress import spinner
     from fleetbrake.viz.record import record, wagon_config
 
+    existing_database(db)
     config = wagon_config(wagon, registry) if registry is not None else None
     with spinner(f"recording {event or wagon}", global_options(ctx).progress):
         summary = record(
@@ -465,14 +471,15 @@ def report_command(
     """Write the fleet report: Markdown with plots, from the database's public views only.
 
     Files, events, predictions against measurements, flags on a timeline, model revisions and,
-    with --close-loop, the closed loop's error before and after. Exit 1 when the database or
-    the close-loop report cannot be read.
+    with --close-loop, the closed loop's error before and after. Exit 1 when the database does
+    not exist (nothing is created) or it or the close-loop report cannot be read.
     """
     import json
 
     from fleetbrake.app.progress import spinner
     from fleetbrake.app.report import ReportInputError, write_report
 
+    existing_database(db)
     loop: dict[str, object] | None = None
     if close_loop is not None:
         try:

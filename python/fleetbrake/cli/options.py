@@ -21,9 +21,11 @@ __all__ = [
     "DbOption",
     "FleetDirArgument",
     "GlobalOptions",
+    "MissingDatabaseError",
     "OptionError",
     "OutputDirError",
     "WaitOption",
+    "existing_database",
     "global_options",
     "option_values",
 ]
@@ -45,6 +47,27 @@ class OptionError(ConfigError):
 class OutputDirError(FleetbrakeError):
     """An output directory given on the command line holds something already (exit 1, as
     ``fleetbrake demo`` refuses one); the message names it."""
+
+
+class MissingDatabaseError(FleetbrakeError):
+    """A command that reads a warehouse was given a path where none exists (exit 1); it is
+    refused before anything is opened, so that no file, folder or lock is left behind."""
+
+
+def existing_database(db: Path) -> Path:
+    """``db`` if a warehouse file is there; :class:`MissingDatabaseError` otherwise.
+
+    For the commands that need a warehouse ``run`` made (``close-loop``, ``record``,
+    ``report``): opening a path for writing would create an empty database, its folder and
+    its lock file before the command finds it has nothing to work on.
+    """
+    if db.is_file():
+        return db
+    if db.exists():
+        raise MissingDatabaseError(f"{db}: not a database file; nothing was changed")
+    raise MissingDatabaseError(
+        f"{db}: no such database: run `fleetbrake run` first; nothing was created"
+    )
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,13 @@ trusts it. What happens to bad input:
   not match ``[A-Za-z0-9_-]{1,64}``) is reported, every problem of it, and the wagon is left out;
 * an id given by more than one entry is reported and every entry with it is left out (which one
   is meant cannot be told, and a wrong brake rigging gives wrong predictions and flags);
-* a file that is missing, unreadable, not UTF-8 or not TOML raises :class:`RegistryError`.
+* a file that is missing, unreadable, not UTF-8 or not TOML raises :class:`RegistryError`;
+* a problem touching a wagon whose results a warehouse holds is a configuration error
+  (:meth:`Registry.check_held`, :class:`InvalidRegistryError`, exit 2): ``run`` checks every
+  such wagon's entry, whole, at every run and writes nothing when one is invalid.
+
+The allowed values of every key (type, unit, physical range) are in one table,
+:data:`KEY_RANGES`, and each message about a value states its range.
 
 Types: a number (float key) may be written as a TOML integer or float, never as a boolean;
 a count (``blocks_per_bogie``, ``blocks_per_wheel``) must be a TOML integer (``16``, not ``16.0``).
@@ -37,22 +43,25 @@ import json
 import math
 import re
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from fleetbrake.errors import FleetbrakeError, UnknownKeyError
+from fleetbrake.errors import EXIT_USAGE, ConfigError, FleetbrakeError, UnknownKeyError
 from fleetbrake.fleet.block import BLOCK_MATERIAL, BlockGeometry, Material
 from fleetbrake.fleet.block import sensor_point_m as _sensor_point_m
 
 __all__ = [
     "CONFIG_KEYS",
+    "KEY_RANGES",
     "KNOWN_BLOCKS",
     "SPEC_DEFAULTS",
     "WAGON_ID_PATTERN",
     "BlockType",
+    "InvalidRegistryError",
+    "KeyRange",
     "Registry",
     "RegistryError",
     "RegistryProblem",
@@ -84,6 +93,13 @@ class RegistryError(FleetbrakeError):
     """The registry cannot be used at all (missing, unreadable, not TOML), or a lookup failed."""
 
 
+class InvalidRegistryError(RegistryError, ConfigError):
+    """A registry value that makes a command's work impossible: a configuration error (exit 2)
+    naming the file, wagon, key and allowed range, raised before anything is written."""
+
+    exit_code = EXIT_USAGE
+
+
 class UnknownWagonError(RegistryError, UnknownKeyError):
     """A wagon id that the registry does not hold (absent, or left out because of its problems)."""
 
@@ -100,8 +116,17 @@ class RegistryProblem:
     wagon_id: str | None
     key: str | None
     message: str
+    """What is wrong, with the allowed values."""
+    outcome: str = ""
+    """What the reader does about it (``the wagon is left out``); empty for nothing."""
 
     def __str__(self) -> str:
+        if self.outcome:
+            return f"{self.where()}: {self.message}; {self.outcome}"
+        return f"{self.where()}: {self.message}"
+
+    def where(self) -> str:
+        """The file, and the wagon and key when the problem has them."""
         where = []
         if self.wagon_id is not None:
             shown = self.wagon_id
@@ -110,9 +135,7 @@ class RegistryProblem:
             where.append(f"wagon {shown}")
         if self.key is not None:
             where.append(f"key {self.key}")
-        if where:
-            return f"{self.file}: {', '.join(where)}: {self.message}"
-        return f"{self.file}: {self.message}"
+        return ": ".join([self.file, ", ".join(where)]) if where else self.file
 
 
 # --------------------------------------------------------------------------------------------
@@ -165,72 +188,91 @@ def _is_count(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _positive(value: float) -> str | None:
-    return None if math.isfinite(value) and value > 0 else "must be a positive number"
-
-
-def _not_negative(value: float) -> str | None:
-    return None if math.isfinite(value) and value >= 0 else "must be a number >= 0"
-
-
-def _finite(value: float) -> str | None:
-    return None if math.isfinite(value) else "must be a finite number"
-
-
-def _efficiency(value: float) -> str | None:
-    return None if math.isfinite(value) and 0 < value <= 1 else "must be in (0, 1]"
-
-
-def _friction(value: float) -> str | None:
-    return None if math.isfinite(value) and 0 < value < 1 else "must be in (0, 1)"
-
-
-def _ambient(value: float) -> str | None:
-    if math.isfinite(value) and -60.0 <= value <= 60.0:
-        return None
-    return "must be between -60 and 60 degC"
-
-
-def _positive_count(value: int) -> str | None:
-    return None if value > 0 else "must be a positive integer"
-
-
-def _block_name(value: str) -> str | None:
-    if value in KNOWN_BLOCKS:
-        return None
-    return f"must name a known block ({', '.join(_show(n) for n in KNOWN_BLOCKS)})"
-
-
 @dataclass(frozen=True)
-class _Rule:
-    kind: str  # "number", "count" or "name"
-    check: Callable[[Any], str | None]
+class KeyRange:
+    """What one registry key may hold: its type, unit and physical range.
+
+    ``low`` and ``high`` bound a number or a count (None: unbounded on that side, the value
+    still finite); ``low_open`` / ``high_open`` exclude the bound itself. A ``name`` key
+    (``block``) has no bounds: it must name one of :data:`KNOWN_BLOCKS`.
+    """
+
+    kind: str
+    """``number`` (a TOML integer or float), ``count`` (a TOML integer) or ``name``."""
+    unit: str = ""
+    """The unit the key's name carries (``m``, ``N``, ``degC``, ``deg``); empty for none."""
+    low: float | None = None
+    """Lower bound of the range; None for no lower bound."""
+    high: float | None = None
+    """Upper bound of the range; None for no upper bound."""
+    low_open: bool = False
+    """True when ``low`` itself is outside the range."""
+    high_open: bool = False
+    """True when ``high`` itself is outside the range."""
+
+    def allowed(self) -> str:
+        """The range as a message states it: ``in (0.05, 0.6] m``, ``a known block (...)``."""
+        if self.kind == "name":
+            return f"a known block ({', '.join(_show(n) for n in KNOWN_BLOCKS)})"
+        what = "an integer" if self.kind == "count" else "a number"
+        if self.low is None and self.high is None:
+            return f"a finite {what.split()[-1]}"
+        else:
+            low = "-inf" if self.low is None else f"{self.low:g}"
+            high = "inf" if self.high is None else f"{self.high:g}"
+            opening = "(" if self.low is None or self.low_open else "["
+            closing = ")" if self.high is None or self.high_open else "]"
+            text = f"{what} in {opening}{low}, {high}{closing}"
+        return f"{text} {self.unit}" if self.unit else text
+
+    def holds(self, value: Any) -> bool:
+        """True when ``value`` (of the right type) lies in the range."""
+        if self.kind == "name":
+            return value in KNOWN_BLOCKS
+        number = float(value)
+        if not math.isfinite(number):
+            return False
+        if self.low is not None and (number < self.low or (self.low_open and number == self.low)):
+            return False
+        return self.high is None or not (
+            number > self.high or (self.high_open and number == self.high)
+        )
 
 
-_RULES: Mapping[str, _Rule] = MappingProxyType(
+KEY_RANGES: Mapping[str, KeyRange] = MappingProxyType(
     {
-        "wheel_radius_m": _Rule("number", _positive),
-        "blocks_per_bogie": _Rule("count", _positive_count),
-        "blocks_per_wheel": _Rule("count", _positive_count),
-        "cylinder_diameter_m": _Rule("number", _positive),
-        "rigging_ratio_total": _Rule("number", _positive),
-        "rigging_ratio_after_central": _Rule("number", _positive),
-        "rigging_efficiency": _Rule("number", _efficiency),
-        "regulator_force_n": _Rule("number", _not_negative),
-        "cylinder_spring_force_n": _Rule("number", _not_negative),
-        "friction_coefficient": _Rule("number", _friction),
-        "ambient_temp_c": _Rule("number", _ambient),
-        "block": _Rule("name", _block_name),
-        "sensor_depth_m": _Rule("number", _finite),
-        "sensor_theta_deg": _Rule("number", _finite),
-        "sensor_z_m": _Rule("number", _finite),
+        # 680 to 1,000 mm freight wheels, worn to new, with a margin
+        "wheel_radius_m": KeyRange("number", "m", 0.3, 0.65),
+        "blocks_per_bogie": KeyRange("count", "", 1, 64),
+        "blocks_per_wheel": KeyRange("count", "", 1, 64),
+        # 4 to 24 inch brake cylinders (the reference is 10 inch, 0.254 m)
+        "cylinder_diameter_m": KeyRange("number", "m", 0.1, 0.6),
+        "rigging_ratio_total": KeyRange("number", "", 0.0, 40.0, low_open=True),
+        "rigging_ratio_after_central": KeyRange("number", "", 0.0, 40.0, low_open=True),
+        "rigging_efficiency": KeyRange("number", "", 0.0, 1.0, low_open=True),
+        "regulator_force_n": KeyRange("number", "N", 0.0, 50_000.0),
+        "cylinder_spring_force_n": KeyRange("number", "N", 0.0, 50_000.0),
+        "friction_coefficient": KeyRange("number", "", 0.0, 1.0, low_open=True, high_open=True),
+        "ambient_temp_c": KeyRange("number", "degC", -60.0, 60.0),
+        "block": KeyRange("name"),
+        # the seat's range is the named block's (checked between keys, the message states it)
+        "sensor_depth_m": KeyRange("number", "m"),
+        "sensor_theta_deg": KeyRange("number", "deg"),
+        "sensor_z_m": KeyRange("number", "m"),
     }
 )
+"""Every key of ``[defaults]`` and ``[[wagon]]`` with its type, unit and physical range
+(reference values: ``shared/spec/block-model.md``); the one table every registry value is
+judged by, in the reader and in :class:`WagonConfig`. The ranges hold every wagon a freight
+fleet may have, not only the reference's: a value outside one is a typing or unit slip
+(a bore in mm, a sign lost)."""
 
-CONFIG_KEYS: tuple[str, ...] = tuple(_RULES)
+CONFIG_KEYS: tuple[str, ...] = tuple(KEY_RANGES)
 """The keys of ``[defaults]``, each of which a ``[[wagon]]`` entry may override."""
 
 _WAGON_ONLY_KEYS = ("id", "type")
+
+_LEFT_OUT = "the wagon is left out"
 
 
 def check_value(key: str, value: object) -> str | None:
@@ -239,7 +281,7 @@ def check_value(key: str, value: object) -> str | None:
     Relations between keys (blocks per wheel against blocks per bogie, the sensor seat inside
     the block) are judged by :class:`WagonConfig` and :func:`load_registry`.
     """
-    rule = _RULES.get(key)
+    rule = KEY_RANGES.get(key)
     if rule is None:
         return f"unknown key (known: {', '.join(CONFIG_KEYS)})"
     if rule.kind == "number" and not _is_number(value):
@@ -248,8 +290,9 @@ def check_value(key: str, value: object) -> str | None:
         return f"must be an integer, {_got(value)}"
     if rule.kind == "name" and not isinstance(value, str):
         return f"must be a string, {_got(value)}"
-    problem = rule.check(value)
-    return None if problem is None else f"{problem}, got {_show(value)}"
+    if rule.holds(value):
+        return None
+    return f"must be {rule.allowed()}, got {_show(value)}"
 
 
 def _cross_problems(values: Mapping[str, Any]) -> list[tuple[tuple[str, ...], str]]:
@@ -335,37 +378,45 @@ class WagonConfig:
     type: str | None = None
     """The wagon type (``Sggmrs``); informative only."""
     wheel_radius_m: float = 0.46
-    """Wheel radius (920 mm nominal wheel)."""
+    """Wheel radius (920 mm nominal wheel). Allowed: a number in [0.3, 0.65] m."""
     blocks_per_bogie: int = 16
-    """Brake blocks of one bogie (2Bgu: four blocks per wheel, four wheels)."""
+    """Brake blocks of one bogie (2Bgu: four blocks per wheel, four wheels). Allowed: an
+    integer in [1, 64]."""
     blocks_per_wheel: int = 4
-    """Brake blocks acting on one wheel."""
+    """Brake blocks acting on one wheel. Allowed: an integer in [1, 64], at most
+    ``blocks_per_bogie``."""
     cylinder_diameter_m: float = 0.254
-    """Bore of the brake cylinder."""
+    """Bore of the brake cylinder. Allowed: a number in [0.1, 0.6] m."""
     rigging_ratio_total: float = 8.0
-    """Total rigging ratio i_tot (central rigging 2 x rigging after the central one 4)."""
+    """Total rigging ratio i_tot (central rigging 2 x rigging after the central one 4).
+    Allowed: a number in (0, 40]."""
     rigging_ratio_after_central: float = 4.0
-    """Rigging ratio after the central rigging, i_II."""
+    """Rigging ratio after the central rigging, i_II. Allowed: a number in (0, 40]."""
     rigging_efficiency: float = 0.83
-    """Dynamic efficiency of the rigging, eta_dyn, in (0, 1]."""
+    """Dynamic efficiency of the rigging, eta_dyn. Allowed: a number in (0, 1]."""
     regulator_force_n: float = 2000.0
     """Spring force of the brake regulator (slack adjuster), F_s,rig, subtracted after the
-    central rigging (block-model.md, eq. 3)."""
+    central rigging (block-model.md, eq. 3). Allowed: a number in [0, 50000] N."""
     cylinder_spring_force_n: float = 1500.0
     """Force of the brake cylinder's return spring, F_s,cylinder, subtracted from the
-    pressure's (block-model.md, eq. 4)."""
+    pressure's (block-model.md, eq. 4). Allowed: a number in [0, 50000] N."""
     friction_coefficient: float = 0.15
-    """Mean wheel-block friction coefficient, in (0, 1)."""
+    """Mean wheel-block friction coefficient. Allowed: a number in (0, 1)."""
     ambient_temp_c: float = 10.0
-    """Air temperature used where a log has no ``ambient_temp_c``."""
+    """Air temperature used where a log has no ``ambient_temp_c``. Allowed: a number in
+    [-60, 60] degC."""
     block: str = "cast-iron-bgu"
-    """The reference block (geometry and material, block-model.md)."""
+    """The reference block (geometry and material, block-model.md). Allowed: a known block
+    ("cast-iron-bgu")."""
     sensor_depth_m: float = 0.055
-    """Sensor seat: radial distance from the friction face."""
+    """Sensor seat: radial distance from the friction face. Allowed: a finite number, the
+    seat inside the block (the message of a value outside states the block's range)."""
     sensor_theta_deg: float = 0.0
-    """Sensor seat: angular position, 0 the middle of the block."""
+    """Sensor seat: angular position, 0 the middle of the block. Allowed: a finite number,
+    the seat inside the block."""
     sensor_z_m: float = 0.0
-    """Sensor seat: axial position, 0 the middle of the block width."""
+    """Sensor seat: axial position, 0 the middle of the block width. Allowed: a finite
+    number, the seat inside the block."""
 
     def __post_init__(self) -> None:
         problems: list[str] = []
@@ -386,7 +437,7 @@ class WagonConfig:
         if problems:
             raise ValueError(f"WagonConfig {self.wagon_id!r}: " + "; ".join(problems))
         for key in CONFIG_KEYS:
-            if _RULES[key].kind == "number":
+            if KEY_RANGES[key].kind == "number":
                 object.__setattr__(self, key, float(getattr(self, key)))
 
     @property
@@ -416,7 +467,7 @@ class WagonConfig:
 
 
 SPEC_DEFAULTS: Mapping[str, Any] = MappingProxyType(
-    {f.name: f.default for f in fields(WagonConfig) if f.name in _RULES}
+    {f.name: f.default for f in fields(WagonConfig) if f.name in KEY_RANGES}
 )
 """The ``[defaults]`` of fleet-data.md: what applies where the registry says nothing valid."""
 
@@ -450,6 +501,32 @@ class Registry:
 
     def __contains__(self, wagon_id: object) -> bool:
         return wagon_id in self.wagons
+
+    def check_held(self, held: Collection[str]) -> None:
+        """Refuse the registry when a problem touches a wagon in ``held`` (those whose results
+        a warehouse holds): :class:`InvalidRegistryError` naming the first such problem.
+
+        Such a wagon can neither be left out (its stored results would stand for a
+        configuration the file no longer states) nor re-simulated (its entry is not usable).
+        A problem of ``[defaults]`` touches every held wagon. A wagon not held is left out as
+        :func:`load_registry` says, its files quarantined until its entry is fixed.
+        """
+        held = set(held)
+        blocking = [
+            p
+            for p in self.problems
+            if (p.wagon_id is not None and p.wagon_id in held)
+            or (p.wagon_id is None and held and (p.key or "").startswith("defaults"))
+        ]
+        if not blocking:
+            return
+        first = blocking[0]
+        more = f" ({len(blocking) - 1} more such problems)" if len(blocking) > 1 else ""
+        raise InvalidRegistryError(
+            f"{first.where()}: {first.message}{more}; the warehouse holds results of "
+            f"{'this wagon' if first.wagon_id else 'the wagons'}: fix the registry, "
+            "nothing was written"
+        )
 
 
 def _suggest(key: str, known: tuple[str, ...]) -> str:
@@ -489,13 +566,14 @@ def _read_defaults(file: str, table: object, problems: list[RegistryProblem]) ->
         return defaults
     set_here: set[str] = set()
     for key, value in table.items():
-        if key not in _RULES:
+        if key not in KEY_RANGES:
             problems.append(
                 RegistryProblem(
                     file,
                     None,
                     f"defaults.{key}",
-                    f"unknown key{_suggest(key, CONFIG_KEYS)}; ignored",
+                    f"unknown key{_suggest(key, CONFIG_KEYS)}",
+                    "ignored",
                 )
             )
             continue
@@ -506,7 +584,8 @@ def _read_defaults(file: str, table: object, problems: list[RegistryProblem]) ->
                     file,
                     None,
                     f"defaults.{key}",
-                    f"{problem}; the spec's default {_show(SPEC_DEFAULTS[key])} is used instead",
+                    problem,
+                    f"the spec's default {_show(SPEC_DEFAULTS[key])} is used instead",
                 )
             )
             continue
@@ -525,7 +604,8 @@ def _read_defaults(file: str, table: object, problems: list[RegistryProblem]) ->
                 file,
                 None,
                 f"defaults.{culprit}",
-                f"{message}; the spec's default {_show(SPEC_DEFAULTS[culprit])} is used instead",
+                message,
+                f"the spec's default {_show(SPEC_DEFAULTS[culprit])} is used instead",
             )
         )
         defaults[culprit] = SPEC_DEFAULTS[culprit]
@@ -569,7 +649,8 @@ def _read_wagon(
                 file,
                 wagon_id,
                 "id",
-                f"must match {WAGON_ID_PATTERN.pattern} ({label}); the wagon is left out",
+                f"must match {WAGON_ID_PATTERN.pattern} ({label})",
+                _LEFT_OUT,
             )
         )
         return None, None
@@ -585,24 +666,25 @@ def _read_wagon(
                         file,
                         wagon_id,
                         key,
-                        f"must be a string, {_got(value)}; the wagon is left out",
+                        f"must be a string, {_got(value)}",
+                        _LEFT_OUT,
                     )
                 )
             continue
-        if key not in _RULES:
+        if key not in KEY_RANGES:
             found.append(
                 RegistryProblem(
                     file,
                     wagon_id,
                     key,
-                    f"unknown key{_suggest(key, CONFIG_KEYS + _WAGON_ONLY_KEYS)}; "
-                    "the wagon is left out",
+                    f"unknown key{_suggest(key, CONFIG_KEYS + _WAGON_ONLY_KEYS)}",
+                    _LEFT_OUT,
                 )
             )
             continue
         problem = check_value(key, value)
         if problem is not None:
-            found.append(RegistryProblem(file, wagon_id, key, f"{problem}; the wagon is left out"))
+            found.append(RegistryProblem(file, wagon_id, key, problem, _LEFT_OUT))
             continue
         overrides[key] = value
     # Keys between them, the good overrides over the defaults in force (which are consistent,
@@ -610,9 +692,7 @@ def _read_wagon(
     for keys, message in _cross_problems({**defaults, **overrides}):
         culprit = next((k for k in keys if k in overrides), None)
         if culprit is not None:
-            found.append(
-                RegistryProblem(file, wagon_id, culprit, f"{message}; the wagon is left out")
-            )
+            found.append(RegistryProblem(file, wagon_id, culprit, message, _LEFT_OUT))
     problems.extend(found)
     if found:
         return wagon_id, None
@@ -676,7 +756,8 @@ def load_registry(path: str | Path) -> Registry:
                     wagon_id,
                     "id",
                     f"given by {len(numbers)} [[wagon]] entries ({listed}); which one is meant "
-                    "cannot be told, so the wagon is left out",
+                    "cannot be told",
+                    _LEFT_OUT,
                 )
             )
 
