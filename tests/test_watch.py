@@ -544,3 +544,34 @@ def test_exit_1_when_the_fleet_directory_is_missing_or_goes_away(
     shutil.rmtree(fleet)
     assert watch.process.wait(timeout=60) == 1
     assert "gone" in watch.log.read_text()
+
+
+def test_an_invalid_registry_is_logged_once_and_the_service_keeps_running(
+    fleet: Path, tmp_path: Path, start_watch: Any
+) -> None:
+    db = tmp_path / "fleet.duckdb"
+    (first, second, third) = _sessions(3)
+    watch = start_watch(fleet, db)
+    _land(fleet, tmp_path / "stage", first[0], first[1])
+    watch.wait_for({first[0]})
+    registry = fleet / "fleet.toml"
+    good = registry.read_text(encoding="utf-8")
+    entry = f'id = "{WAGONS[0]}"\n'
+    registry.write_text(good.replace(entry, entry + "cylinder_diameter_m = -0.254\n"))
+    _land(fleet, tmp_path / "stage", second[0], second[1])
+    refused = "the registry cannot be used"
+    deadline = time.monotonic() + BOUND_S
+    while watch.log.read_text().split(refused)[-1].count("trying again in") < 2:
+        assert watch.process.poll() is None, watch.log.read_text()
+        assert time.monotonic() < deadline, watch.log.read_text()
+        time.sleep(0.2)
+    log = watch.log.read_text()
+    assert log.count(refused) == 1, log  # once, though the unit was tried again
+    assert f"wagon {WAGONS[0]}, key cylinder_diameter_m: must be a number in [0.1, 0.6] m" in log
+    assert second[0] not in {o["path"] for o in watch.outcomes}
+    registry.write_text(good)  # fixed: the queued file is taken, and the next one
+    _land(fleet, tmp_path / "stage", third[0], third[1])
+    outcomes = watch.wait_for({second[0], third[0]})
+    assert {o["status"] for o in outcomes} == {"ingested"}
+    assert "the registry is accepted again" in watch.log.read_text()
+    assert watch.terminate() == 0

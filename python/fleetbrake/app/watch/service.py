@@ -58,6 +58,7 @@ from watchdog.events import (
 
 from fleetbrake.app.watch.landing import LOGS_DIR, LandingTracker
 from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
+from fleetbrake.fleet.registry import RegistryError
 
 if TYPE_CHECKING:
     from watchdog.observers.api import BaseObserver
@@ -319,6 +320,8 @@ class _Service:
         """The live viewer of ``config.rerun``, from the service's start."""
         self.retaken: set[str] = set()
         """Files a unit read while they were still being written (see :meth:`_unit`)."""
+        self.refused: str | None = None
+        """Why the registry was last refused (logged once, until it changes or is fixed)."""
 
     def engine(self) -> Engine:
         """The engine every unit runs on, made at the service's start (its workers started
@@ -520,6 +523,20 @@ class _Service:
                 return None
             pause_s = min(2 * pause_s, 0.25)
 
+    def _registry_refused(self, error: RegistryError, queued: int) -> None:
+        """A unit skipped for its registry: said once per distinct reason (the service tries
+        again with backoff, and the files stay queued until the registry is fixed)."""
+        if str(error) == self.refused:
+            logger.debug("unit skipped, the registry still refused: %s", error)
+            return
+        self.refused = str(error)
+        logger.error(
+            "the registry cannot be used, so the unit is skipped and its %s files stay queued "
+            "until it is fixed: %s",
+            queued,
+            error,
+        )
+
     def _unit(self) -> None:
         began = time.monotonic()
         taken = {e.relpath for e in self.tracker.complete()}
@@ -530,7 +547,9 @@ class _Service:
                 raise WatchError(f"{self.fleet_dir}: the fleet directory is gone") from None
             self.report.units_failed += 1
             self.report.last_error = f"{type(error).__name__}: {error}"
-            if isinstance(error, FleetbrakeError):
+            if isinstance(error, RegistryError):
+                self._registry_refused(error, len(taken))
+            elif isinstance(error, FleetbrakeError):
                 logger.error("unit failed (%s files queued): %s", len(taken), error)
             else:
                 logger.exception("unit failed (%s files queued)", len(taken))
@@ -541,6 +560,9 @@ class _Service:
             return
         if report is None:
             return
+        if self.refused is not None:
+            logger.warning("the registry is accepted again; the queued files are processed")
+            self.refused = None
         committed = time.monotonic()
         self.report.units += 1
         self.pause_s = self.config.retry_s
