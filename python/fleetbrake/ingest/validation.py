@@ -76,8 +76,9 @@ class Repairs:
     """What was repaired in one file; every count is also described in :meth:`text`.
 
     A row is read (``rows_in_file``) and then stored or rejected: the rejected ones are those
-    without a time, outside the session, repeating an earlier row's time, and a last row cut
-    short (:attr:`rows_rejected`), each named in :attr:`rejected` and :meth:`rejected_text`.
+    of other than the header's fields, without a time, outside the session, repeating an
+    earlier row's time, and a last row cut short (:attr:`rows_rejected`), each named in
+    :attr:`rejected` and :meth:`rejected_text`.
     """
 
     rows_in_file: int = 0
