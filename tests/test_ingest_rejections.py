@@ -102,7 +102,7 @@ def test_a_row_with_an_extra_field_of_a_megabyte_is_rejected_and_named(
     assert _rejections(db, path) == [(2, 2, 1, f"{FIELDS + 1} fields ({FIELDS} expected)")]
     assert report.rows_rejected == 1
     assert [r.message for r in caplog.records] == [
-        f"{path}: 1 rows rejected, {ROWS - 1} stored (see v_file_rejections)"
+        f"{path}: 1 of {ROWS} rows read rejected (see v_file_rejections)"
     ]
     console = Console(record=True, width=200)
     print_report(report, console)

@@ -245,10 +245,10 @@ def ingest_fleet(
                         next_id += 1
                         if result.rows_rejected:
                             logger.warning(
-                                "%s: %d rows rejected, %d stored (see v_file_rejections)",
+                                "%s: %d of %d rows read rejected (see v_file_rejections)",
                                 result.path,
                                 result.rows_rejected,
-                                result.rows,
+                                result.rows + result.rows_rejected,
                             )
                     bar.advance(prepared.parsed.frame.height if prepared.parsed is not None else 0)
                 batch.end_partition()
