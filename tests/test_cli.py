@@ -138,6 +138,9 @@ def test_run_prints_a_json_summary_of_what_it_stored(fleet: Fleet) -> None:
         ((simulated,),) = con.sql("SELECT count(DISTINCT event_id) FROM v_predictions").fetchall()
         flags = dict(con.sql("SELECT kind, count(*) FROM v_flags GROUP BY kind").fetchall())
         ((rows,),) = con.sql("SELECT sum(rows) FROM v_files WHERE status = 'ingested'").fetchall()
+        ((rejected,),) = con.sql(
+            "SELECT coalesce(sum(rows_rejected), 0) FROM v_files WHERE status = 'ingested'"
+        ).fetchall()
     finally:
         con.close()
     assert summary["command"] == "run"
@@ -146,6 +149,7 @@ def test_run_prints_a_json_summary_of_what_it_stored(fleet: Fleet) -> None:
     assert summary["files"]["quarantined"] == files.get("quarantined", 0) > 0  # bad files made
     assert summary["files"]["seen"] == sum(files.values())
     assert summary["rows"] == rows
+    assert summary["rows_rejected"] == rejected
     assert summary["events"] == events > 0
     assert summary["events_simulated"] == simulated
     assert summary["prediction_rows"] == predictions

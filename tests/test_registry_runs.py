@@ -91,14 +91,15 @@ def cli(monkeypatch: pytest.MonkeyPatch, rom_refinement: float, rom_cache_dir: P
         ("blocks_per_bogie = 0", "blocks_per_bogie", "[1, 64]"),
     ],
 )
+@pytest.mark.parametrize("command", ["run", "ingest"])
 def test_an_invalid_value_of_a_stored_wagon_is_a_configuration_error(
-    copy: tuple[Path, Path], cli: CliRunner, line: str, key: str, allowed: str
+    copy: tuple[Path, Path], cli: CliRunner, line: str, key: str, allowed: str, command: str
 ) -> None:
     fleet_dir, db = copy
     before = snapshot(db)
     _set_key(fleet_dir, "SGG-0001", line)  # no new file of the wagon: checked all the same
-    result = cli.invoke(app, ["run", str(fleet_dir), "--db", str(db)])
-    message = _one_line_failure(result, 2, "run")
+    result = cli.invoke(app, [command, str(fleet_dir), "--db", str(db)])
+    message = _one_line_failure(result, 2, command)
     assert f"{fleet_dir / 'fleet.toml'}: wagon SGG-0001, key {key}: " in message
     assert allowed in message
     assert "nothing was written" in message

@@ -68,6 +68,7 @@ def run_summary(report: RunReport) -> dict[str, Any]:
             "quarantined": len(ingest.quarantined),
         },
         "rows": ingest.rows,
+        "rows_rejected": ingest.rows_rejected,
         "events": ingest.events.total if ingest.events is not None else None,
         "events_simulated": sim.events_simulated,
         "prediction_rows": sim.prediction_rows,

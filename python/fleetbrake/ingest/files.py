@@ -308,11 +308,13 @@ def run_ingest(
     (waiting up to ``wait_s`` for another writer), ingest, detect events, close.
 
     Raises :class:`FleetDirError`, :class:`~fleetbrake.fleet.registry.RegistryError` (before the
-    database is touched) and :class:`~fleetbrake.warehouse.connection.WarehouseError` (locked, unusable,
+    database is touched), :class:`~fleetbrake.fleet.registry.InvalidRegistryError` when an
+    entry of a wagon the warehouse holds is invalid (before anything is written) and :class:`~fleetbrake.warehouse.connection.WarehouseError` (locked, unusable,
     or failing while written: disk full, ...; what was committed before stays).
     """
     registry = load_fleet_registry(fleet_dir)
     with open_warehouse(db_path, wait_s=wait_s) as wh:
+        registry.check_held(held_wagons(wh))  # before anything is written
         try:
             report = ingest_fleet(
                 fleet_dir, wh, registry=registry, config=config, progress=progress, engine=engine
@@ -346,3 +348,10 @@ def print_report(report: IngestReport, console: Console | None = None) -> None:
             f"events: {ev.added} new or changed, {ev.removed} removed, {ev.unchanged} unchanged "
             f"({ev.chains} stretches of {ev.wagons} wagons looked at); {ev.total} in total"
         )
+
+
+def held_wagons(wh: Warehouse) -> list[str]:
+    """The wagons whose registry entries a run stored: those with results in the warehouse,
+    whose entries every run checks (:meth:`~fleetbrake.fleet.registry.Registry.check_held`),
+    whether or not they have new files."""
+    return [row[0] for row in wh.con.execute(sql("q_simulation_stored_wagons")).fetchall()]
