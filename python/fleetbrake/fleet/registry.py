@@ -229,7 +229,10 @@ class KeyRange:
         """True when ``value`` (of the right type) lies in the range."""
         if self.kind == "name":
             return value in KNOWN_BLOCKS
-        number = float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # a TOML integer of hundreds of digits
+            return False
         if not math.isfinite(number):
             return False
         if self.low is not None and (number < self.low or (self.low_open and number == self.low)):
@@ -550,6 +553,12 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise RegistryError(f"{path}: not a TOML file (not UTF-8 text: {error.reason})") from None
     except tomllib.TOMLDecodeError as error:
         raise RegistryError(f"{path}: not a valid TOML file: {error}") from None
+    except ValueError as error:  # an integer of more digits than Python converts
+        raise RegistryError(f"{path}: not a usable TOML file: {error}") from None
+    except RecursionError:
+        raise RegistryError(
+            f"{path}: not a usable TOML file: arrays or tables nested too deeply"
+        ) from None
 
 
 def _read_defaults(file: str, table: object, problems: list[RegistryProblem]) -> dict[str, Any]:
