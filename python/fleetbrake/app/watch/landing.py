@@ -59,12 +59,15 @@ class LandingTracker:
         settle_s: float,
         *,
         clock: Callable[[], float] = time.monotonic,
-        wall_clock_ns: Callable[[], int] = time.time_ns,
+        wall_clock_ns: Callable[[], int] | None = None,
     ) -> None:
         self.fleet_dir = Path(os.path.abspath(fleet_dir))
         self.settle_s = settle_s
         self._clock = clock
-        self._wall_ns = wall_clock_ns
+        # the wall clock only dates files (their modification times); every wait is timed
+        # by ``clock``, monotonic, so that a jump of the wall clock neither stalls nor hurries
+        # one (None: ``time.time_ns``, looked up at each call)
+        self._wall_ns = wall_clock_ns or (lambda: time.time_ns())
         self._files: dict[str, Landing] = {}
 
     # ---------------------------------------------------------------------------------------

@@ -26,14 +26,18 @@ One loop, on the calling thread:
 * a **health line** every ``health_s`` (files processed, queue, last error), at info level;
 * for each file a unit processed, :class:`FileOutcome` to ``on_file``.
 
-An error in one unit is logged and the service goes on (the files stay queued and are tried
-again after a pause); :class:`WatchError` (exit 1) only when it cannot do its job at all: the
+An error in one unit is logged once, as a sentence of :mod:`.faults` (not at every retry), and
+the service goes on: the unit is rolled back, its files stay queued and are tried again after
+a pause, until the fault clears (a full disk under the warehouse, a registry being edited).
+``logs/`` turning read-only is said once too (the files already there are still read);
+:class:`WatchError` (exit 1) only when it cannot do its job at all: the
 fleet directory is gone, or the observer cannot watch.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import random
 import threading
@@ -56,9 +60,9 @@ from watchdog.events import (
     FileSystemEventHandler,
 )
 
+from fleetbrake.app.watch.faults import UnitFault, unit_fault
 from fleetbrake.app.watch.landing import LOGS_DIR, LandingTracker
 from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
-from fleetbrake.fleet.registry import RegistryError
 
 if TYPE_CHECKING:
     from watchdog.observers.api import BaseObserver
@@ -320,8 +324,10 @@ class _Service:
         """The live viewer of ``config.rerun``, from the service's start."""
         self.retaken: set[str] = set()
         """Files a unit read while they were still being written (see :meth:`_unit`)."""
-        self.refused: str | None = None
-        """Why the registry was last refused (logged once, until it changes or is fixed)."""
+        self.fault: UnitFault | None = None
+        """Why the last unit failed (logged once, until it changes or a unit commits)."""
+        self.landing_read_only = False
+        """Whether ``logs/`` was on a read-only filesystem at the last step."""
 
     def engine(self) -> Engine:
         """The engine every unit runs on, made at the service's start (its workers started
@@ -390,6 +396,7 @@ class _Service:
             raise WatchError(f"{self.fleet_dir}: the fleet directory (or its logs/) is gone")
         if not observer.is_alive():
             raise WatchError(f"{self.fleet_dir / LOGS_DIR}: the observer stopped")
+        self._landing_writable()
         self._drain()
         now = time.monotonic()
         if now >= self.next_rescan:
@@ -523,19 +530,45 @@ class _Service:
                 return None
             pause_s = min(2 * pause_s, 0.25)
 
-    def _registry_refused(self, error: RegistryError, queued: int) -> None:
-        """A unit skipped for its registry: said once per distinct reason (the service tries
-        again with backoff, and the files stay queued until the registry is fixed)."""
-        if str(error) == self.refused:
-            logger.debug("unit skipped, the registry still refused: %s", error)
+    def _failed(self, error: Exception, queued: int) -> None:
+        """A failed unit said once per distinct fault (the service tries again with backoff,
+        and the files stay queued until the fault clears); repeats go to the debug log."""
+        fault = unit_fault(error, self.db_path, queued)
+        if fault.key == (self.fault.key if self.fault is not None else None):
+            logger.debug("unit failed again: %s", error)
             return
-        self.refused = str(error)
-        logger.error(
-            "the registry cannot be used, so the unit is skipped and its %s files stay queued "
-            "until it is fixed: %s",
-            queued,
-            error,
-        )
+        self.fault = fault
+        logger.error("%s", fault.sentence, exc_info=error if fault.traceback else None)
+
+    def _recovered(self) -> None:
+        """A unit committed after failed ones: said once."""
+        if self.fault is None:
+            return
+        if self.fault.key.startswith("registry"):
+            logger.warning("the registry is accepted again; the queued files are processed")
+        else:
+            logger.warning("units commit again; the queued files are processed")
+        self.fault = None
+
+    def _landing_writable(self) -> None:
+        """Said once when ``logs/`` turns read-only (nothing new can land; the files there
+        are still read), and once when it is writable again."""
+        logs = self.fleet_dir / LOGS_DIR
+        try:
+            read_only = bool(os.statvfs(logs).f_flag & os.ST_RDONLY)
+        except OSError:
+            return  # gone: the next step says so
+        if read_only == self.landing_read_only:
+            return
+        self.landing_read_only = read_only
+        if read_only:
+            logger.warning(
+                "%s is on a read-only filesystem: no file can land until it is writable "
+                "again; the files already there are processed",
+                logs,
+            )
+        else:
+            logger.warning("%s is writable again", logs)
 
     def _unit(self) -> None:
         began = time.monotonic()
@@ -547,12 +580,8 @@ class _Service:
                 raise WatchError(f"{self.fleet_dir}: the fleet directory is gone") from None
             self.report.units_failed += 1
             self.report.last_error = f"{type(error).__name__}: {error}"
-            if isinstance(error, RegistryError):
-                self._registry_refused(error, len(taken))
-            elif isinstance(error, FleetbrakeError):
-                logger.error("unit failed (%s files queued): %s", len(taken), error)
-            else:
-                logger.exception("unit failed (%s files queued)", len(taken))
+            self._failed(error, len(taken))
+            if not isinstance(error, FleetbrakeError):
                 self._close_engine()  # a fresh one for the next unit
             self.next_unit = time.monotonic() + self.pause_s
             logger.info("trying again in %g s", self.pause_s)
@@ -560,9 +589,7 @@ class _Service:
             return
         if report is None:
             return
-        if self.refused is not None:
-            logger.warning("the registry is accepted again; the queued files are processed")
-            self.refused = None
+        self._recovered()
         committed = time.monotonic()
         self.report.units += 1
         self.pause_s = self.config.retry_s
@@ -577,7 +604,10 @@ class _Service:
                 # written again after it was handed to the unit, which may have read it
                 # half-written: it stays queued, and the next unit reads it again (its new
                 # bytes replace what was stored of it)
-                logger.warning("%s: read while still being written; taken again", result.path)
+                logger.warning(
+                    "%s: changed while it was read (written to, or replaced); read again",
+                    result.path,
+                )
                 self.tracker.writing(self.fleet_dir / result.path)
                 self.retaken.add(result.path)
                 continue
