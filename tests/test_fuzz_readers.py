@@ -38,6 +38,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import duckdb
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
@@ -45,11 +46,12 @@ from hypothesis import strategies as st
 from fleetbrake.fleet import logfile as lf
 from fleetbrake.fleet.registry import KEY_RANGES, RegistryError, load_registry
 from fleetbrake.ingest.config import IngestConfig
+from fleetbrake.ingest.files import run_ingest
 from fleetbrake.ingest.prepare import FilePartition, prepare_partition
 from fleetbrake.ingest.quarantine import Quarantine
 from fleetbrake.ingest.reading import read_log
 from fleetbrake.ingest.scan import LogEntry
-from fleetgen import T0_UTC, registry_text, simple_session
+from fleetgen import T0_UTC, registry_text, simple_session, write_registry
 
 FUZZ_EXAMPLES = 500
 """Inputs per fuzz test in the default profile (CI)."""
@@ -655,3 +657,46 @@ def test_registry_values_too_large_and_nesting_too_deep_are_named(
         return
     assert not registry.wagons
     assert expected in str(registry.problems[0])
+
+
+_PER_FILE_SQL = """
+WITH named AS (SELECT file_id, sum(rows) AS n FROM file_rejections GROUP BY file_id),
+     stored AS (SELECT file_id, count(*) AS n FROM samples GROUP BY file_id)
+SELECT path, status, quarantine_code, rows, rows_in_file, rows_rejected,
+       coalesce(named.n, 0), coalesce(stored.n, 0)
+FROM files LEFT JOIN named USING (file_id) LEFT JOIN stored USING (file_id)
+"""
+"""Each file of the ledger: path, status, code, rows, rows read, rows rejected, rejected rows
+named in ``file_rejections``, samples stored."""
+
+
+@settings(FUZZ, max_examples=max(1, FUZZ.max_examples // 25))
+@given(files=st.lists(st.lists(mutation, min_size=1, max_size=3), min_size=1, max_size=3))
+def test_ingestion_stores_or_names_every_row_of_mutated_files(
+    files: list[list[tuple[str, int, int]]],
+) -> None:
+    """Mutated files ingested into a warehouse: each file's rows read are its samples plus its
+    rejected rows, every rejected row in ``file_rejections``; a reader failure never."""
+    TRIED["ingestion, mutated files"] += 1
+    with tempfile.TemporaryDirectory() as folder:
+        fleet, db = Path(folder, "fleet"), Path(folder, "fleet.duckdb")
+        write_registry(fleet, [WAGON])
+        for hour, mutations in enumerate(files):
+            relpath = lf.log_relpath(WAGON, T0_UTC + dt.timedelta(hours=hour), gzip=False)
+            data = _mutated(mutations).replace(
+                b"2024-03-01T06", f"2024-03-01T{6 + hour:02d}".encode()
+            )
+            (fleet / relpath).parent.mkdir(parents=True, exist_ok=True)
+            (fleet / relpath).write_bytes(data)
+        run_ingest(fleet, db, config=CONFIG, progress=False)
+        with duckdb.connect(str(db), read_only=True) as con:
+            rows = con.execute(_PER_FILE_SQL).fetchall()
+        assert len(rows) == len(files)
+        for path, status, code, stored, read, rejected, named, samples in rows:
+            OUTCOMES[f"ingestion outcome: {status}" + (f" ({code})" if code else "")] += 1
+            assert code != "error", path
+            if read is None:  # quarantined before its rows were read
+                assert status == "quarantined" and stored == 0 and samples == 0
+                continue
+            assert read == _data_lines((fleet / path).read_bytes()), path
+            assert stored == samples and read == stored + rejected and named == rejected, path
