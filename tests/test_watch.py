@@ -326,7 +326,7 @@ def test_a_file_written_slowly_is_taken_only_once_complete(
         taken = [o for o in outcomes if o["path"] == slow]
         assert len(taken) == 1, outcomes
         # never handed to a unit while it was written: never read half-written
-        assert "read while still being written" not in watch.log.read_text()
+        assert "changed while it was read" not in watch.log.read_text()
         assert taken[0]["rows"] == rows
         con = duckdb.connect(str(db), read_only=True)
         try:

@@ -200,7 +200,7 @@ def test_a_full_disk_under_the_warehouse_is_said_once_and_the_files_wait_for_spa
         _land(fleet, tmp_path / "stage", third[0], third[1])
         watch.wait_until("three retries", lambda: watch.log().count("trying again in") >= 3)
         log = watch.log()
-        full = f"the disk of the warehouse ({folder}) is full: the unit is rolled back"
+        full = f"the disk of the warehouse ({folder}) is full: the unit stops"
         assert log.count(full) == 1, log
         assert "unit failed" not in log, log
         assert not any(r.exc_info for r in watch.handler.records), "a traceback for a full disk"

@@ -1,7 +1,8 @@
 """Why a unit of ``fleetbrake watch`` failed, as one sentence the service logs once.
 
-A unit that fails is rolled back (nothing of it is committed) and its files stay queued; the
-service tries again with backoff. The same fault would otherwise be logged at every retry, so
+A unit that fails stops (what its stages committed stays, and the next unit completes the
+rest) and its files stay queued; the service tries again with backoff. The same fault would
+otherwise be logged at every retry, so
 each failure is reduced to a :class:`UnitFault` whose ``key`` names the fault, not the
 attempt: the service logs the sentence when the key changes, and says once that units commit
 again when one does.
@@ -64,14 +65,14 @@ def unit_fault(error: Exception, db_path: Path, queued: int) -> UnitFault:
     if _has(error, errno.ENOSPC, _DISK_FULL):
         return UnitFault(
             "disk full",
-            f"the disk of the warehouse ({db_path.parent}) is full: the unit is rolled back "
-            f"and {files} until space is freed",
+            f"the disk of the warehouse ({db_path.parent}) is full: the unit stops and "
+            f"{files} until space is freed",
         )
     if _has(error, errno.EROFS, _READ_ONLY):
         return UnitFault(
             "warehouse read-only",
             f"the warehouse's folder ({db_path.parent}) is on a read-only filesystem: the unit "
-            f"is rolled back and {files} until it is writable",
+            f"stops and {files} until it is writable",
         )
     text = f"{type(error).__name__}: {error}"
     if isinstance(error, FleetbrakeError):

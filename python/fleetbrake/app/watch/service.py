@@ -27,8 +27,8 @@ One loop, on the calling thread:
 * for each file a unit processed, :class:`FileOutcome` to ``on_file``.
 
 An error in one unit is logged once, as a sentence of :mod:`.faults` (not at every retry), and
-the service goes on: the unit is rolled back, its files stay queued and are tried again after
-a pause, until the fault clears (a full disk under the warehouse, a registry being edited).
+the service goes on: the unit stops, its files stay queued and are tried again after a
+pause, until the fault clears (a full disk under the warehouse, a registry being edited).
 ``logs/`` turning read-only is said once too (the files already there are still read);
 :class:`WatchError` (exit 1) only when it cannot do its job at all: the
 fleet directory is gone, or the observer cannot watch.
