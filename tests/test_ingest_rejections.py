@@ -104,7 +104,7 @@ def test_a_row_with_an_extra_field_of_a_megabyte_is_rejected_and_named(
     assert [r.message for r in caplog.records] == [
         f"{path}: 1 of {ROWS} rows read rejected (see v_file_rejections)"
     ]
-    console = Console(record=True, width=200)
+    console = Console(record=True, width=200, soft_wrap=True)
     print_report(report, console)
     assert f"1 ingested ({ROWS - 1:,} rows, 1 rejected)" in console.export_text()
 
