@@ -94,6 +94,17 @@ def test_tracker_takes_renamed_and_closed_files_at_once_and_settles_the_others(
     tracker.refresh()
     assert tracker.get("logs/W/d.csv").complete is True  # type: ignore[union-attr]
 
+    # one seen being written settles by the monotonic clock alone, whatever the wall clock
+    # says of its modification time (a wall clock jumped forward makes it look old)
+    (logs / "e.csv").write_text("x")
+    tracker.writing(logs / "e.csv")
+    for _ in range(3):
+        tracker.refresh()
+    assert tracker.get("logs/W/e.csv").complete is False  # type: ignore[union-attr]
+    clock.now += 5.0
+    tracker.refresh()
+    assert tracker.get("logs/W/e.csv").complete is True  # type: ignore[union-attr]
+
     # taken again once written again after it was complete; forgotten when deleted
     tracker.writing(logs / "b.csv")
     assert not tracker.get("logs/W/b.csv").complete  # type: ignore[union-attr]

@@ -9,7 +9,9 @@ A file is taken once it is complete:
 * **settled**: its size and modification time have not changed for ``settle_s`` seconds,
   seen by two looks at it (the polling observer, a file found by a rescan, a writer that keeps
   the file open between bursts). A file whose modification time is already ``settle_s`` old
-  when it is first looked at is settled at the next look.
+  when it is first looked at is settled at the next look, unless it was seen being written
+  (the wall clock that dates it may have jumped; a file seen being written settles by the
+  monotonic clock alone).
 
 Hidden names (a component starting with ``.``) are ignored, as the ingestion ignores them.
 A file created or modified again after it was complete is being written again: it waits.
@@ -48,6 +50,9 @@ class Landing:
     """Since when (monotonic) size and modification time have been as they are."""
     looks: int = 0
     """How many times its size and modification time were read unchanged in a row."""
+    seen_writing: bool = False
+    """Whether it was seen being created or written to (then it settles by ``stable_since_s``
+    alone, never by the age of its modification time)."""
 
 
 class LandingTracker:
@@ -100,7 +105,7 @@ class LandingTracker:
             return
         entry = self._entry(rel)
         entry.complete, entry.how, entry.looks = False, "", 0
-        entry.stable_since_s = self._clock()
+        entry.stable_since_s, entry.seen_writing = self._clock(), True
 
     def finished(self, path: str | os.PathLike[str], how: str) -> None:
         """``path`` was renamed into place or closed after writing: it is complete."""
@@ -151,7 +156,7 @@ class LandingTracker:
             entry.looks += 1
             old_s = (self._wall_ns() - stat.st_mtime_ns) / 1e9
             if now - entry.stable_since_s >= self.settle_s or (
-                entry.looks >= 2 and old_s >= self.settle_s
+                entry.looks >= 2 and old_s >= self.settle_s and not entry.seen_writing
             ):
                 entry.complete, entry.how = True, "settled"
 
