@@ -160,7 +160,7 @@ def run_fleet(
     directory judges none, a late file its wagon alone.
     """
     from fleetbrake.flags import FlagConfig, load_flag_config
-    from fleetbrake.ingest.files import held_wagons, load_fleet_registry
+    from fleetbrake.ingest.files import load_fleet_registry
     from fleetbrake.warehouse.connection import open_warehouse
 
     progress = sys.stdout.isatty() if progress is None else progress
@@ -176,7 +176,6 @@ def run_fleet(
         with open_warehouse(
             db_path, wait_s=wait_s, memory_limit=WRITER_MEMORY_LIMIT, threads=WRITER_THREADS
         ) as wh:
-            registry.check_held(held_wagons(wh))  # before anything is written
             return _stages(
                 wh,
                 db_path,

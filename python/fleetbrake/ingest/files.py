@@ -185,7 +185,10 @@ def ingest_fleet(
     stored again, but its ledger row takes the new ones, so that it is not read again.
 
     ``registry`` defaults to the fleet's ``fleet.toml`` (see :func:`load_fleet_registry` for
-    what raises); bad files never raise (they are quarantined). ``progress=None`` shows a
+    what raises); before anything is written, every entry of a wagon the warehouse holds is
+    checked (:meth:`~fleetbrake.fleet.registry.Registry.check_held`: an invalid one raises
+    :class:`~fleetbrake.fleet.registry.InvalidRegistryError`, for ``run``, ``ingest`` and
+    each unit of ``watch`` alike); bad files never raise (they are quarantined). ``progress=None`` shows a
     progress bar when stderr is a terminal.
 
     The new files are cut into partitions (a wagon directory's files, at most
@@ -202,6 +205,7 @@ def ingest_fleet(
     started = time.perf_counter()
     if registry is None:
         registry = load_fleet_registry(fleet_dir)
+    registry.check_held(_held_wagons(wh))  # before anything is written
     report = IngestReport(
         fleet_dir=fleet_dir,
         db_path=wh.path,
@@ -314,7 +318,6 @@ def run_ingest(
     """
     registry = load_fleet_registry(fleet_dir)
     with open_warehouse(db_path, wait_s=wait_s) as wh:
-        registry.check_held(held_wagons(wh))  # before anything is written
         try:
             report = ingest_fleet(
                 fleet_dir, wh, registry=registry, config=config, progress=progress, engine=engine
@@ -350,7 +353,7 @@ def print_report(report: IngestReport, console: Console | None = None) -> None:
         )
 
 
-def held_wagons(wh: Warehouse) -> list[str]:
+def _held_wagons(wh: Warehouse) -> list[str]:
     """The wagons whose registry entries a run stored: those with results in the warehouse,
     whose entries every run checks (:meth:`~fleetbrake.fleet.registry.Registry.check_held`),
     whether or not they have new files."""
