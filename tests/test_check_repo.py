@@ -20,6 +20,8 @@ ISSUE = "iss" + "ue 7"
 PERIOD_WORD = "sit" + "ting"
 SCRATCH_DIR = "/" + "tmp/"
 SCRATCH = SCRATCH_DIR + "scratch.txt"
+LOOKALIKE = "T" + TAG
+"""An identifier that holds a tag's letters inside a longer word: not a tag."""
 
 
 def _check(root: Path) -> subprocess.CompletedProcess[str]:
@@ -40,8 +42,8 @@ def _clean_tree(root: Path) -> None:
     _write(
         root,
         "python/fleetbrake/small.py",
-        "TEST13 = 1  # identifiers that hold the letters are not tags: SIMD2, RUNS3\n"
-        "def f() -> int:\n    return TEST13\n",
+        f"{LOOKALIKE} = 1  # identifiers that hold the letters are not tags: SIMD2, RUNS3\n"
+        f"def f() -> int:\n    return {LOOKALIKE}\n",
     )
     _write(root, "crates/core/src/lib.rs", "pub fn f() -> u32 { 1 }\n" * 10)
     _write(root, "docs/guide.md", "# Guide\n\nEach recording session of a wagon is one file.\n")

@@ -142,7 +142,7 @@ def test_a_cached_fleet_is_reused_and_the_run_gets_a_copy(tmp_path: Path) -> Non
     first = af.cached_fleet(
         "tiny",
         tiny_config(),
-        tmp_path / "run1" / "fleet",
+        tmp_path / "first" / "fleet",
         lambda d: _tiny_write(d, writes),
         version=version,
         root=root,
@@ -154,20 +154,20 @@ def test_a_cached_fleet_is_reused_and_the_run_gets_a_copy(tmp_path: Path) -> Non
     second = af.cached_fleet(
         "tiny",
         tiny_config(),
-        tmp_path / "run2" / "fleet",
+        tmp_path / "second" / "fleet",
         lambda d: _tiny_write(d, writes),
         version=version,
         root=root,
     )
     assert (second, len(writes)) == (True, 1)  # reused, not written again
     cached = root / entries[0] / "fleet"
-    compared = filecmp.dircmp(cached, tmp_path / "run2" / "fleet")
+    compared = filecmp.dircmp(cached, tmp_path / "second" / "fleet")
     assert not (compared.left_only or compared.right_only or compared.diff_files)
-    truth = load_truth(tmp_path / "run2" / "fleet")
-    assert truth.out_dir == tmp_path / "run2" / "fleet"
-    assert truth.to_dict() == load_truth(tmp_path / "run1" / "fleet").to_dict()
+    truth = load_truth(tmp_path / "second" / "fleet")
+    assert truth.out_dir == tmp_path / "second" / "fleet"
+    assert truth.to_dict() == load_truth(tmp_path / "first" / "fleet").to_dict()
     # the run's copy is its own: changing it leaves the cache as it was
-    for path in (tmp_path / "run2" / "fleet").rglob("*"):
+    for path in (tmp_path / "second" / "fleet").rglob("*"):
         if path.is_file():
             path.unlink()
     assert any(p.is_file() for p in cached.rglob("*"))
@@ -175,7 +175,7 @@ def test_a_cached_fleet_is_reused_and_the_run_gets_a_copy(tmp_path: Path) -> Non
     other = af.cached_fleet(
         "tiny",
         tiny_config(),
-        tmp_path / "run3" / "fleet",
+        tmp_path / "third" / "fleet",
         lambda d: _tiny_write(d, writes),
         version="0" * 64,
         root=root,
