@@ -212,25 +212,43 @@ def test_missing_inputs_are_errors(default_rom):
 # Each effect, where it acts
 
 
-def _karwatzki(v_kmh: float, force_kn: float, v_s: float = 100.0, k_s: float = 100.0) -> float:
-    """Karwatzki's law for cast-iron blocks as the literature writes it (v_s = k_s = 100)."""
+def _karwatzki(v_kmh: float, force_kn: float, v_s: float = 100.0, k_s: float = 980.665) -> float:
+    """Karwatzki's law for cast-iron blocks, the force in kN against K_s in kN."""
     return 0.6 * (16 * force_kn + k_s) / (80 * force_kn + k_s) * (v_kmh + v_s) / (5 * v_kmh + v_s)
+
+
+def _karwatzki_as_published(v_kmh: float, force_tf: float) -> float:
+    """The law as the literature prints it: K in tonne-force, v in km/h, constants 100."""
+    return 0.6 * (16 * force_tf + 100) / (80 * force_tf + 100) * (v_kmh + 100) / (5 * v_kmh + 100)
 
 
 def test_friction_speed_is_karwatzkis_law_with_its_level():
     law = FrictionSpeed()  # level 1, the literature's constants
     for v, force_kn in [(0.0, 0.0), (100.0, 10.0), (60.0, 1.5), (30.0, 4.2), (120.0, 25.0)]:
-        expected = _karwatzki(v, force_kn)
+        expected = _karwatzki_as_published(v, force_kn / 9.80665)
         assert float(law.mu(np.array(v), np.array(force_kn * 1000.0))) == pytest.approx(
             expected, rel=1e-12
         )
-    # written out at two points: mu(0, 0) = 0.6; mu(100 km/h, 10 kN) = 0.6 (260/900) (200/600)
+    # written out at two points: mu(0, 0) = 0.6; mu(100 km/h, 1 tf) = 0.6 (116/180) (200/600)
     assert float(law.mu(np.array(0.0), np.array(0.0))) == pytest.approx(0.6)
-    assert float(law.mu(np.array(100.0), np.array(1e4))) == pytest.approx(0.057777777777, rel=1e-9)
-    # the free parameters: the level scales mu, the scales replace the literature's 100s
-    other = FrictionSpeed(level=1.2, speed_scale_kmh=80.0, force_scale_kn=150.0)
-    v, k = 70.0, 2.5
-    written = 1.2 * 0.6 * (16 * k + 150) / (80 * k + 150) * (v + 80) / (5 * v + 80)
+    one_tf_n = 9.80665e3
+    assert float(law.mu(np.array(100.0), np.array(one_tf_n))) == pytest.approx(
+        0.6 * 116 / 180 / 3, rel=1e-12
+    )
+    # the SI form of the textbooks, (1.6 K + 100)/(8 K + 100) with K in kN, rounds g to 10:
+    # within 1 % of the tonne-force law over a wagon's block forces
+    for force_kn in (5.0, 15.0, 25.0, 40.0):
+        si = 0.6 * (1.6 * force_kn + 100) / (8 * force_kn + 100)
+        assert float(law.mu(np.array(0.0), np.array(force_kn * 1e3))) == pytest.approx(si, rel=1e-2)
+    # cast iron's level at a freight wagon's 20-30 kN a block and 40 km/h: 0.12-0.14 (read
+    # with K in kN against K_s = 100, it would be half of that)
+    mu_40 = law.mu(np.array([40.0, 40.0]), np.array([20e3, 30e3]))
+    assert np.all((mu_40 > 0.12) & (mu_40 < 0.145))
+    assert _karwatzki(40.0, 25.0, k_s=100.0) < 0.07
+    # the free parameters: the level scales mu, the scales replace the literature's constants
+    other = FrictionSpeed(level=1.2, speed_scale_kmh=80.0, force_scale_kn=1500.0)
+    v, k = 70.0, 25.0
+    written = 1.2 * 0.6 * (16 * k + 1500) / (80 * k + 1500) * (v + 80) / (5 * v + 80)
     assert float(other.mu(np.array(v), np.array(k * 1e3))) == pytest.approx(written, rel=1e-12)
     # negative inputs are no force and standstill
     assert float(law.mu(np.array(-5.0), np.array(-10.0))) == pytest.approx(0.6)

@@ -13,7 +13,9 @@ import numpy as np
 from fleetbrake.model.effects.base import DriveInputs, Effect, FloatArray
 
 __all__ = [
+    "KARWATZKI_FORCE_SCALE_KN",
     "KARWATZKI_LEVEL",
+    "TONNE_FORCE_N",
     "FrictionSpeed",
     "FrictionSpeedNormalised",
     "FrictionTemperature",
@@ -25,21 +27,31 @@ __all__ = [
 KARWATZKI_LEVEL = 0.6
 """The constant of Karwatzki's law for cast-iron blocks (mu at rest under a vanishing force)."""
 
+TONNE_FORCE_N = 9.80665e3
+"""N in one tonne-force, the unit of the block force in Karwatzki's law as published."""
+
+KARWATZKI_FORCE_SCALE_KN = 100.0 * TONNE_FORCE_N / 1000.0
+"""K_s of Karwatzki's law: 100 tonne-force, in kN (980.665)."""
+
 
 @dataclass(frozen=True)
 class FrictionSpeed(Effect):
     """Karwatzki's law for cast-iron (P10) brake blocks, with its level:
 
-    ``mu(v, F) = level 0.6 (16 K + K_s) / (80 K + K_s) (v + v_s) / (5 v + v_s)``
+    ``mu(v, K) = level 0.6 (16 K + K_s) / (80 K + K_s) (v + v_s) / (5 v + v_s)``
 
-    with K the block's normal force in kN, v the speed in km/h, and the literature's
-    constants K_s = 100 kN and v_s = 100 km/h (Karwatzki's formula for grey cast-iron blocks
-    as the railway braking literature quotes it, e.g. Wende, *Fahrdynamik des
-    Schienenverkehrs*, Teubner 2003; the same speed and block-pressure dependence is
-    discussed by Koffman, "Adhesion and friction in rail traction", J. Inst. Locomotive
-    Engineers 38, 1948). The coefficient is the law's own, NOT normalised to the registry's
-    mu: the friction power is ``mu(v, F) F v``, so the flux built with the registry's mu is
-    scaled by ``mu(v, F) / mu_registry`` (``DriveInputs.friction_coefficient``).
+    with K the block's normal force and v the speed in km/h; the literature's constants are
+    K_s = 100 and v_s = 100 with K in tonne-force (Karwatzki's formula for grey cast-iron
+    blocks as the railway braking literature quotes it, e.g. Wende, *Fahrdynamik des
+    Schienenverkehrs*, Teubner 2003, and the Russian braking textbooks that write it with K
+    in tonne-force; its SI form ``(1.6 K + 100) / (8 K + 100)`` with K in kN rounds g to
+    10 m/s²). The force ratio depends on K / K_s alone, so the code takes K in kN and
+    K_s = 100 tf = 980.665 kN (``KARWATZKI_FORCE_SCALE_KN``). Read with K in kN against
+    K_s = 100, the law would give mu of 0.06-0.07 at a freight wagon's 20-30 kN a block
+    and 40 km/h, half of what cast iron gives; in tonne-force it gives 0.12-0.14.
+    The coefficient is the law's own, NOT normalised to the registry's mu: the friction
+    power is ``mu(v, F) F v``, so the flux built with the registry's mu is scaled by
+    ``mu(v, F) / mu_registry`` (``DriveInputs.friction_coefficient``).
 
     Free parameters: ``level`` (a scale on the literature's 0.6: blocks of another cast or
     state), ``speed_scale_kmh`` (v_s) and ``force_scale_kn`` (K_s). The scales are admissible
@@ -53,17 +65,17 @@ class FrictionSpeed(Effect):
     PARAMETER_RANGES: ClassVar[Mapping[str, tuple[float, float]]] = {
         "level": (0.7, 1.4),
         "speed_scale_kmh": (60.0, 160.0),
-        "force_scale_kn": (50.0, 200.0),
+        "force_scale_kn": (0.5 * KARWATZKI_FORCE_SCALE_KN, 2.0 * KARWATZKI_FORCE_SCALE_KN),
     }
     LIMITS: ClassVar[Mapping[str, tuple[float | None, float | None]]] = {
         "level": (0.1, 4.0),
         "speed_scale_kmh": (30.0, 300.0),
-        "force_scale_kn": (30.0, 300.0),
+        "force_scale_kn": (0.3 * KARWATZKI_FORCE_SCALE_KN, 3.0 * KARWATZKI_FORCE_SCALE_KN),
     }
 
     level: float = 1.0
     speed_scale_kmh: float = 100.0
-    force_scale_kn: float = 100.0
+    force_scale_kn: float = KARWATZKI_FORCE_SCALE_KN
 
     def mu(self, speed_kmh: FloatArray, block_force_n: FloatArray) -> FloatArray:
         """The friction coefficient at each sample."""
