@@ -77,6 +77,9 @@ class SynthConfig:
     """Per file: GPS speed frozen for 20-120 s."""
     speed_jump_probability: float = 0.1
     """Per file: one or two GPS speed jumps of a few seconds."""
+    gps_dropout_probability: float = 0.0
+    """Per file: the fix lost for 30-180 s from a few seconds into a braking: speed empty,
+    distance held, then jumping by what was covered when the fix returns."""
     truncated_files: int = 1
     """Plain CSV files cut mid-row (the unit lost power)."""
     truncated_gzip_files: int = 1
@@ -128,6 +131,7 @@ class SynthConfig:
             "empty_cell_fraction",
             "frozen_speed_probability",
             "speed_jump_probability",
+            "gps_dropout_probability",
         ):
             value = getattr(self, name)
             if not 0.0 <= value <= 1.0:
@@ -159,6 +163,7 @@ class SynthConfig:
             "empty_cell_fraction": 0.0,
             "frozen_speed_probability": 0.0,
             "speed_jump_probability": 0.0,
+            "gps_dropout_probability": 0.0,
             "truncated_files": 0,
             "truncated_gzip_files": 0,
             "garbage_files": 0,

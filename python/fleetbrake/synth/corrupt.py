@@ -57,6 +57,7 @@ __all__ = [
     "freeze_speed",
     "garbage_bytes",
     "garble_cells",
+    "gps_dropout",
     "jump_speed",
     "pt1000_drift",
     "pt1000_drift_to_ambient",
@@ -192,6 +193,38 @@ def freeze_speed(
 ) -> pl.DataFrame:
     """GPS speed frozen while the fix is poor: ``duration_s`` rows repeat the speed of the first."""
     return _freeze(frame, "speed_kmh", rng, duration_s, start)
+
+
+def gps_dropout(
+    frame: pl.DataFrame,
+    rng: np.random.Generator,
+    duration_s: int,
+    *,
+    start: int | None = None,
+) -> pl.DataFrame:
+    """The fix lost for ``duration_s`` rows: their speed empty and their distance held at the
+    last row's before (the jump comes with the first row after)."""
+    first, stop = _span(rng, frame.height, duration_s, start)
+    speed = frame["speed_kmh"].to_numpy().astype(np.float64, copy=True)
+    distance = frame["distance_m"].to_numpy().astype(np.float64, copy=True)
+    speed[first:stop] = np.nan
+    if first > 0:
+        distance[first:stop] = distance[first - 1]
+    return frame.with_columns(
+        pl.Series("speed_kmh", speed, dtype=pl.Float64, nan_to_null=True),
+        pl.Series("distance_m", distance, dtype=pl.Float64),
+    )
+
+
+def _braking_start(frame: pl.DataFrame, rng: np.random.Generator, duration_s: int) -> int | None:
+    """A row a few seconds after a braking's activation with ``duration_s`` rows after it."""
+    pressure = frame["brake_pressure_bar"].to_numpy().astype(np.float64)
+    on = np.nan_to_num(pressure, nan=0.0) > 0.3
+    starts = np.flatnonzero(on[1:] & ~on[:-1]) + 1
+    starts = starts[(starts + 10 + duration_s < frame.height)]
+    if starts.size == 0:
+        return None
+    return int(starts[int(rng.integers(0, starts.size))] + rng.integers(3, 11))
 
 
 def _freeze(
@@ -449,6 +482,15 @@ def _write_session(
             "start_utc": t_first + dt.timedelta(seconds=at),
             "seconds": seconds,
         }
+    if config.gps_dropout_probability > 0 and frng.random() < config.gps_dropout_probability:
+        seconds = int(frng.integers(30, 181))
+        at = _braking_start(frame, frng, seconds)
+        if at is not None:
+            frame = gps_dropout(frame, frng, seconds, start=at)
+            imperfections["gps_dropout"] = {
+                "start_utc": t_first + dt.timedelta(seconds=at),
+                "seconds": seconds,
+            }
     if frng.random() < config.speed_jump_probability and frame.height > 60:
         count = int(frng.integers(1, 3))
         frame = jump_speed(frame, frng, count)
