@@ -57,7 +57,13 @@ from fleetbrake.closeloop.config import CloseLoopConfig
 from fleetbrake.closeloop.evidence import gather_evidence
 from fleetbrake.closeloop.fit import fit_candidates
 from fleetbrake.closeloop.markdown import MarkdownReport, read_markdown_report
-from fleetbrake.closeloop.report import CloseLoopReport, Cost, build_report, judged_on_report
+from fleetbrake.closeloop.report import (
+    CloseLoopReport,
+    Cost,
+    bounds_verdict,
+    build_report,
+    judged_on_report,
+)
 from fleetbrake.closeloop.revision import new_revision
 from fleetbrake.closeloop.selection import select
 from fleetbrake.closeloop.verdict import baseline_verdict, start_terms
@@ -95,7 +101,7 @@ def close_loop_report(
             report = _phases(wh, config, engine, workers)
     finally:
         workers.close()
-    report = judged_on_report(wh, report, config)
+    report = bounds_verdict(judged_on_report(wh, report, config))
     workers.timing["total_s"] = time.perf_counter() - clock
     cost = Cost(
         candidates_fitted=workers.fits,

@@ -43,9 +43,12 @@ __all__ = [
     "Cost",
     "EventSetFigures",
     "IntervalMethods",
+    "OnBound",
     "UnknownHeat",
+    "bounds_verdict",
     "build_report",
     "judged_on_report",
+    "parameters_on_bound",
 ]
 
 Intervals = dict[str, list[float | None]]
@@ -146,6 +149,20 @@ class Cost:
 
 
 @dataclass(frozen=True)
+class OnBound:
+    """A fitted parameter on a limit of its family (``LIMITS``): its value or its reported
+    95 % interval reaches the limit."""
+
+    parameter: str
+    """Its key in the report's ``parameters``."""
+    effect: str
+    side: str
+    """``lower`` or ``upper``."""
+    limit: float
+    value: float
+
+
+@dataclass(frozen=True)
 class CloseLoopReport:
     """The close-loop report (``shared/spec/interface.md``, "close-loop report"), its values as
     reported. ``effects`` and ``interval_methods`` only when an effect was added (and
@@ -175,6 +192,9 @@ class CloseLoopReport:
     unexplained: str | None
     adequacy: AdequacyReport
     cost: Cost | None = None
+    on_bound: list[OnBound] = dataclasses.field(default_factory=list)
+    """The added effects' parameters whose fitted value or 95 % interval reaches a limit of
+    the family (:func:`bounds_verdict`)."""
 
     def to_dict(self) -> dict[str, Any]:
         """The report as JSON values, keys in the contract's order (the one place the report
@@ -209,6 +229,7 @@ class CloseLoopReport:
         out["adequate"] = self.adequate
         out["unexplained"] = self.unexplained
         out["adequacy"] = _adequacy_json(self.adequacy)
+        out["on_bound"] = [dataclasses.asdict(b) for b in self.on_bound]
         if self.cost is not None:
             out["cost"] = dataclasses.asdict(self.cost)
         return out
@@ -536,3 +557,57 @@ def _unexplained(report: CloseLoopReport, judged: float, noise: float, ad: Adequ
         )
         return f"partly explained: {report.effect}{share}; {rest}"
     return f"not explained: {rest}"
+
+
+BOUND_REL_TOL = 1e-6
+"""A fitted value within this share of a limit's size (at least of 1) is on it."""
+
+
+def parameters_on_bound(
+    effects: list[Effect] | None,
+    parameters: Mapping[str, float],
+    intervals: Mapping[str, Any],
+) -> list[OnBound]:
+    """The added ``effects``' parameters (keyed as the report's ``parameters``) whose value or
+    interval (``[low, high]``, None: unbounded) reaches a limit of the effect's ``LIMITS``."""
+    if not effects:
+        return []
+    qualified = len(effects) > 1
+    out = []
+    for effect in effects:
+        for name, (low, high) in effect.LIMITS.items():
+            key = f"{effect.name}.{name}" if qualified else name
+            if key not in parameters:
+                continue
+            value = float(parameters[key])
+            lo, hi = intervals.get(key, (value, value))
+            for side, limit, reach in (("lower", low, lo), ("upper", high, hi)):
+                if limit is None:
+                    continue
+                tol = BOUND_REL_TOL * max(1.0, abs(limit))
+                beyond = reach is None or (
+                    reach <= limit + tol if side == "lower" else reach >= limit - tol
+                )
+                if abs(value - limit) <= tol or beyond:
+                    out.append(OnBound(key, effect.name, side, float(limit), value))
+    return out
+
+
+def bounds_verdict(report: CloseLoopReport) -> CloseLoopReport:
+    """The verdict with the parameters on a bound: a fitted value or interval that reaches a
+    limit of its family says the law in the data lies outside the family as implemented (its
+    form, constants or units differ), so the revision is not adequate, and ``unexplained``
+    names the parameter and the limit."""
+    found = parameters_on_bound(report.effects, report.parameters, report.parameter_intervals)
+    if not found:
+        return report
+    named = "; ".join(
+        f"{b.effect}: {b.parameter} = {b.value:.4g} reaches its {b.side} limit {b.limit:.4g}"
+        for b in found
+    )
+    sentence = (
+        f"{named} (the law in the data lies outside the family as implemented: its form, "
+        "constants or units differ)"
+    )
+    unexplained = sentence if report.adequate else f"{report.unexplained}; {sentence}"
+    return dataclasses.replace(report, adequate=False, unexplained=unexplained, on_bound=found)
