@@ -484,11 +484,11 @@ def _write_session(
         }
     if config.gps_dropout_probability > 0 and frng.random() < config.gps_dropout_probability:
         seconds = int(frng.integers(30, 181))
-        at = _braking_start(frame, frng, seconds)
-        if at is not None:
-            frame = gps_dropout(frame, frng, seconds, start=at)
+        lost = _braking_start(frame, frng, seconds)
+        if lost is not None:
+            frame = gps_dropout(frame, frng, seconds, start=lost)
             imperfections["gps_dropout"] = {
-                "start_utc": t_first + dt.timedelta(seconds=at),
+                "start_utc": t_first + dt.timedelta(seconds=lost),
                 "seconds": seconds,
             }
     if frng.random() < config.speed_jump_probability and frame.height > 60:
