@@ -14,8 +14,9 @@ does; the remaining tasks are cancelled without killing their workers (a task al
 running finishes and its result is dropped), so a cancel never reaches a task submitted
 after it. A task whose worker process dies (killed, out of memory, its node lost) is run
 again, up to :data:`SYSTEM_RETRIES` times: a partition is a pure function of its item, the
-writer commits only what comes back. :meth:`RayEngine.close` shuts down only a cluster the
-engine started itself.
+writer commits only what comes back. Every task reports the node it ran on:
+:attr:`RayEngine.tasks_per_node` counts them, and :meth:`RayEngine.close` logs how many ran on
+how many nodes; it shuts down only a cluster the engine started itself.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from __future__ import annotations
 import importlib
 import logging
 import os
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, TypeVar
 
@@ -52,6 +53,12 @@ exception the partition raises is never retried)."""
 
 _PASSED_ENV = ("FLEETBRAKE_CACHE_DIR",)
 """Variables of the caller's environment the tasks see too (the only one the library reads)."""
+
+
+def _call_on_node(fn: Callable[[T], R], item: T) -> tuple[str, R]:
+    """The task: the id of the node it runs on, and ``fn(item)``."""
+    node_id = str(importlib.import_module("ray").get_runtime_context().get_node_id())
+    return node_id, call_in_worker(fn, item)
 
 
 def import_ray() -> Any:
@@ -85,12 +92,18 @@ class RayEngine:
         self._workers = workers if workers is not None else default_workers()
         self.in_flight = in_flight if in_flight is not None else 2 * self._workers
         self._remote: Any = None
+        self._tasks_per_node: Counter[str] = Counter()
         self._owns_cluster = False
         self._closed = False
 
     @property
     def workers(self) -> int:
         return self._workers
+
+    @property
+    def tasks_per_node(self) -> dict[str, int]:
+        """Tasks whose results came back, by the id of the node that ran them."""
+        return dict(self._tasks_per_node)
 
     def start(self) -> None:
         """Connect to (or start) the cluster and declare the task."""
@@ -117,7 +130,7 @@ class RayEngine:
                 self.in_flight = 2 * self._workers
         env = dict(WORKER_THREAD_ENV)
         env.update({k: os.environ[k] for k in _PASSED_ENV if k in os.environ})
-        self._remote = ray.remote(call_in_worker).options(
+        self._remote = ray.remote(_call_on_node).options(
             num_cpus=1, max_retries=SYSTEM_RETRIES, runtime_env={"env_vars": env}
         )
         logger.info("ray engine: %d workers, %s", self._workers, self.address or "local cluster")
@@ -137,12 +150,14 @@ class RayEngine:
     def _result(self, ref: Any) -> Any:
         ray = self._ray
         try:
-            return ray.get(ref)
+            node_id, result = ray.get(ref)
         except ray.exceptions.RayTaskError as error:
             cause = error.as_instanceof_cause()
             # the original exception: its type, message and exit code
             original = getattr(error, "cause", None)
             raise (original if isinstance(original, BaseException) else cause) from None
+        self._tasks_per_node[node_id] += 1
+        return result
 
     def map(
         self,
@@ -212,6 +227,12 @@ class RayEngine:
             return
         self._closed = True
         self._remote = None
+        if self._tasks_per_node:
+            logger.info(
+                "ray engine: %d tasks ran on %d nodes",
+                self._tasks_per_node.total(),
+                len(self._tasks_per_node),
+            )
         if self._owns_cluster and self._ray.is_initialized():
             self._ray.shutdown()
             logger.info("ray engine: local cluster shut down")
