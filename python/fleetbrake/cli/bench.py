@@ -164,6 +164,44 @@ def bench_fleet_command(
         typer.echo(json.dumps(figures))
 
 
+@bench_app.command("incremental")
+def bench_incremental_command(
+    ctx: typer.Context,
+    json_out: JsonFlag = False,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons.")] = 20,
+    days: Annotated[int, typer.Option("--days", help="UTC days, landed one at a time.")] = 60,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the synthetic fleet.")] = 0,
+    workdir: WorkdirOption = None,
+    fleet_dir: BenchFleetOption = None,
+    db_path: Annotated[
+        Path | None, typer.Option("--db", help="Keep the warehouse in this new database.")
+    ] = None,
+    refinement: RefinementOption = 1.0,
+    workers: WorkersOption = None,
+) -> None:
+    """`fleetbrake run` timed day after day on a generated fleet (generation not timed): each
+    day's files renamed into logs/, then run into the same warehouse; the last day's seconds
+    over the first's, beside the limit of 1.2."""
+    from fleetbrake.bench.incremental import bench_incremental, print_figures
+
+    with blas_single_thread():
+        figures = bench_incremental(
+            wagons,
+            days,
+            seed=seed,
+            workdir=workdir,
+            fleet_dir=fleet_dir,
+            db_path=db_path,
+            progress=global_options(ctx).progress,
+            refinement=refinement,
+            workers=workers,
+            echo=typer.echo,
+        )
+    print_figures(figures)
+    if json_out:
+        typer.echo(json.dumps(figures))
+
+
 @bench_app.command("close-loop")
 def bench_close_loop_command(
     json_out: JsonFlag = False,
