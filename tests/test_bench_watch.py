@@ -35,11 +35,11 @@ def _bench(tmp_path: Path, cache_dir: Path, *args: str) -> subprocess.CompletedP
 def test_bench_watch_prints_each_file_and_its_figures_as_json_last(
     tmp_path: Path, rom_cache_dir: Path, rom_refinement: float
 ) -> None:
-    log = tmp_path / "service.log"
+    log, fleet = tmp_path / "service.log", tmp_path / "fleet"
     result = _bench(
         tmp_path,
         rom_cache_dir,
-        *("--wagons", "2", "--files", "3", "--rate", "60", "--idle", "0.5"),
+        *("--wagons", "2", "--files", "3", "--rate", "60", "--idle", "0.5", "--fleet", str(fleet)),
         *("--refinement", str(rom_refinement), "--workers", "2", "--service-log", str(log)),
     )
     assert result.returncode == 0, result.stderr
@@ -78,7 +78,11 @@ def test_bench_watch_prints_each_file_and_its_figures_as_json_last(
         assert any(line.startswith(f"{item['path']}: ") for line in lines[:-1])
     assert any("p95" in line for line in lines[:-1])
     assert "watching " in log.read_text()  # the service's own log, kept
-    assert [p.name for p in tmp_path.iterdir()] == ["service.log"]  # the rest cleaned up
+    assert (fleet / "fleet.toml").is_file() and (fleet / "truth").is_dir()  # kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "fleet",
+        "service.log",
+    ]  # the rest removed
 
 
 def test_bench_watch_refuses_a_bad_setting_before_any_work(

@@ -3,8 +3,9 @@
 What is measured, as a user would see it:
 
 1. A synthetic fleet (:func:`fleetbrake.synth.generator.generate_fleet`, ``wagons`` x
-   ``history_days + 1`` days, with the ordinary imperfections of real logs) is generated apart
-   (not timed). Its files of the first ``history_days`` days are the watched fleet's history,
+   ``history_days + 1`` days, with the ordinary imperfections of real logs) is generated in a
+   process of its own, not timed (as ``bench fleet`` generates it; ``fleet_dir`` keeps and
+   reuses it). Its files of the first ``history_days`` days are the watched fleet's history,
    ingested, simulated and flagged by one ``run`` before the service starts (``history_s``).
    The sessions of its last day are cut into **one-hour session files** (the samples of each
    hour of a good session, as a unit writes them: ``logs/<wagon>/<wagon>_<first sample>.csv``,
@@ -59,6 +60,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetbrake.bench import BenchConfigError, BenchError, require_extra
+from fleetbrake.bench.fleet import _generate
 
 __all__ = ["QUERYABLE", "bench_watch", "print_figures"]
 
@@ -98,10 +100,11 @@ def _make_fleet(
     seed: int,
     refinement: float,
 ) -> tuple[int, list[_Drop]]:
-    """Generate ``wagons`` x ``history_days + 1`` days into ``source``; copy the registry and
-    the files of the first ``history_days`` days into ``fleet``; the last day's good sessions
-    cut into one-hour files (in time order, then wagon). Returns the history's file count and
-    the files to drop."""
+    """Generate ``wagons`` x ``history_days + 1`` days into ``source`` in a process of its own
+    (or reuse the fleet ``source`` holds, if the same); copy the registry and the files of the
+    first ``history_days`` days into ``fleet``; the last day's good sessions cut into one-hour
+    files (in time order, then wagon). Returns the history's file count and the files to
+    drop."""
     from fleetbrake.fleet.logfile import (
         OPTIONAL_COLUMNS,
         REQUIRED_COLUMNS,
@@ -110,10 +113,9 @@ def _make_fleet(
     )
     from fleetbrake.ingest.quarantine import Quarantine
     from fleetbrake.ingest.reading import read_log
-    from fleetbrake.synth.generator import SynthConfig, generate_fleet
 
-    config = SynthConfig(wagons=wagons, days=history_days + 1, seed=seed, refinement=refinement)
-    truth = generate_fleet(source, config)
+    truth = _generate(source, wagons, history_days + 1, seed, refinement, False)
+    config = truth.config
     cutoff = dt.datetime.combine(config.start, dt.time()) + dt.timedelta(days=history_days)
     fleet.mkdir(parents=True)
     shutil.copy2(source / "fleet.toml", fleet / "fleet.toml")
@@ -384,11 +386,13 @@ def bench_watch(
     workers: int | None = None,
     idle_s: float = 10.0,
     workdir: str | Path | None = None,
+    fleet_dir: str | Path | None = None,
     bound_s: float = 300.0,
     service_log: str | Path | None = None,
     echo: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Run the benchmark (see the module); return the figures. ``echo``: where each file's
+    """Run the benchmark (see the module); return the figures. ``fleet_dir``: generate the
+    fleet there and keep it, or reuse the one it holds. ``echo``: where each file's
     line goes (once the service has stopped). ``bound_s``: the longest wait for the last file after it
     was dropped. ``service_log``: keep the service's log (stderr) there. Needs psutil (the
     ``bench`` extra)."""
@@ -413,7 +417,8 @@ def bench_watch(
         ReducedModel.for_wagon(WagonConfig(wagon_id="SGG-0001"), refinement=refinement)
         began = time.perf_counter()
         fleet, db = tmp / "fleet", tmp / "warehouse" / "fleet.duckdb"
-        history, drops = _make_fleet(tmp / "source", fleet, wagons, history_days, seed, refinement)
+        source = Path(fleet_dir) if fleet_dir is not None else tmp / "source"
+        history, drops = _make_fleet(source, fleet, wagons, history_days, seed, refinement)
         generate_s = time.perf_counter() - began
         if len(drops) < files:
             raise BenchConfigError(
