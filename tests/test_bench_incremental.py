@@ -47,7 +47,7 @@ def test_bench_incremental_ends_with_the_warehouse_of_a_single_run(
     for key in ("day_cpu_s", "day_rows", "day_files", "day_warehouse_mb"):
         assert len(figures[key]) == 3, key
     assert all(rows > 0 for rows in figures["day_rows"])
-    assert figures["day_files"] == sorted(figures["day_files"])  # logs/ grows day by day
+    assert all(files > 0 for files in figures["day_files"])  # landed that day
     assert figures["warehouse_mb"] > 0 and len(figures["load_avg_at_start"]) == 3
     assert any(line.startswith("day 3/3: ") for line in lines)
     assert any("day 3 / day 1" in line and "limit 1.2" in line for line in lines)
@@ -63,7 +63,7 @@ def test_bench_incremental_ends_with_the_warehouse_of_a_single_run(
     )
     assert report.ingest.rows == figures["rows"] == sum(figures["day_rows"])
     assert _counts(db) == _counts(once)
-    assert _counts(db)["v_files"] == figures["day_files"][-1]
+    assert _counts(db)["v_files"] == sum(figures["day_files"])
 
 
 def test_bench_incremental_refuses_a_bad_setting_before_any_work(tmp_path: Path) -> None:

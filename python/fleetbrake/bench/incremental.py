@@ -3,7 +3,7 @@
 A fleet of ``wagons`` x ``days`` days is generated once, in a process of its own, not timed
 (as ``bench fleet`` generates it; ``--fleet DIR`` keeps and reuses it). Its log files are held
 back in a staging folder, one folder a UTC day (a file's day is the day of its first sample).
-Then, for each day in order, that day's files are renamed into the watched fleet's ``logs/``
+Then, for each day in order, that day's files are renamed into the fleet's ``logs/``
 and :func:`fleetbrake.app.run.run_fleet` (``fleetbrake run``, the local engine, as ``bench
 fleet`` runs it) is timed on it, into the same database: each run ingests the new day's
 files into a warehouse that already holds every day before it, detects their events,
@@ -14,9 +14,9 @@ The figure is ``last_over_first``, the seconds of the last day's run over the fi
 at most :data:`LIMIT_LAST_OVER_FIRST`); beside it the same ratio of the medians of the first
 and last :data:`EDGE_DAYS` days, and of the processor seconds (the writer's and its
 workers', sampled as ``bench fleet`` samples them), which a loaded machine distorts far less.
-Each day's rows, files, stage seconds and the warehouse's size on disk after it are in the
-figures, with the machine's load average (as ``uptime`` gives it) at the start.
-"""
+Per day, the figures also hold the rows and files landed, the events its run simulated, the
+flags of the wagons it judged, its stages' seconds and the warehouse's size on disk after it;
+beside them the machine's load averages at the start (as ``uptime`` gives them)."""
 
 from __future__ import annotations
 
@@ -117,7 +117,6 @@ def _run_day(fleet: Path, db: Path, refinement: float, workers: int | None) -> d
         "cpu_s": _cpu_s(resource.RUSAGE_SELF) - cpu_self + sampler.workers_cpu_s,
         "cpu_s_workers": sampler.workers_cpu_s,
         "rows": ingest.rows,
-        "files": ingest.files_seen,
         "events_simulated": report.simulation.events_simulated,
         "flags": len(flag_report.flags) if flag_report is not None else None,
         "stages_s": {k: round(v, 2) for k, v in report.stage_s.items()},
@@ -179,7 +178,7 @@ def bench_incremental(
         runs: list[dict[str, Any]] = []
         for day, relpaths in enumerate(by_day):
             _land(tmp, fleet, day, relpaths)
-            run = _run_day(fleet, db, refinement, workers)
+            run = _run_day(fleet, db, refinement, workers) | {"files": len(relpaths)}
             runs.append(run)
             say(
                 f"day {day + 1}/{days}: {run['seconds']:.2f} s, {run['cpu_s']:.1f} processor-s, "
