@@ -62,6 +62,7 @@ from fleetbrake.closeloop.report import (
     Cost,
     bounds_verdict,
     build_report,
+    drift_verdict,
     judged_on_report,
 )
 from fleetbrake.closeloop.revision import new_revision
@@ -101,7 +102,7 @@ def close_loop_report(
             report = _phases(wh, config, engine, workers)
     finally:
         workers.close()
-    report = bounds_verdict(judged_on_report(wh, report, config))
+    report = drift_verdict(bounds_verdict(judged_on_report(wh, report, config)))
     workers.timing["total_s"] = time.perf_counter() - clock
     cost = Cost(
         candidates_fitted=workers.fits,

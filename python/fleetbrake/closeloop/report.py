@@ -30,7 +30,12 @@ from fleetbrake.closeloop.evidence import (
 from fleetbrake.closeloop.fit import Fitted, Outliers
 from fleetbrake.closeloop.revision import NewRevision
 from fleetbrake.closeloop.selection import Selection
-from fleetbrake.closeloop.stats import MAX_NOISE_RATIO, describe_drivers, intervals_for_json
+from fleetbrake.closeloop.stats import (
+    MAX_NOISE_RATIO,
+    DriftReport,
+    describe_drivers,
+    intervals_for_json,
+)
 from fleetbrake.closeloop.terms import InputTerm, Numerical
 from fleetbrake.closeloop.verdict import Verdict
 from fleetbrake.model.effects import Effect
@@ -47,6 +52,7 @@ __all__ = [
     "UnknownHeat",
     "bounds_verdict",
     "build_report",
+    "drift_verdict",
     "judged_on_report",
     "parameters_on_bound",
 ]
@@ -192,6 +198,9 @@ class CloseLoopReport:
     unexplained: str | None
     adequacy: AdequacyReport
     cost: Cost | None = None
+    drift: DriftReport | None = None
+    """The added effects' parameters refitted per day of the fit events, and each one's
+    change per day with its 95 % interval (:func:`drift_verdict`)."""
     on_bound: list[OnBound] = dataclasses.field(default_factory=list)
     """The added effects' parameters whose fitted value or 95 % interval reaches a limit of
     the family (:func:`bounds_verdict`)."""
@@ -230,6 +239,7 @@ class CloseLoopReport:
         out["unexplained"] = self.unexplained
         out["adequacy"] = _adequacy_json(self.adequacy)
         out["on_bound"] = [dataclasses.asdict(b) for b in self.on_bound]
+        out["drift"] = None if self.drift is None else _drift_json(self.drift)
         if self.cost is not None:
             out["cost"] = dataclasses.asdict(self.cost)
         return out
@@ -495,6 +505,7 @@ def build_report(
         adequate=verdict.adequacy.adequate,
         unexplained=verdict.adequacy.unexplained,
         adequacy=_adequacy_report(verdict),
+        drift=verdict.drift,
     )
 
 
@@ -611,3 +622,49 @@ def bounds_verdict(report: CloseLoopReport) -> CloseLoopReport:
     )
     unexplained = sentence if report.adequate else f"{report.unexplained}; {sentence}"
     return dataclasses.replace(report, adequate=False, unexplained=unexplained, on_bound=found)
+
+
+def _drift_json(drift: DriftReport) -> dict[str, Any]:
+    return {
+        "period": drift.period,
+        "parameters": {
+            k: {
+                "rate_per_day": _finite(d.rate_per_day),
+                "rate_interval": [_finite(v) for v in d.rate_interval],
+                "changes": d.changes,
+            }
+            for k, d in drift.parameters.items()
+        },
+        "periods": [
+            {
+                "start": p.start,
+                "seconds": p.seconds,
+                "values": p.values,
+                "intervals": {k: [_finite(a), _finite(b)] for k, (a, b) in p.intervals.items()},
+            }
+            for p in drift.periods
+        ],
+    }
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def drift_verdict(report: CloseLoopReport) -> CloseLoopReport:
+    """The verdict with the parameters that change over the fit days: a constant effect does
+    not explain them, so the revision is not adequate, and ``unexplained`` says which changes
+    and at what rate."""
+    if report.drift is None:
+        return report
+    changing = {k: d for k, d in report.drift.parameters.items() if d.changes}
+    if not changing:
+        return report
+    named = "; ".join(
+        f"{k} changes over the period: {d.rate_per_day:+.3g} per day "
+        f"[{d.rate_interval[0]:.3g}, {d.rate_interval[1]:.3g}]"
+        for k, d in changing.items()
+    )
+    sentence = f"{report.effect}: {named} (fitted as a constant)"
+    unexplained = sentence if report.adequate else f"{report.unexplained}; {sentence}"
+    return dataclasses.replace(report, adequate=False, unexplained=unexplained)

@@ -36,7 +36,9 @@ from fleetbrake.closeloop.leastsquares import (
 from fleetbrake.closeloop.stats import (
     Adequacy,
     BlockedIntervals,
+    DriftReport,
     combined_half_width,
+    parameter_drift,
     with_numerical_term,
 )
 from fleetbrake.closeloop.terms import (
@@ -55,6 +57,7 @@ __all__ = [
     "TermsAhead",
     "Verdict",
     "baseline_verdict",
+    "chosen_drift",
     "chosen_intervals",
     "chosen_verdict",
     "start_terms",
@@ -235,6 +238,9 @@ class Verdict:
     intervals: BlockedIntervals | None = None
     numerical: Numerical | None = None
     inputs: InputTerm | None = None
+    drift: DriftReport | None = None
+    """The parameters refitted per day of the fit events and their change over the days
+    (:func:`~fleetbrake.closeloop.stats.parameter_drift`; None: fewer than two days)."""
 
     def reported_intervals(
         self, parameters: Mapping[str, float]
@@ -328,4 +334,22 @@ def chosen_verdict(
         chosen_intervals(chosen, data),
         numerical,
         inputs,
+        chosen_drift(chosen, data),
+    )
+
+
+def chosen_drift(chosen: Candidate, data: FitData) -> DriftReport | None:
+    """The chosen effects' parameters per day of the fit events, and their drift, keyed as
+    the report's ``parameters`` (None: nothing fitted or fewer than two days)."""
+    fitted = chosen.fitted
+    if fitted is None or fitted.x.size == 0:
+        return None
+    scored = fitted.scored
+    return parameter_drift(
+        fitted.jacobian,
+        fitted.aligned,
+        fitted.x,
+        fitted.report_keys,
+        data.blocks[scored],
+        data.time_utc[scored],
     )

@@ -31,6 +31,9 @@ other.
   meshes, added in quadrature to the statistical half-width (ASME V&V 20's combination).
 * :func:`noise_from_residual` -- white sensor noise from the residual's second differences
   within blocks (median absolute deviation).
+* :func:`parameter_drift` -- the fitted parameters per day (one Gauss-Newton step on the
+  day's rows) and the weighted slope of each over the days: whether it changes over the
+  period.
 * :func:`adequacy` -- the chosen model's residual against the noise: RMSE ratio, whiteness,
   what it still correlates with, and the sentence the report gives when it is not adequate.
 """
@@ -62,6 +65,12 @@ from fleetbrake.closeloop.stats.blocks import (
     noise_from_residual,
     outlier_events,
     root_mean_square,
+)
+from fleetbrake.closeloop.stats.drift import (
+    DriftReport,
+    ParameterDrift,
+    PeriodFit,
+    parameter_drift,
 )
 from fleetbrake.closeloop.stats.heldout import (
     HELD_OUT_MARGIN,
@@ -102,6 +111,9 @@ __all__ = [
     "Adequacy",
     "BlockedIntervals",
     "Comparison",
+    "DriftReport",
+    "ParameterDrift",
+    "PeriodFit",
     "SelectionError",
     "adequacy",
     "as_arrays",
@@ -125,6 +137,7 @@ __all__ = [
     "noise_from_residual",
     "outlier_events",
     "parameter_covariance",
+    "parameter_drift",
     "parameter_intervals",
     "refusal",
     "root_mean_square",
