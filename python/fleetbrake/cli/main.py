@@ -319,6 +319,14 @@ def synth_command(
             "friction_speed or convection_speed:law=flat_plate; never empirical.",
         ),
     ] = None,
+    effect_drift: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--effect-drift",
+            help="A parameter of an --effect or --random-effect that drifts over the days, "
+            "PARAMETER=RATE per day (repeatable), e.g. gain=0.2: a component that degrades.",
+        ),
+    ] = None,
     solar_heating: Annotated[
         float,
         typer.Option(
@@ -377,6 +385,8 @@ def synth_command(
     with option_values("--random-effect"):
         for index, text in enumerate(random_effect or []):
             effects = EffectSet((*effects, draw_effect(text, seed, index)))
+    with option_values("--effect-drift"):
+        drift = {k.strip(): float(v) for k, _, v in (t.partition("=") for t in effect_drift or [])}
     with option_values("--start"):
         first_day = dt.date.fromisoformat(start)
     make = SynthConfig if imperfections else SynthConfig.clean
@@ -392,6 +402,7 @@ def synth_command(
             refinement=refinement,
             solver=cast(Literal["rom", "full"], solver),  # SynthConfig checks the value
             solar_heating_w_m2=solar_heating,
+            effect_drift_per_day=drift,
         )
     total = config.wagons + int(config.unregistered_wagon) + int(config.bad_registry_entry)
     began = time.perf_counter()

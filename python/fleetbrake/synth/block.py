@@ -142,14 +142,15 @@ def simulate_block(
 ) -> SimulatedBlock:
     """The wagon's block over the whole period, from a uniform start at the air around it:
     by the reduced model in one run (its batch kernel), or by the full model in segments,
-    at 1 Hz, and at ``ASLEEP_STEP_S`` while the unit sleeps."""
+    at 1 Hz, and at ``ASLEEP_STEP_S`` while the unit sleeps (the series starts at the fleet's
+    start: the drifting effects' clock)."""
     offset = config.effects.get("ambient_offset")
     initial_c = float(ambient_c[0]) + (
         offset.offset_k if isinstance(offset, AmbientOffset) else 0.0
     )
     drag = drag_force_n if drag_force_n.any() else None
     efficiency = brake_efficiency if np.any(brake_efficiency != 1.0) else 1.0
-    if isinstance(model, ReducedModel):
+    if isinstance(model, ReducedModel) and not config.effect_drift_per_day:
         return SimulatedBlock.of(
             simulate_timeline(
                 model,
@@ -166,18 +167,20 @@ def simulate_block(
             )
         )
 
-    # the full model: segment by segment, the field handed on; the sensor's own effects (a
-    # lag) act on the whole 1 Hz series of the seat afterwards, so that they run on unbroken
+    # the full model (or drifting effects): segment by segment, the field handed on, each
+    # segment with the effects of its first second; the sensor's own effects (a lag) act on
+    # the whole 1 Hz series of the seat afterwards, so that they run on unbroken
     n_s = op.speed_kmh.size
     force = np.asarray(block_force_n(wagon, op.pressure_bar), dtype=np.float64)
     force = force * brake_efficiency + drag_force_n
     quiet = ~awake & (op.speed_kmh == 0.0) & (force == 0.0)
-    inputs_only = EffectSet(tuple(e for e in config.effects if not _acts_on_sensor(e)))
     names = ("block_force_n", "sample_flux_w_m2", "seat_c", "contact_mean_c", "contact_max_c")
     out = {name: np.empty(n_s) for name in names}
     state = None
     for first, last, step in _segments(quiet, ASLEEP_STEP_S, ASLEEP_MIN_S):
         at = np.arange(first, last + 1, step)
+        on_day = config.effects_on_day(first / 86_400.0)
+        inputs_only = EffectSet(tuple(e for e in on_day if not _acts_on_sensor(e)))
         part = simulate_timeline(
             model,  # type: ignore[arg-type]  # the full model behind the reduced one's interface
             wagon,

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
@@ -19,7 +20,15 @@ import numpy as np
 from fleetbrake.model.effects import Effect, EffectSet, find_law
 from fleetbrake.model.rom import DEFAULT_REFINEMENT
 
-__all__ = ["SENSOR_FAULT_SUBTYPES", "SOLVERS", "Solver", "SynthConfig", "draw_effect", "stream"]
+__all__ = [
+    "SENSOR_FAULT_SUBTYPES",
+    "SOLVERS",
+    "Solver",
+    "SynthConfig",
+    "draw_effect",
+    "drifting_parameter",
+    "stream",
+]
 
 SENSOR_FAULT_SUBTYPES: tuple[str, ...] = ("open", "frozen", "loose", "drift")
 
@@ -110,11 +119,22 @@ class SynthConfig:
     declared 10 W/m^2 K; ASHRAE Fundamentals, ch. 18), so the block sees a warmer air by
     day while the logged air temperature stays the air's. 0: none."""
 
+    effect_drift_per_day: dict[str, float] = field(default_factory=dict)
+    """Effects that drift over the calendar (a component that degrades, a property that
+    changes): per parameter of ``effects`` (``parameter``, or ``effect.parameter`` where two
+    effects share a name), its change per day from ``start``. The block is then simulated in
+    segments (as the full model always is), each with the parameters of its first second; the
+    effects on the sensor's output (``sensor_lag``) do not drift. {}: none."""
+
     def __post_init__(self) -> None:
         if isinstance(self.start, dt.datetime) or not isinstance(self.start, dt.date):
             raise ValueError(f"start must be a date, got {self.start!r}")
         if isinstance(self.effects, tuple | list):  # a plain sequence of effects
             object.__setattr__(self, "effects", EffectSet(tuple(self.effects)))
+        for key, rate in self.effect_drift_per_day.items():
+            drifting_parameter(self.effects, key)
+            if not math.isfinite(rate):
+                raise ValueError(f"effect_drift_per_day[{key!r}] must be finite, got {rate!r}")
         for name in ("wagons", "days"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -173,6 +193,19 @@ class SynthConfig:
         }
         return cls(**{**base, **changes})
 
+    def effects_on_day(self, days: float) -> EffectSet:
+        """``effects`` with the drifting parameters as they are ``days`` after ``start``."""
+        if not self.effect_drift_per_day:
+            return self.effects
+        moved = list(self.effects)
+        for key, rate in self.effect_drift_per_day.items():
+            index, name = drifting_parameter(self.effects, key)
+            effect = moved[index]
+            moved[index] = dataclasses.replace(
+                effect, **{name: effect.parameters[name] + rate * days}
+            )
+        return EffectSet(tuple(moved))
+
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for f in dataclasses.fields(self):
@@ -194,6 +227,27 @@ class SynthConfig:
         if values.get("refinement", DEFAULT_REFINEMENT) is None:  # a truth's null: the default
             del values["refinement"]
         return cls(**values)
+
+
+def drifting_parameter(effects: EffectSet, key: str) -> tuple[int, str]:
+    """The effect (its index in ``effects``) and parameter a drift key names (``parameter``
+    or ``effect.parameter``); ValueError naming the key when none, several, or one acting on
+    the sensor's output."""
+    effect_name, _, name = key.rpartition(".")
+    found = [
+        (i, e)
+        for i, e in enumerate(effects)
+        if name in e.parameters and effect_name in ("", e.name)
+    ]
+    if len(found) != 1:
+        raise ValueError(
+            f"effect_drift_per_day: {key!r} names {len(found)} parameters of the effects "
+            f"{[e.name for e in effects]}; give one as parameter or effect.parameter"
+        )
+    index, effect = found[0]
+    if type(effect).apply_to_sensor is not Effect.apply_to_sensor:
+        raise ValueError(f"effect_drift_per_day: {effect.name} acts on the sensor; it cannot drift")
+    return index, name
 
 
 # --------------------------------------------------------------------------------------------
