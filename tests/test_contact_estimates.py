@@ -32,6 +32,7 @@ VIEW_COLUMNS = [
     ("wagon_id", "VARCHAR"),
     ("time_utc", "TIMESTAMP"),
     ("model_revision", "VARCHAR"),
+    ("resolution_s", "INTEGER"),
     ("contact_mean_c", "DOUBLE"),
     ("contact_mean_lo_c", "DOUBLE"),
     ("contact_mean_hi_c", "DOUBLE"),
@@ -45,7 +46,7 @@ VIEW_COLUMNS = [
     ("unexplained_power_hi_w", "DOUBLE"),
     ("innovation_k", "DOUBLE"),
 ]
-"""``v_contact_estimates`` of interface.md v2, in order."""
+"""``v_contact_estimates`` of interface.md v3, in order."""
 
 STAGE_TABLES = ("contact_estimates", "estimated_wagons", "estimator_noise")
 

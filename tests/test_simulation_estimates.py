@@ -157,6 +157,8 @@ def test_the_stage_stores_what_the_per_wagon_path_computes_whatever_the_chunks(
     expected = pl.concat(frames).sort("wagon_id", "time_utc")
     got = stored["default"]["contact_estimates"]
     assert got.height == expected.height
+    assert got["resolution_s"].unique().to_list() == [1]  # the stage stores every second
+    got = got.drop("resolution_s")
     assert got.equals(expected.select(got.columns))  # every value, nulls and all
     for table in ("contact_estimates", "estimated_wagons"):
         assert stored["by_one"][table].equals(stored["default"][table]), table

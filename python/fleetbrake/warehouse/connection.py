@@ -28,17 +28,17 @@ from __future__ import annotations
 
 import datetime as dt
 import fcntl
-import functools
 import os
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from importlib import resources
 from pathlib import Path
 
 import duckdb
 
-from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
+from fleetbrake.errors import DatabaseLockedError
+from fleetbrake.warehouse.migration import migrate_to_v3
+from fleetbrake.warehouse.sqlfiles import SQL_PACKAGE, WarehouseError, sql, sql_files
 
 __all__ = [
     "DEFAULT_DB_PATH",
@@ -57,14 +57,13 @@ __all__ = [
 DEFAULT_DB_PATH = Path("warehouse/fleet.duckdb")
 """Where the database is when ``--db`` is not given (relative to the working directory)."""
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Version of the tables in ``schema*.sql``. A database of an older version is brought up to
-date when opened for writing, its rows kept (the statements only add what is missing: version
-2 adds ``files.rows_rejected``, null for the files recorded before it, and the
-``file_rejections`` table); a database of a newer version is not opened."""
-
-SQL_PACKAGE = "fleetbrake.warehouse.sql"
-"""The package whose ``*.sql`` resources are the schema, views and queries (shipped in the wheel)."""
+date when opened for writing, its rows kept: the statements add what is missing (version 2:
+``files.rows_rejected``, null for the files recorded before it, and the ``file_rejections``
+table; version 3: ``contact_estimates.resolution_s``, 1 on the rows of before), then
+:func:`~fleetbrake.warehouse.migration.migrate_to_v3` compacts the contact estimates, and the
+version is recorded last. A database of a newer version is not opened."""
 
 DEFAULT_MEMORY_LIMIT = "1GB"
 """DuckDB's buffer pool bound: the ingestion's memory does not grow with the fleet."""
@@ -72,32 +71,8 @@ DEFAULT_MEMORY_LIMIT = "1GB"
 _LOCK_POLL_S = 0.2
 
 
-class WarehouseError(FleetbrakeError):
-    """The warehouse cannot be opened or used; the message names the database file."""
-
-
 class WarehouseLockedError(WarehouseError, DatabaseLockedError):
     """Another process is writing to the database."""
-
-
-def sql_files() -> list[str]:
-    """Names of the packaged ``*.sql`` files, sorted."""
-    return sorted(
-        entry.name
-        for entry in resources.files(SQL_PACKAGE).iterdir()
-        if entry.name.endswith(".sql")
-    )
-
-
-@functools.cache
-def sql(name: str) -> str:
-    """Text of the packaged ``fleetbrake/warehouse/sql/<name>.sql``."""
-    try:
-        return resources.files(SQL_PACKAGE).joinpath(f"{name}.sql").read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise WarehouseError(
-            f"{name}.sql: SQL file not found in {SQL_PACKAGE} (is the installation complete?)"
-        ) from None
 
 
 def _schema_files() -> list[str]:
@@ -112,7 +87,10 @@ def _schema_files() -> list[str]:
 
 def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> None:
     """Create what is missing (tables, columns, then views) and record the schema version;
-    idempotent. An older database gains what its version lacks, in the same transaction.
+    idempotent. An older database gains what its version lacks in the same transaction, its
+    contact estimates are then compacted (:func:`~fleetbrake.warehouse.migration.migrate_to_v3`,
+    transactions of its own) and the version recorded last, so that an interrupted migration
+    is run again, and completed, at the next open.
 
     Raises :class:`WarehouseError` if the database was made by a newer schema version.
     """
@@ -127,14 +105,19 @@ def apply_schema(con: duckdb.DuckDBPyConnection, db_label: str = "database") -> 
                 f"{db_label}: schema version {found} was written by a newer fleetbrake "
                 f"(this one knows version {SCHEMA_VERSION}); it was left unchanged"
             )
-        if found is None or found < SCHEMA_VERSION:
-            con.execute(
-                sql("q_insert_schema_version"), {"version": SCHEMA_VERSION, "now": _utc_now()}
-            )
+        if found is None:
+            _record_version(con)
         con.execute("COMMIT")
     except BaseException:
         con.execute("ROLLBACK")
         raise
+    if found is not None and found < SCHEMA_VERSION:
+        migrate_to_v3(con, db_label)
+        _record_version(con)
+
+
+def _record_version(con: duckdb.DuckDBPyConnection) -> None:
+    con.execute(sql("q_insert_schema_version"), {"version": SCHEMA_VERSION, "now": _utc_now()})
 
 
 def _utc_now() -> dt.datetime:

@@ -156,7 +156,9 @@ def replace_estimates(
 
     ``delete=False``: none of the wagons holds rows of ``revision``
     (:func:`estimated_wagon_ids`), so the deletes, each a scan of its whole table (which grows
-    with the fleet), are skipped."""
+    with the fleet), are skipped. The wagons' rows of a revision a closed loop made other than
+    ``revision`` are deleted in any case (estimates are kept for ``declared`` and the last
+    close-loop revision: ``q_estimates_delete_superseded.sql``)."""
     if not results:
         return
     if len({r.wagon_id for r in results}) != len(results):
@@ -185,6 +187,7 @@ def replace_estimates(
         if delete:
             con.execute(sql("q_estimates_delete_wagons"), key)
             con.execute(sql("q_estimates_delete_estimated_wagons"), key)
+        con.execute(sql("q_estimates_delete_superseded"), key)
         batches = [("estimated_batch", stamps, "q_estimates_insert_estimated_wagons")]
         if tables:
             rows = tables[0] if len(tables) == 1 else pa.concat_tables(tables)

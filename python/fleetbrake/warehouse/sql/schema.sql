@@ -1,4 +1,4 @@
--- fleetbrake warehouse: tables of the ingestion and of the event detection (schema version 2).
+-- fleetbrake warehouse: tables of the ingestion and of the event detection (schema version 3).
 -- Applied at every open of the database; every statement is idempotent. Views are in v_*.sql,
 -- statements the code runs with bound parameters in q_*.sql.
 

@@ -1,11 +1,14 @@
 -- fleetbrake warehouse: the virtual sensor's tables (fleetbrake.simulation.estimates).
 -- Applied with schema.sql at every open; idempotent.
 
--- The contact-temperature estimate per wagon, per logged second, per model revision: a Kalman
--- filter (live) and Rauch-Tung-Striebel smoother (after the fact) on the reduced model's
--- state with the unexplained friction-face heat power as an unknown input
--- (docs/estimator.md). Behind v_contact_estimates; the columns after innovation_k are for
--- the flags and the recordings. Bounds are 95 % (mean ± 1.96 sd).
+-- The contact-temperature estimate per wagon and model revision: a Kalman filter (live) and
+-- Rauch-Tung-Striebel smoother (after the fact) on the reduced model's state with the
+-- unexplained friction-face heat power as an unknown input (docs/estimator.md), run through
+-- every logged second. Stored per second (resolution_s = 1) inside the estimate windows and
+-- per minute (resolution_s = 60: the minute's means, extremes and root mean squares, at the
+-- minute's start) elsewhere (fleetbrake.warehouse.estimate_windows). Behind
+-- v_contact_estimates; the columns after innovation_k are for the flags and the recordings.
+-- Bounds are 95 % (mean ± 1.96 sd).
 CREATE TABLE IF NOT EXISTS contact_estimates (
     wagon_id                    VARCHAR   NOT NULL,
     time_utc                    TIMESTAMP NOT NULL,
@@ -27,8 +30,12 @@ CREATE TABLE IF NOT EXISTS contact_estimates (
     smoothed_contact_max_hi_c   DOUBLE,
     smoothed_unexplained_power_w    DOUBLE,
     smoothed_unexplained_power_lo_w DOUBLE,
-    smoothed_unexplained_power_hi_w DOUBLE
+    smoothed_unexplained_power_hi_w DOUBLE,
+    resolution_s                INTEGER   NOT NULL   -- 1: the second's row; 60: the minute's
 );
+-- Databases of schema version 2 gain the column, 1 on their rows (per-second rows; the
+-- migration to version 3 then compacts them and drops the default).
+ALTER TABLE contact_estimates ADD COLUMN IF NOT EXISTS resolution_s INTEGER DEFAULT 1;
 
 -- Which wagons were estimated with which revision, and from what (incremental runs: a wagon
 -- is estimated again when its data, its registry entry, the revision or the noise changed).

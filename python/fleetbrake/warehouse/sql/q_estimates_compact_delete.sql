@@ -1,0 +1,9 @@
+-- Delete the per-second rows of revision $revision in the minutes of `compact_minutes`
+-- (their minute rows were inserted first, in the same transaction:
+-- q_estimates_compact_insert.sql). Parameters: $revision.
+DELETE FROM contact_estimates AS e
+USING compact_minutes AS c
+WHERE e.wagon_id = c.wagon_id
+  AND date_trunc('minute', e.time_utc) = c.minute_utc
+  AND e.model_revision = $revision
+  AND e.resolution_s = 1;
