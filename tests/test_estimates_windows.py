@@ -254,3 +254,27 @@ def test_view_shows_the_resolution(warehouse: Warehouse) -> None:
         "resolution_s",
         "contact_mean_c",
     ]
+
+
+def test_the_reports_lines_run_through_minute_rows_and_break_at_gaps() -> None:
+    """The report's plot of a wagon's estimates draws one line through seconds and the minute
+    rows beside them, and breaks it where the data has a gap."""
+    from fleetbrake.app.report.plots import _with_breaks
+
+    seconds = [T0 + dt.timedelta(seconds=k) for k in range(120)]
+    minutes = [_minute(seconds[-1]) + dt.timedelta(minutes=k) for k in range(1, 5)]
+    later = [minutes[-1] + dt.timedelta(hours=2, seconds=k) for k in range(10)]
+    frame = pl.DataFrame(
+        {
+            "time_utc": seconds + minutes + later,
+            "resolution_s": [1] * 120 + [60] * 4 + [1] * 10,
+            "contact_mean_c": 1.0,
+        }
+    )
+    broken = _with_breaks(frame)
+    gaps = broken.filter(pl.col("contact_mean_c").is_null())["time_utc"].to_list()
+    assert gaps == [minutes[-1] + dt.timedelta(seconds=1)]
+    assert (
+        _with_breaks(frame.drop("resolution_s")).filter(pl.col("contact_mean_c").is_null()).height
+        == 5
+    )  # per-second rows only: every minute step is a gap

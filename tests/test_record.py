@@ -87,7 +87,7 @@ DRAG_S = range(300, 400)  # the first trip: an unexplained 500 W (a dragging bra
 
 
 def _estimates(samples: pl.DataFrame) -> pl.DataFrame:
-    """``v_contact_estimates`` rows (interface v2) for every logged second of ``samples``: the
+    """``v_contact_estimates`` rows (interface v3, per second) for every logged second of ``samples``: the
     contact mean 70 K over the reading with a +-5 K band, the unexplained power 500 W during
     :data:`DRAG_S` of the first trip (else 0) with a +-50 W band."""
     n = samples.height
@@ -111,7 +111,9 @@ def _estimates(samples: pl.DataFrame) -> pl.DataFrame:
             "unexplained_power_lo_w": power - 50.0,
             "unexplained_power_hi_w": power + 50.0,
             "innovation_k": 0.1,
-        }
+            "resolution_s": 1,
+        },
+        schema_overrides={"resolution_s": pl.Int32()},
     )
 
 

@@ -28,6 +28,7 @@ import polars as pl
 from fleetbrake.errors import DatabaseLockedError, FleetbrakeError
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.viz.entities import Floats, Times
+from fleetbrake.viz.estimates import per_second_estimates
 from fleetbrake.warehouse.connection import (
     Warehouse,
     WarehouseError,
@@ -84,8 +85,10 @@ class RecordData:
     flags: pl.DataFrame
     notes: list[str] = field(default_factory=list)
     estimates: pl.DataFrame = field(default_factory=pl.DataFrame)
-    """``v_contact_estimates`` rows of the revision (the virtual sensor); empty when the
-    database has none."""
+    """``v_contact_estimates`` rows of the revision (the virtual sensor), per second over the
+    recorded range (recomputed where stored per minute:
+    :func:`~fleetbrake.viz.estimates.per_second_estimates`); empty when the database has
+    none."""
     stored_wagon: WagonConfig | None = None
     """The wagon's registry entry as the last ``run`` stored it (``wagon_registry``)."""
     stored_wagon_source: str | None = None
@@ -323,9 +326,18 @@ def load_record_data(
             notes.append(
                 f"{what} has no predictions of model revision {chosen!r} yet: measurements only"
             )
+    stored, source = _stored_wagon(con, tables, wagon_id, notes)
     estimates = pl.DataFrame()
     if chosen is not None and "v_contact_estimates" in tables:
-        estimates = _frame(con, "q_record_estimates", of_wagon | {"model_revision": chosen})
+        estimates = per_second_estimates(
+            wh,
+            wagon_id,
+            stored,
+            chosen,
+            window,
+            _frame(con, "q_record_estimates", of_wagon | {"model_revision": chosen}),
+            notes,
+        )
     if chosen is not None and estimates.height == 0:
         notes.append(
             f"wagon {wagon_id} has no contact estimates of model revision {chosen!r} in the "
@@ -333,7 +345,6 @@ def load_record_data(
         )
     if samples.height == 0:
         notes.append(f"wagon {wagon_id} has no samples in the recorded time range")
-    stored, source = _stored_wagon(con, tables, wagon_id, notes)
     return RecordData(
         wagon_id=wagon_id,
         event=event,

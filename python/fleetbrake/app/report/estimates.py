@@ -33,8 +33,10 @@ def estimates_section(data: ReportData, picture: Path) -> Section:
             [*lines, f"No contact estimates of revision `{data.current_revision}` yet.", ""]
         )
     lines += [
-        "The virtual sensor estimates the wheel-block contact (friction-face) temperature at "
-        "every logged second from the model and the thermistor together, with its 95 % band, "
+        "The virtual sensor estimates the wheel-block contact (friction-face) temperature "
+        "through every logged second from the model and the thermistor together, with its "
+        "95 % band (stored per second around brakings, flags and unexplained heat, per minute "
+        "elsewhere), "
         "and the heat power on the friction face that the declared inputs do not explain "
         "(a dragging brake heats with the cylinder released; a weak brake heats less than "
         f"declared). Revision `{data.current_revision}`, filtered (live) estimate.",

@@ -280,8 +280,11 @@ def plot_contact_temperatures(
 
 def _with_breaks(frame: pl.DataFrame, gap_s: float = 10.0) -> pl.DataFrame:
     """``frame`` (by ``time_utc``) with a row of nulls a second after each gap longer than
-    ``gap_s``, so that a line is not drawn across a data gap."""
-    after_gap = pl.col("time_utc").diff().shift(-1) > dt.timedelta(seconds=gap_s)
+    ``gap_s`` beyond the rows' step (``resolution_s`` where the frame has it: a minute row
+    follows the row before it by a minute), so that a line is not drawn across a data gap."""
+    step_s = pl.lit(1) if "resolution_s" not in frame.columns else pl.col("resolution_s")
+    step_s = pl.max_horizontal(step_s, step_s.shift(-1).fill_null(step_s))
+    after_gap = pl.col("time_utc").diff().shift(-1).dt.total_seconds() > step_s - 1 + gap_s
     breaks = frame.filter(after_gap).select(pl.col("time_utc") + dt.timedelta(seconds=1))
     if breaks.height == 0:
         return frame

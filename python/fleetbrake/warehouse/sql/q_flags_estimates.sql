@@ -1,7 +1,8 @@
 -- One wagon's virtual-sensor estimates of revision $revision, by time, as the flags' estimator
 -- detectors read them (fleetbrake.flags.estimated): after the fact, so the smoothed contact
 -- temperature and unexplained power with their bounds where the stage stored them (the
--- filtered ones otherwise), and the filtered innovation. Parameters: $wagon_id, $revision.
+-- filtered ones otherwise), and the filtered innovation; the per-second rows only (the
+-- flags judge estimates the same run stored per second). Parameters: $wagon_id, $revision.
 SELECT
     time_utc,
     coalesce(smoothed_contact_mean_c, contact_mean_c)                AS contact_mean_c,
@@ -14,5 +15,5 @@ SELECT
     coalesce(smoothed_unexplained_power_hi_w, unexplained_power_hi_w) AS unexplained_power_hi_w,
     innovation_k
 FROM contact_estimates
-WHERE wagon_id = $wagon_id AND model_revision = $revision
+WHERE wagon_id = $wagon_id AND model_revision = $revision AND resolution_s = 1
 ORDER BY time_utc;

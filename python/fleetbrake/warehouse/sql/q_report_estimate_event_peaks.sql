@@ -1,7 +1,8 @@
 -- The fleet report (fleetbrake.app.report): per event and model revision, the virtual sensor's
 -- peak contact temperature over the event's window (the seconds v_predictions holds for it):
 -- the highest filtered contact mean with its 95 % bounds at that second, and the highest
--- contact maximum with its upper bound. No parameters.
+-- contact maximum with its upper bound. An event window's estimates are stored per second
+-- (it is an estimate window). No parameters.
 WITH event_windows AS (
     SELECT event_id, wagon_id, min(time_utc) AS from_utc, max(time_utc) AS to_utc
     FROM v_predictions

@@ -1,11 +1,12 @@
 -- The fleet report (fleetbrake.app.report): one wagon's contact estimates of one model
 -- revision in a time window, beside the open-loop prediction of the contact mean and the
--- measured sensor temperature (v_predictions, where it holds the second).
+-- measured sensor temperature (v_predictions, where it holds the second); resolution_s says
+-- whether a row is a second's or a minute's (outside the estimate windows).
 -- Parameters: $wagon_id, $model_revision, $from_utc, $to_utc.
 WITH estimates AS (
     SELECT
-        time_utc, contact_mean_c, contact_mean_lo_c, contact_mean_hi_c, unexplained_power_w,
-        unexplained_power_lo_w, unexplained_power_hi_w
+        time_utc, resolution_s, contact_mean_c, contact_mean_lo_c, contact_mean_hi_c,
+        unexplained_power_w, unexplained_power_lo_w, unexplained_power_hi_w
     FROM v_contact_estimates
     WHERE wagon_id = $wagon_id
       AND model_revision = $model_revision

@@ -1,10 +1,12 @@
--- The fleet report (fleetbrake.app.report): per wagon and model revision, over every estimated
--- second: the virtual sensor's highest contact mean with its 95 % bounds and time, the highest
--- contact maximum with its upper bound, and the extremes of the unexplained power with their
--- bounds (highest: a dragging brake; lowest: a weak brake). No parameters.
+-- The fleet report (fleetbrake.app.report): per wagon and model revision, over every stored
+-- row (per second in the estimate windows, per minute elsewhere: a minute row's maxima and
+-- bounds are the minute's extremes, its means the minute's): the virtual sensor's highest
+-- contact mean with its 95 % bounds and time, the highest contact maximum with its upper
+-- bound, and the extremes of the unexplained power with their bounds (highest: a dragging
+-- brake; lowest: a weak brake); seconds: the seconds the rows stand for. No parameters.
 WITH estimates AS (
     SELECT
-        wagon_id, model_revision, time_utc, contact_mean_c, contact_mean_lo_c,
+        wagon_id, model_revision, time_utc, resolution_s, contact_mean_c, contact_mean_lo_c,
         contact_mean_hi_c, contact_max_c, contact_max_hi_c, unexplained_power_w,
         unexplained_power_lo_w, unexplained_power_hi_w
     FROM v_contact_estimates
@@ -12,7 +14,7 @@ WITH estimates AS (
 SELECT
     wagon_id,
     model_revision,
-    count(*)                                                      AS seconds,
+    sum(resolution_s)                                             AS seconds,
     max(contact_mean_c)                                           AS est_mean_peak_c,
     arg_max(contact_mean_lo_c, contact_mean_c)                    AS est_mean_peak_lo_c,
     arg_max(contact_mean_hi_c, contact_mean_c)                    AS est_mean_peak_hi_c,
