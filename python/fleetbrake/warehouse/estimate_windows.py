@@ -17,9 +17,10 @@ outward to whole minutes, so that a minute is either all its per-second rows or 
 row. Outside them a minute's per-second rows become one row (``resolution_s`` = 60) at the
 minute's start: the means its means, the maxima and upper bounds its largest, the lower
 bounds its smallest, the innovation and its sd their root mean squares
-(``warehouse/sql/q_estimates_compact_*.sql``). Compacting again changes nothing: minute rows
-are never aggregated again, and the per-second rows left are those of the windows, which
-they define again.
+(``warehouse/sql/q_estimates_compact_*.sql``, each bounded in time by the ranges so that
+DuckDB skips the row groups of the rest of the history). Compacting again changes nothing:
+minute rows are never aggregated again, and the per-second rows left are those of the
+windows, which they define again.
 """
 
 from __future__ import annotations
@@ -73,6 +74,13 @@ def compact_estimates(
             "end_utc": pa.array([r[2] for r in ranges], pa.timestamp("us")),
         }
     )
+    starts = [r[1] for r in ranges if r[1] is not None]
+    ends = [r[2] for r in ranges if r[2] is not None]
+    reach = dt.timedelta(seconds=WINDOW_MARGIN_S + 180.0)  # the windows read around them
+    scan = {
+        "scan_from_utc": min(starts) - reach if len(starts) == len(ranges) else None,
+        "scan_to_utc": max(ends) + reach if len(ends) == len(ranges) else None,
+    }
     if transaction:
         con.execute("BEGIN TRANSACTION")
     try:
@@ -80,12 +88,16 @@ def compact_estimates(
         try:
             con.execute(
                 sql("q_estimates_compact_minutes"),
-                {"revision": revision, "margin_s": WINDOW_MARGIN_S},
+                {"revision": revision, "margin_s": WINDOW_MARGIN_S} | scan,
             )
         finally:
             con.unregister("compact_ranges")
-        minutes = _count(con.execute(sql("q_estimates_compact_insert"), {"revision": revision}))
-        removed = _count(con.execute(sql("q_estimates_compact_delete"), {"revision": revision}))
+        first, end = con.execute(sql("q_estimates_compact_bounds")).fetchone() or (None, None)
+        minutes = removed = 0
+        if first is not None:
+            bounds = {"revision": revision, "scan_from_utc": first, "scan_to_utc": end}
+            minutes = _count(con.execute(sql("q_estimates_compact_insert"), bounds))
+            removed = _count(con.execute(sql("q_estimates_compact_delete"), bounds))
         con.execute(sql("q_estimates_compact_drop"))
         if transaction:
             con.execute("COMMIT")

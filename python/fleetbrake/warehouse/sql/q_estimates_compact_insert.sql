@@ -2,7 +2,9 @@
 -- per-second rows of revision $revision (interface.md, v3): time_utc the minute's start, the
 -- means the minute's means, contact_max_c, contact_max_hi_c and every *_hi_* the minute's
 -- largest, every *_lo_* its smallest, innovation_k and innovation_sd_k the minute's root mean
--- squares (null: no reading in the minute); resolution_s 60. Parameters: $revision.
+-- squares (null: no reading in the minute); resolution_s 60. $scan_from_utc, $scan_to_utc:
+-- the minutes' time bounds (row groups outside are skipped).
+-- Parameters: $revision, $scan_from_utc, $scan_to_utc.
 INSERT INTO contact_estimates (
     wagon_id, time_utc, model_revision, contact_mean_c, contact_mean_lo_c, contact_mean_hi_c,
     contact_max_c, contact_max_hi_c, smoothed_contact_mean_c, smoothed_contact_mean_lo_c,
@@ -17,6 +19,8 @@ WITH minute_seconds AS (
     JOIN compact_minutes AS c
       ON e.wagon_id = c.wagon_id AND date_trunc('minute', e.time_utc) = c.minute_utc
     WHERE e.model_revision = $revision AND e.resolution_s = 1
+      AND e.time_utc >= CAST($scan_from_utc AS TIMESTAMP)
+      AND e.time_utc < CAST($scan_to_utc AS TIMESTAMP)
 )
 SELECT
     wagon_id,

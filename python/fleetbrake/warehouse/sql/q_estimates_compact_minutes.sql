@@ -6,9 +6,16 @@
 -- per-second rows whose unexplained power's 95 % band excludes zero; each widened by
 -- $margin_s on both sides, then rounded outward to whole minutes. The windows are read near
 -- the ranges only ($margin_s and a minute beyond them), which leaves their part inside the
--- ranges unchanged. Parameters: $revision, $margin_s.
+-- ranges unchanged. $scan_from_utc, $scan_to_utc (null: unbounded) bound every time read
+-- (the ranges' reach), so that DuckDB skips the row groups outside them.
+-- Parameters: $revision, $margin_s, $scan_from_utc, $scan_to_utc.
 CREATE OR REPLACE TEMP TABLE compact_minutes AS
-WITH ranges AS (
+WITH scan AS (
+    SELECT
+        coalesce(CAST($scan_from_utc AS TIMESTAMP), TIMESTAMP '-infinity') AS from_utc,
+        coalesce(CAST($scan_to_utc AS TIMESTAMP), TIMESTAMP 'infinity')    AS to_utc
+),
+ranges AS (
     SELECT
         CAST(wagon_id AS VARCHAR)                                              AS wagon_id,
         coalesce(date_trunc('minute', CAST(start_utc AS TIMESTAMP)), TIMESTAMP '-infinity')
@@ -33,6 +40,7 @@ seconds AS (
     JOIN reach AS r
       ON e.wagon_id = r.wagon_id AND e.time_utc >= r.from_utc AND e.time_utc < r.to_utc
     WHERE e.model_revision = $revision AND e.resolution_s = 1
+      AND e.time_utc >= (SELECT from_utc FROM scan) AND e.time_utc < (SELECT to_utc FROM scan)
 ),
 stretch_ids AS (
     SELECT
@@ -57,6 +65,7 @@ event_windows AS (
     JOIN reach AS r
       ON p.wagon_id = r.wagon_id AND p.time_utc >= r.from_utc AND p.time_utc < r.to_utc
     WHERE p.model_revision = $revision
+      AND p.time_utc >= (SELECT from_utc FROM scan) AND p.time_utc < (SELECT to_utc FROM scan)
     GROUP BY p.wagon_id, p.event_id
 ),
 flag_windows AS (
