@@ -76,6 +76,7 @@ def version_2(tmp_path: Path) -> dict[str, Path]:
     try:  # the schema of version 2: no resolution_s
         con.execute("DROP VIEW v_contact_estimates")
         con.execute("ALTER TABLE contact_estimates DROP COLUMN resolution_s")
+        con.execute("CREATE VIEW v_contact_estimates AS SELECT * FROM contact_estimates")
         con.execute("DELETE FROM schema_version")
         con.execute("INSERT INTO schema_version VALUES (2, now())")
     finally:
@@ -153,3 +154,18 @@ def test_an_interrupted_migration_is_completed_by_the_next_open(
     after, reference = _read(version_2["db"]), _read(version_2["reference"])
     assert after["version"] == [(3,)]
     assert after["estimates"] == reference["estimates"]
+
+
+def test_a_version_2_warehouse_read_only_is_recorded_and_reported_without_its_estimates(
+    version_2: dict[str, Path], tmp_path: Path
+) -> None:
+    """`record` and `report` only read: a version 2 warehouse is not migrated by them, and
+    they say its estimates are of an older fleetbrake instead of failing on them."""
+    from fleetbrake.app.report import write_report
+    from fleetbrake.viz.record import record
+
+    summary = record(version_2["db"], "SGG-0001", tmp_path / "wagon.rrd")
+    assert any("schema version 2" in note for note in summary.notes), summary.notes
+    text = write_report(version_2["db"], tmp_path / "report").path.read_text(encoding="utf-8")
+    assert "without `resolution_s`" in text
+    assert _read(version_2["db"])["version"] == [(2,)]

@@ -328,7 +328,15 @@ def load_record_data(
             )
     stored, source = _stored_wagon(con, tables, wagon_id, notes)
     estimates = pl.DataFrame()
-    if chosen is not None and "v_contact_estimates" in tables:
+    old_estimates = (
+        "v_contact_estimates" in tables and not _rows(con, "q_estimates_view_current")[0][0]
+    )
+    if old_estimates:
+        notes.append(
+            f"{db}: its contact estimates are of an older fleetbrake (schema version 2): a "
+            "`fleetbrake run` on it brings them up to date"
+        )
+    elif chosen is not None and "v_contact_estimates" in tables:
         estimates = per_second_estimates(
             wh,
             wagon_id,
@@ -338,7 +346,7 @@ def load_record_data(
             _frame(con, "q_record_estimates", of_wagon | {"model_revision": chosen}),
             notes,
         )
-    if chosen is not None and estimates.height == 0:
+    if chosen is not None and estimates.height == 0 and not old_estimates:
         notes.append(
             f"wagon {wagon_id} has no contact estimates of model revision {chosen!r} in the "
             "recorded time range: open-loop prediction only"

@@ -64,7 +64,8 @@ class ReportData:
     representative: dict[str, list[tuple[str, str]]] = field(default_factory=dict)
     """Per wagon: (event_id, why it was chosen)."""
     has_estimates: bool = False
-    """The database has ``v_contact_estimates`` (a database of an older ``run`` has not)."""
+    """The database has ``v_contact_estimates`` of interface v3 (a database of an older
+    ``run`` has none, or one without ``resolution_s`` until a ``run`` migrates it)."""
     estimate_event_peaks: pl.DataFrame = field(default_factory=pl.DataFrame)
     """Per event and revision: the virtual sensor's peak contact mean with its bounds, and
     peak contact maximum with its upper bound, over the event's window."""
@@ -147,7 +148,10 @@ def load_report_data(db_path: str | Path, per_wagon: int = 3) -> ReportData:
         ids = [e for picks in data.representative.values() for e, _ in picks]
         if ids:
             data.series = _query(con, "q_report_series", {"event_ids": ids})
-        if "v_contact_estimates" in set(_query(con, "q_report_relations")["view_name"]):
+        if (
+            "v_contact_estimates" in set(_query(con, "q_report_relations")["view_name"])
+            and (_query(con, "q_estimates_view_current")["current"][0])
+        ):
             _load_estimates(con, data)
     finally:
         con.close()

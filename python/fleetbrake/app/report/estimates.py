@@ -22,8 +22,8 @@ def estimates_section(data: ReportData, picture: Path) -> Section:
         return Section(
             [
                 *lines,
-                "The database has no contact estimates (no `v_contact_estimates`: it was "
-                "written by an older `run`).",
+                "The database has no contact estimates (no `v_contact_estimates`, or one "
+                "without `resolution_s`: it was written by an older `run`).",
                 "",
             ]
         )
