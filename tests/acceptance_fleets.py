@@ -51,6 +51,7 @@ from fleetbrake.synth.generator import (
     generate_fleet,
     load_truth,
 )
+from fleetbrake.synth.scoring import FlagScore, score_flags
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -70,10 +71,6 @@ NOISE_K = 0.1
 SOLAR_PEAK_W_M2 = (40.0, 90.0)
 """Range of the absorbed sunshine's noon peak of the out-of-vocabulary fleet: a sol-air rise
 of 4-9 K at noon on the block's air-cooled faces (``q / h0``, h0 10 W/m^2 K)."""
-
-ANOMALY_KINDS = ("dragging_brake", "weak_brake", "sensor_fault")
-"""The flag kinds the generator injects as anomalies (``overheating`` is a limit, not an
-anomaly: it is not scored)."""
 
 VOCABULARY = (
     "friction_speed",
@@ -608,93 +605,10 @@ def holdout_rmse_against_truth(outcome: Outcome, revision: str) -> float:
     return float(np.sqrt(np.mean(e * e)))
 
 
-@dataclass
-class FlagScore:
-    flags: int
-    true_flags: int
-    anomalies: int
-    found: int
-    misses: list[str]
-    by_kind: dict[str, tuple[int, int, int, int]]
-    """kind -> (flags, true flags, observable anomalies, found)."""
-
-    @property
-    def precision(self) -> float:
-        return self.true_flags / self.flags if self.flags else 1.0
-
-    @property
-    def recall(self) -> float:
-        return self.found / self.anomalies if self.anomalies else 1.0
-
-
-def _overlaps(flag: Mapping[str, Any], anomaly: Any) -> bool:
-    return bool(
-        flag["wagon_id"] == anomaly.wagon_id
-        and flag["kind"] == anomaly.kind
-        and flag["start_utc"] < anomaly.end_utc
-        and anomaly.start_utc < flag["end_utc"]
-    )
-
-
 def flag_score(outcome: Outcome) -> FlagScore:
     """The stored flags (judged with the revision the loop left current) against the
-    generator's injected anomalies. A flag is true when it overlaps an anomaly of its kind on
-    its wagon; an anomaly counts for the recall when the data can show it (a sensor fault with
-    at least a minute of ingested samples in it, a brake anomaly with 5 minutes outside its
-    wagon's sensor faults)."""
-    con = _connect(outcome.db)
-    try:
-        flags = con.sql(
-            "SELECT flag_id, wagon_id, kind, start_utc, end_utc, evidence FROM v_flags "
-            "WHERE kind IN ('dragging_brake', 'weak_brake', 'sensor_fault') ORDER BY start_utc"
-        ).pl()
-        anomalies = outcome.truth.anomalies
-        observable = []
-        for a in anomalies:
-            query = (
-                "SELECT count(*) FROM samples WHERE wagon_id = $w "
-                "AND time_utc >= $a AND time_utc < $b"
-            )
-            params: dict[str, Any] = {"w": a.wagon_id, "a": a.start_utc, "b": a.end_utc}
-            if a.kind != "sensor_fault":
-                for k, other in enumerate(anomalies):
-                    if other.kind == "sensor_fault" and other.wagon_id == a.wagon_id:
-                        query += f" AND NOT (time_utc >= $s{k} AND time_utc < $e{k})"
-                        params.update({f"s{k}": other.start_utc, f"e{k}": other.end_utc})
-            ((count,),) = con.execute(query, params).fetchall()
-            if count >= (60 if a.kind == "sensor_fault" else 300):
-                observable.append(a)
-    finally:
-        con.close()
-    rows = flags.to_dicts()
-    misses = []
-    by_kind: dict[str, list[int]] = {k: [0, 0, 0, 0] for k in ANOMALY_KINDS}
-    true_flags = 0
-    for f in rows:
-        ok = any(_overlaps(f, a) for a in anomalies)
-        true_flags += ok
-        by_kind[f["kind"]][0] += 1
-        by_kind[f["kind"]][1] += ok
-        if not ok:
-            misses.append(f"false {f['kind']} {f['wagon_id']}: {f['evidence']}")
-    found = 0
-    for a in observable:
-        hit = any(_overlaps(f, a) for f in rows)
-        found += hit
-        by_kind[a.kind][2] += 1
-        by_kind[a.kind][3] += hit
-        if not hit:
-            misses.append(
-                f"missed {a.kind} {a.subtype or ''} {a.wagon_id} {a.start_utc}..{a.end_utc}"
-            )
-    return FlagScore(
-        flags=len(rows),
-        true_flags=true_flags,
-        anomalies=len(observable),
-        found=found,
-        misses=misses,
-        by_kind={k: (v[0], v[1], v[2], v[3]) for k, v in by_kind.items()},
-    )
+    generator's injected anomalies (:func:`fleetbrake.synth.scoring.score_flags`)."""
+    return score_flags(outcome.db, outcome.truth)
 
 
 def summary_row(outcome: Outcome) -> dict[str, Any]:
@@ -726,7 +640,9 @@ def summary_row(outcome: Outcome) -> dict[str, Any]:
         row["flags"] = {
             "precision": round(score.precision, 3),
             "recall": round(score.recall, 3),
-            "by_kind": score.by_kind,
+            "by_kind": {
+                k: (v.flags, v.true_flags, v.anomalies, v.found) for k, v in score.by_kind.items()
+            },
             "misses": score.misses,
         }
     return row
