@@ -61,28 +61,24 @@ class FlagScore:
     misses: list[str]
 
     @property
-    def flags(self) -> int:
-        return sum(k.flags for k in self.by_kind.values())
-
-    @property
-    def true_flags(self) -> int:
-        return sum(k.true_flags for k in self.by_kind.values())
-
-    @property
-    def anomalies(self) -> int:
-        return sum(k.anomalies for k in self.by_kind.values())
-
-    @property
-    def found(self) -> int:
-        return sum(k.found for k in self.by_kind.values())
+    def total(self) -> KindScore:
+        """Every class summed (its delays pooled)."""
+        kinds = self.by_kind.values()
+        return KindScore(
+            flags=sum(k.flags for k in kinds),
+            true_flags=sum(k.true_flags for k in kinds),
+            anomalies=sum(k.anomalies for k in kinds),
+            found=sum(k.found for k in kinds),
+            delays_s=[d for k in kinds for d in k.delays_s],
+        )
 
     @property
     def precision(self) -> float:
-        return self.true_flags / self.flags if self.flags else 1.0
+        return self.total.precision
 
     @property
     def recall(self) -> float:
-        return self.found / self.anomalies if self.anomalies else 1.0
+        return self.total.recall
 
 
 def _overlaps(flag: dict[str, Any], anomaly: Anomaly) -> bool:
