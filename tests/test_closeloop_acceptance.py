@@ -208,7 +208,7 @@ def test_flags_after_the_loop_match_the_injected_anomalies(
     if outcome.report.get("new_revision") and "flags_judged_with" in outcome.report:
         assert outcome.report["flags_judged_with"] == outcome.report["new_revision"]
     score = flag_score(outcome)
-    assert score.anomalies >= 3, score
+    assert score.total.anomalies >= 3, score
     assert score.precision >= 0.9, (score.precision, score.by_kind, score.misses)
     assert score.recall >= 0.9, (score.recall, score.by_kind, score.misses)
 
