@@ -55,12 +55,12 @@ TABLES = {
     "predictions": "SELECT * FROM predictions WHERE model_revision = $r "
     "ORDER BY event_id, time_utc",
     "timeline": "SELECT * FROM timeline WHERE model_revision = $r ORDER BY wagon_id, time_utc",
-    "simulated_wagons": "SELECT * EXCLUDE (simulated_utc) FROM simulated_wagons "
-    "WHERE model_revision = $r ORDER BY wagon_id",
+    "simulated_spans": "SELECT * EXCLUDE (simulated_utc) FROM simulated_spans "
+    "WHERE model_revision = $r ORDER BY wagon_id, span_start_utc",
     "contact_estimates": "SELECT * FROM contact_estimates WHERE model_revision = $r "
     "ORDER BY wagon_id, time_utc",
-    "estimated_wagons": "SELECT * EXCLUDE (created_utc) FROM estimated_wagons "
-    "WHERE model_revision = $r ORDER BY wagon_id",
+    "estimated_spans": "SELECT * EXCLUDE (created_utc) FROM estimated_spans "
+    "WHERE model_revision = $r ORDER BY wagon_id, span_start_utc",
     "estimator_noise": "SELECT * EXCLUDE (created_utc) FROM estimator_noise "
     "WHERE model_revision = $r",
 }

@@ -48,7 +48,7 @@ VIEW_COLUMNS = [
 ]
 """``v_contact_estimates`` of interface.md v3, in order."""
 
-STAGE_TABLES = ("contact_estimates", "estimated_wagons", "estimator_noise")
+STAGE_TABLES = ("contact_estimates", "estimated_spans", "estimator_noise")
 
 
 @pytest.fixture(scope="module")
@@ -231,7 +231,7 @@ def test_run_fills_v_contact_estimates_one_row_per_logged_second(
     assert bad_bounds == 0
     # the noise: sigma_v each wagon's own, from its readings (the generator's: 0.1 K, on every
     # wagon, sensor faults or not); sigma_w the declared revision's default; nothing fitted
-    noise = _query(inline_db, "SELECT * FROM estimated_wagons ORDER BY wagon_id")
+    noise = _query(inline_db, "SELECT * FROM estimated_spans ORDER BY wagon_id")
     assert noise.height >= 3
     assert noise["measurement_k"].is_between(0.085, 0.115).all(), noise["measurement_k"]
     assert noise["measurement_k"].n_unique() == noise.height  # each its own
@@ -266,11 +266,11 @@ def test_local_engine_equals_inline_and_a_second_run_adds_nothing(
                     assert a.is_null().to_list() == b.is_null().to_list()
                 else:
                     assert a.to_list() == b.to_list(), f"{table}.{name}"
-        stamps = _query(db, "SELECT * FROM estimated_wagons ORDER BY ALL")
+        stamps = _query(db, "SELECT * FROM estimated_spans ORDER BY ALL")
         again = _run(fleet, db, engine, rom_refinement, rom_cache_dir)
     assert again.estimation is not None
     assert again.estimation.wagons_estimated == [] and again.estimation.rows == 0
-    assert _query(db, "SELECT * FROM estimated_wagons ORDER BY ALL").equals(stamps)
+    assert _query(db, "SELECT * FROM estimated_spans ORDER BY ALL").equals(stamps)
     assert _tables(db)["contact_estimates"].equals(local["contact_estimates"])
 
 
@@ -289,16 +289,16 @@ def test_a_late_file_reestimates_only_its_wagon(
     engine = InlineEngine()
     _run(copy, db, engine, rom_refinement, rom_cache_dir)
     before = _tables(db)
-    before_stamps = _query(db, "SELECT * FROM estimated_wagons ORDER BY ALL")
+    before_stamps = _query(db, "SELECT * FROM estimated_spans ORDER BY ALL")
     held.rename(late)
     report = _run(copy, db, engine, rom_refinement, rom_cache_dir)
     assert report.estimation is not None
     assert report.estimation.wagons_estimated == ["SGG-0003"]
     after = _tables(db)
-    for table in ("contact_estimates", "estimated_wagons"):
+    for table in ("contact_estimates", "estimated_spans"):
         mine = pl.col("wagon_id") == "SGG-0003"
         assert after[table].filter(~mine).equals(before[table].filter(~mine)), table
-    stamps = _query(db, "SELECT * FROM estimated_wagons ORDER BY ALL")
+    stamps = _query(db, "SELECT * FROM estimated_spans ORDER BY ALL")
     others = pl.col("wagon_id") != "SGG-0003"
     assert stamps.filter(others).equals(before_stamps.filter(others))  # not rewritten
     # the late file's seconds are estimated now
@@ -419,7 +419,7 @@ def _assert_identity(
     db = tmp_path / "declared.duckdb"
     given = EstimationConfig(noise=EstimatorNoise(measurement_k=0.1, power_w_per_sqrt_s=3.0))
     _run(declared_fleet, db, InlineEngine(), rom_refinement, rom_cache_dir, given)
-    noise = _query(db, "SELECT measurement_k, power_w_per_sqrt_s FROM estimated_wagons")
+    noise = _query(db, "SELECT measurement_k, power_w_per_sqrt_s FROM estimated_spans")
     assert noise.rows() == [(0.1, 3.0)]
     both = _query(
         db,
@@ -496,8 +496,8 @@ def test_a_wagons_results_do_not_depend_on_when_the_others_arrived(
     assert together.height == one_by_one.height > 0
     assert together.sort(order).equals(one_by_one.sort(order))
     columns = "wagon_id, seconds, measurement_k, power_w_per_sqrt_s"
-    assert _query(db, f"SELECT {columns} FROM estimated_wagons ORDER BY ALL").equals(
-        _query(inline_db, f"SELECT {columns} FROM estimated_wagons ORDER BY ALL")
+    assert _query(db, f"SELECT {columns} FROM estimated_spans ORDER BY ALL").equals(
+        _query(inline_db, f"SELECT {columns} FROM estimated_spans ORDER BY ALL")
     )
 
 
@@ -596,11 +596,11 @@ def test_the_close_loops_revision_gets_its_own_sigma_w_by_maximum_likelihood(
         report = estimate_wagons(wh, registry, rev, config)
         assert report.noise_method == "ml"
         assert report.power_noise_w_per_sqrt_s == fitted.noise.power_w_per_sqrt_s
-        powers = wh.con.sql("SELECT DISTINCT power_w_per_sqrt_s FROM estimated_wagons").fetchall()
+        powers = wh.con.sql("SELECT DISTINCT power_w_per_sqrt_s FROM estimated_spans").fetchall()
     assert powers == [(fitted.noise.power_w_per_sqrt_s,)]
     # the default's wagons are all estimated again with it (their model key changed)
     assert sorted(report.wagons_estimated) == sorted(
-        _query(inline_db, "SELECT wagon_id FROM estimated_wagons")["wagon_id"].to_list()
+        _query(inline_db, "SELECT wagon_id FROM estimated_spans")["wagon_id"].to_list()
     )
 
 

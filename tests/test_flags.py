@@ -145,7 +145,7 @@ def test_load_flag_config_reads_the_keys_a_file_sets(tmp_path: Path) -> None:
 
 
 def test_config_key_is_its_content_alone(tmp_path: Path) -> None:
-    """``FlagConfig.key()`` (stored with each wagon's flags in ``flagged_wagons``) is the
+    """``FlagConfig.key()`` (stored with each span's judgement in ``flagged_spans``) is the
     same for the same thresholds however they were given, another for any other threshold,
     and stable across processes (a hash of the names and values, not Python's ``hash``)."""
     import subprocess
@@ -646,6 +646,7 @@ def test_sensor_faults_close_together_are_one_flag() -> None:
 
 def _warehouse_with_samples(tmp_path: Path) -> tuple[object, object]:
     from fleetbrake.fleet.registry import load_registry
+    from fleetbrake.ingest.spans import update_spans
     from fleetbrake.simulation.predictions import ensure_declared
     from fleetbrake.warehouse.connection import open_warehouse
 
@@ -658,11 +659,18 @@ def _warehouse_with_samples(tmp_path: Path) -> tuple[object, object]:
     fault = np.zeros(n, dtype=bool)
     fault[300:420] = True
     measured[1500:1600] = np.nan
-    for wagon_id in ("UNREG-1", "UNREG-2"):
+    for file_id, wagon_id in enumerate(("UNREG-1", "UNREG-2"), start=1):
+        wh.con.execute(  # the file the samples came from: the spans are cut from the files
+            "INSERT INTO files (file_id, path, wagon_id, sha256, size_bytes, mtime_ns, status, "
+            "rows, first_utc, last_utc, ingested_utc) VALUES ($f, $p, $w, 'x', 1, 1, "
+            "'ingested', $n, $a, $b, $a)",
+            {"f": file_id, "p": f"logs/{wagon_id}.csv", "w": wagon_id, "n": n, "a": at(0)}
+            | {"b": at(n - 1)},
+        )
         frame = pl.DataFrame(
             {
                 "wagon_id": wagon_id,
-                "file_id": 1,
+                "file_id": file_id,
                 "time_utc": pl.Series([at(k) for k in range(n)]),
                 "speed_kmh": 50.0,
                 "distance_m": None,
@@ -679,10 +687,13 @@ def _warehouse_with_samples(tmp_path: Path) -> tuple[object, object]:
         wh.con.register("fb_test", frame)
         wh.con.execute("INSERT INTO samples SELECT * FROM fb_test")
         wh.con.unregister("fb_test")
+    update_spans(wh)
     return wh, registry
 
 
 def test_raise_flags_replaces_a_wagons_flags_with_stable_ids(tmp_path: Path) -> None:
+    from fleetbrake.ingest.spans import update_spans
+
     wh, registry = _warehouse_with_samples(tmp_path)
     try:
         report = raise_flags(wh, registry, "declared")  # type: ignore[arg-type]
@@ -706,8 +717,10 @@ def test_raise_flags_replaces_a_wagons_flags_with_stable_ids(tmp_path: Path) -> 
         assert (
             wh.con.execute("SELECT flag_id, detected_utc FROM flags ORDER BY 1").fetchall() == first
         )  # type: ignore[attr-defined]
-        # one wagon's samples gone: only its flags go
+        # one wagon's file and samples gone: only its flags go
         wh.con.execute("DELETE FROM samples WHERE wagon_id = 'UNREG-2'")  # type: ignore[attr-defined]
+        wh.con.execute("DELETE FROM files WHERE wagon_id = 'UNREG-2'")  # type: ignore[attr-defined]
+        update_spans(wh)  # type: ignore[arg-type]
         raise_flags(wh, registry, "declared", wagons=["UNREG-2"])  # type: ignore[arg-type]
         left = wh.con.execute("SELECT DISTINCT wagon_id FROM flags").fetchall()  # type: ignore[attr-defined]
         assert left == [("UNREG-1",)]

@@ -1,6 +1,6 @@
 """The flags' partitions read by chunks (fleetbrake.flags.partition): a chunk's tables, read with
-each wagon's position instead of its name (``q_flags_chunk_*.sql``) and cut in the worker,
-give each wagon the tables its own queries read, the estimates included; and the braking
+each span's position instead of its wagon's name (``q_flags_chunk_*.sql``) and cut in the
+worker, give each span the tables its own queries read, the estimates included; and the braking
 statistics (``event_stats``) are the same whether the predictions come sorted (the stage's
 reads: the sort is skipped) or not.
 """
@@ -52,29 +52,30 @@ def estimated_fleet(
 
 def _heads(wh: Warehouse, fleet_dir: Path, revision_name: str) -> list[partition.FlagHead]:
     from fleetbrake.ingest.files import load_fleet_registry
-    from fleetbrake.simulation.store import data_keys, simulated_wagons
+    from fleetbrake.ingest.spans import stored_spans
+    from fleetbrake.simulation.store import simulated_spans
 
     registry = load_fleet_registry(fleet_dir)
-    keys, done = data_keys(wh), simulated_wagons(wh, revision_name)
+    done = simulated_spans(wh, revision_name)
     estimated = judge.current_estimates(wh, revision_name)
     return [
         partition.FlagHead(
-            w,
+            s,
             7.0,
             None,
-            done[w].data_key if w in done and w in registry.wagons else None,
-            registry.wagons.get(w),
-            w in estimated,
+            done[s.key].data_key if s.key in done and s.wagon_id in registry.wagons else None,
+            registry.wagons.get(s.wagon_id),
+            s.key in estimated,
         )
-        for w in sorted(keys)
+        for s in stored_spans(wh)
     ]
 
 
 def test_a_chunks_tables_cut_in_the_worker_are_each_wagons_own(estimated_fleet: Path) -> None:
-    """Every table of every wagon's task cut from a chunk (the large ones read with the
-    wagon's position, ``wagon_ix``, and named again in the worker) equals the one its own
-    per-wagon queries read (``flag_task``), the estimates included; a chunk read in another
-    order of its wagons cuts the same tasks."""
+    """Every table of every span's task cut from a chunk (read with the span's position,
+    ``part_ix``, the estimates with the wagon's, ``wagon_ix``, and named again in the worker)
+    equals the one its own per-span queries read (``flag_task``), the estimates included; a
+    chunk read in another order of its spans cuts the same tasks."""
     from fleetbrake.simulation.predictions import revision
     from fleetbrake.warehouse.connection import open_warehouse
 
@@ -86,9 +87,9 @@ def test_a_chunks_tables_cut_in_the_worker_are_each_wagons_own(estimated_fleet: 
         chunk = partition.flag_chunk(wh, heads, rev.name, config, rev)
         backwards = partition.flag_chunk(wh, heads[::-1], rev.name, config, rev)
         alone = {
-            h.wagon_id: partition.flag_task(
+            h.span.key: partition.flag_task(
                 wh,
-                h.wagon_id,
+                h.span,
                 rev.name,
                 config,
                 ambient_c=h.ambient_c,
@@ -100,12 +101,12 @@ def test_a_chunks_tables_cut_in_the_worker_are_each_wagons_own(estimated_fleet: 
             )
             for h in heads
         }
-    assert "wagon_ix" in chunk.timeline.column_names  # not the names: the test's premise
+    assert "part_ix" in chunk.timeline.column_names  # not the names: the test's premise
     tables = ("samples", "events", "segments", "timeline", "predictions", "estimates")
     for tasks in (partition.chunk_tasks(chunk), partition.chunk_tasks(backwards)[::-1]):
-        assert [t.wagon_id for t in tasks] == [h.wagon_id for h in heads]
+        assert [t.span for t in tasks] == [h.span for h in heads]
         for task in tasks:
-            theirs = alone[task.wagon_id]
+            theirs = alone[task.span.key]
             for name in tables:
                 mine, own = getattr(task, name), getattr(theirs, name)
                 assert (mine is None) == (own is None), (task.wagon_id, name)

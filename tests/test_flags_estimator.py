@@ -522,7 +522,7 @@ def test_the_flags_read_the_stored_estimates_when_they_are_current(
         assert alone.flags and not any(f.detail == "estimator" for f in alone.flags)
         assert not any("virtual sensor" in f.evidence for f in alone.flags)
         estimate_wagons(wh, registry, rev)
-        assert current_estimates(wh, rev.name) == set(registry.wagons)
+        assert {w for w, _ in current_estimates(wh, rev.name)} == set(registry.wagons)
         stored = raise_flags(wh, registry, rev.name)
         today = raise_flags(wh, registry, rev.name, TODAY)
         observable = {id(a): _observable(wh, truth, a) for a in truth.anomalies}

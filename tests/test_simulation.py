@@ -252,7 +252,7 @@ def _counts(wh: Any, revision: str = "declared") -> dict[str, int]:
         table: wh.con.execute(
             f"SELECT count(*) FROM {table} WHERE model_revision = $r", {"r": revision}
         ).fetchall()[0][0]
-        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons")
+        for table in ("predictions", "timeline", "timeline_segments", "simulated_spans")
     }
 
 
@@ -307,6 +307,7 @@ def test_the_stage_stores_timeline_and_predictions_once(fleet: Fleet) -> None:
 
 def test_a_wagon_whose_data_changed_is_simulated_again_alone(fleet: Fleet) -> None:
     from fleetbrake.flags import raise_flags
+    from fleetbrake.ingest.spans import update_spans
     from fleetbrake.simulation.predictions import current_revision, simulate_events
     from fleetbrake.warehouse.connection import open_warehouse
 
@@ -321,7 +322,16 @@ def test_a_wagon_whose_data_changed_is_simulated_again_alone(fleet: Fleet) -> No
         wh.con.execute(
             "DELETE FROM samples WHERE wagon_id = $w AND time_utc > $t", {"w": second, "t": cut}
         )
-        # the flags see that its timeline is older than its data and do not use it
+        # the flags see that its timeline does not hold its samples and do not use it
+        report = raise_flags(wh, fleet.registry, rev.name, wagons=[second])
+        assert any(f"wagon {second}: its data changed" in note for note in report.notes)
+        # as a replaced file does: its row changed, the spans cut again where it lies
+        wh.con.execute(
+            "UPDATE files SET sha256 = 'replaced', last_utc = $t, rows = rows - 1 "
+            "WHERE file_id = (SELECT max(file_id) FROM samples WHERE wagon_id = $w)",
+            {"w": second, "t": cut},
+        )
+        update_spans(wh)
         report = raise_flags(wh, fleet.registry, rev.name, wagons=[second])
         assert any(f"wagon {second}: its data changed" in note for note in report.notes)
         again = simulate_events(wh, fleet.registry, rev, fleet.config)
@@ -571,11 +581,11 @@ def _stored_rows(wh: Any) -> dict[str, pl.DataFrame]:
         "predictions": "event_id, time_utc",
         "timeline": "wagon_id, time_utc",
         "timeline_segments": "wagon_id, start_utc, kind",
-        "simulated_wagons": "wagon_id",
+        "simulated_spans": "wagon_id, span_start_utc",
     }
     return {
         table: wh.con.sql(
-            f"SELECT {'* EXCLUDE (simulated_utc)' if table == 'simulated_wagons' else '*'} "
+            f"SELECT {'* EXCLUDE (simulated_utc)' if table == 'simulated_spans' else '*'} "
             f"FROM {table} WHERE model_revision = 'declared' ORDER BY {keys}"
         ).pl()
         for table, keys in order.items()
@@ -604,7 +614,7 @@ def test_several_wagons_per_transaction_store_what_one_per_transaction_does(
         one = dataclasses.replace(fleet.config, batch_rows=1)
         first = simulate_events(wh, fleet.registry, rev, one, wagons=wagons, progress=False)
         assert len(first.wagons_simulated) >= 2
-        assert len(commits) == len(first.wagons_simulated)  # one wagon per transaction
+        assert len(commits) == len(first.spans_simulated)  # one span per transaction
         alone = _stored_rows(wh)
         commits.clear()
         again = simulate_events(wh, fleet.registry, rev, fleet.config, wagons=wagons)
@@ -651,41 +661,47 @@ def test_the_flags_judge_their_wagons_on_an_engine_as_inline(
     assert spread.notes == inline.notes and spread.wagons == inline.wagons
 
 
-def test_wagons_without_stored_rows_are_only_inserted_and_stray_rows_still_replaced(
-    fleet: Fleet, monkeypatch: pytest.MonkeyPatch
+def test_rows_of_a_span_without_a_ledger_row_are_replaced_and_orphans_removed(
+    fleet: Fleet,
 ) -> None:
-    """The stage skips the deletes (each a scan of a table that grows with the fleet) for a
-    batch of wagons holding no rows of the revision, and stores what a replacement does; a
-    wagon with rows but no ``simulated_wagons`` entry still has them replaced, not doubled."""
-    import fleetbrake.simulation.predictions as predictions
+    """A span with rows but no ``simulated_spans`` row has them replaced, not doubled; the
+    rows of a span the ledger holds but the spans no longer do (merged, cut again) are
+    deleted."""
+    import datetime as dt
+
     from fleetbrake.simulation.predictions import current_revision, simulate_events
     from fleetbrake.warehouse.connection import open_warehouse
 
-    deletes: list[bool] = []
-    real = predictions.replace_wagons
-
-    def recorded(wh: Any, revision: str, wagons: Any, *, delete: bool = True) -> None:
-        deletes.append(delete)
-        real(wh, revision, wagons, delete=delete)
-
-    monkeypatch.setattr(predictions, "replace_wagons", recorded)
     with open_warehouse(fleet.db) as wh:
         rev = current_revision(wh, refinement=fleet.config.refinement)
         wagons = sorted(fleet.registry.wagons)
         simulate_events(wh, fleet.registry, rev, fleet.config, wagons=wagons, progress=False)
         replaced = _stored_rows(wh)
-        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
-            wh.con.execute(f"DELETE FROM {table} WHERE model_revision = 'declared'")
-        deletes.clear()
-        simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
-        assert deletes == [False]  # nothing stored: only inserted
+        wh.con.execute("DELETE FROM simulated_spans WHERE model_revision = 'declared'")
+        again = simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
+        assert again.spans_simulated
         for table, frame in _stored_rows(wh).items():
             assert frame.height > 0 and frame.equals(replaced[table]), table
-        wh.con.execute("DELETE FROM simulated_wagons WHERE model_revision = 'declared'")
-        deletes.clear()
-        simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
-        assert deletes == [True]  # its rows are there: deleted first
-        for table, frame in _stored_rows(wh).items():
+        ((wagon, start, end),) = wh.con.execute(
+            "SELECT wagon_id, span_start_utc, span_end_utc FROM simulated_spans "
+            "ORDER BY ALL LIMIT 1"
+        ).fetchall()
+        later = end + dt.timedelta(days=30)  # a span the data no longer hold
+        wh.con.execute(
+            "INSERT INTO simulated_spans SELECT wagon_id, model_revision, $a, $b, data_key, "
+            "model_key, events, simulated_utc FROM simulated_spans WHERE wagon_id = $w "
+            "AND span_start_utc = $s",
+            {"a": later, "b": later, "w": wagon, "s": start},
+        )
+        wh.con.execute(
+            "INSERT INTO timeline SELECT wagon_id, model_revision, $a, predicted_sensor_c, "
+            "predicted_contact_mean_c, predicted_contact_max_c FROM timeline "
+            "WHERE wagon_id = $w AND time_utc = $s",
+            {"a": later, "w": wagon, "s": start},
+        )
+        nothing = simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
+        assert nothing.spans_simulated == []
+        for table, frame in _stored_rows(wh).items():  # the orphan's rows are gone
             assert frame.equals(replaced[table]), table
 
 
@@ -790,46 +806,46 @@ def test_a_chunk_is_cut_into_each_wagons_rows_sorted_as_its_own_query_sorts_them
 def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
     fleet: Fleet,
 ) -> None:
-    """The simulation's and the flags' chunks (one query per table for several wagons) cut
-    into the very tables the per-wagon queries read (``wagon_task``, ``flag_task``), and
-    the flags judged by chunks of one wagon or of all are the same."""
+    """The simulation's and the flags' chunks (one query per table for several spans, their
+    time ranges only) cut into the very tables the per-span queries read (``wagon_task``,
+    ``flag_task``), and the flags judged by chunks of one span or of all are the same."""
     from fleetbrake.flags import judge, partition
     from fleetbrake.flags.config import FlagConfig
+    from fleetbrake.ingest.spans import stored_spans
     from fleetbrake.simulation import predictions as p
-    from fleetbrake.simulation.store import data_keys, simulated_wagons
+    from fleetbrake.simulation.store import simulated_spans
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
         rev = p.current_revision(wh, refinement=fleet.config.refinement)
         p.simulate_events(wh, fleet.registry, rev, fleet.config, progress=False)
-        keys, done = data_keys(wh), simulated_wagons(wh, rev.name)
-        wagons = [fleet.registry.wagons[w] for w in sorted(keys) if w in fleet.registry.wagons]
-        assert len(wagons) >= 2
-        todo = [(w, keys[w.wagon_id], "model") for w in wagons]
+        spans, done = stored_spans(wh), simulated_spans(wh, rev.name)
+        registered = [s for s in spans if s.wagon_id in fleet.registry.wagons]
+        assert len(registered) >= 2
+        todo = [(fleet.registry.wagons[s.wagon_id], s, "model") for s in registered]
         chunk = p.wagon_chunk(wh, todo, rev, fleet.config)
-        assert str(chunk).startswith("wagons ")
-        for task, (w, key, model) in zip(p.chunk_tasks(chunk), todo, strict=True):
-            alone = p.wagon_task(wh, w, rev, fleet.config, data_key=key, model_key=model)
+        assert str(chunk).startswith("spans ")
+        for task, (w, span, model) in zip(p.chunk_tasks(chunk), todo, strict=True):
+            alone = p.wagon_task(wh, w, span, rev, fleet.config, model_key=model)
             assert task.samples.num_rows > 0 and task.events.num_rows > 0
             assert task.samples.equals(alone.samples) and task.events.equals(alone.events)
-        ids = sorted(keys)  # the unregistered wagon too: its readings alone
-        heads = [
+        heads = [  # the unregistered wagon's spans too: their readings alone
             partition.FlagHead(
-                w,
+                s,
                 7.0,
                 None,
-                done[w].data_key if w in done else None,
-                fleet.registry.wagons.get(w),
+                done[s.key].data_key if s.key in done else None,
+                fleet.registry.wagons.get(s.wagon_id),
                 False,
             )
-            for w in ids
+            for s in spans
         ]
         config = FlagConfig()
         flag_chunk = partition.flag_chunk(wh, heads, rev.name, config, rev)
         for task, head in zip(partition.chunk_tasks(flag_chunk), heads, strict=True):
             alone = partition.flag_task(
                 wh,
-                head.wagon_id,
+                head.span,
                 rev.name,
                 config,
                 ambient_c=head.ambient_c,
@@ -841,7 +857,7 @@ def test_the_stages_chunks_hold_the_partitions_the_per_wagon_queries_read(
             for name in ("samples", "events", "segments", "timeline", "predictions"):
                 mine, theirs = getattr(task, name), getattr(alone, name)
                 assert (mine is None) == (theirs is None), name
-                assert mine is None or mine.equals(theirs), (head.wagon_id, name)
+                assert mine is None or mine.equals(theirs), (head.span, name)
         by_one = judge.raise_flags(wh, fleet.registry, rev.name, chunk_rows=1)
         by_all = judge.raise_flags(wh, fleet.registry, rev.name)
     assert by_one.flags == by_all.flags and by_one.notes == by_all.notes
@@ -856,11 +872,13 @@ def test_the_chunk_pipeline_yields_in_order_and_writes_whole_wagons_in_row_batch
     wagons' order, written in batches of whole wagons of at most ``batch_rows`` rows (one
     batch per call, the last committed before the generator ends); a failing partition is
     raised, and the batch still being gathered is not written."""
-    from fleetbrake.simulation.store import chunk_pipeline, sample_rows
+    from fleetbrake.simulation.store import chunk_pipeline
     from fleetbrake.warehouse.connection import open_warehouse
 
     with open_warehouse(fleet.db) as wh:
-        counts = sample_rows(wh)
+        counts = dict(
+            wh.con.execute("SELECT wagon_id, count(*) FROM samples GROUP BY ALL").fetchall()
+        )
         ids = sorted(counts)
         assert len(ids) == 2
         read: list[list[str]] = []
@@ -883,6 +901,7 @@ def test_the_chunk_pipeline_yields_in_order_and_writes_whole_wagons_in_row_batch
             results = chunk_pipeline(
                 wh,
                 ids,
+                unit_rows=counts.__getitem__,
                 read=reading,
                 compute=compute,
                 write=written.append,

@@ -83,32 +83,36 @@ def _rows(db: Path) -> dict[str, pl.DataFrame]:
             "contact_estimates": con.sql(
                 "SELECT * FROM contact_estimates ORDER BY wagon_id, time_utc"
             ).pl(),
-            "estimated_wagons": con.sql(
-                "SELECT * EXCLUDE (created_utc) FROM estimated_wagons ORDER BY wagon_id"
+            "estimated_spans": con.sql(
+                "SELECT * EXCLUDE (created_utc) FROM estimated_spans "
+                "ORDER BY wagon_id, span_start_utc"
             ).pl(),
         }
     finally:
         con.close()
 
 
-def test_the_chunk_holds_the_partitions_the_per_wagon_query_reads(fleet: Fleet) -> None:
-    """One query for several wagons' samples, cut per wagon (``chunk_tasks``), gives each
-    wagon the very table ``estimate_task`` reads with a query of its own."""
+def _spans(wh: object, fleet: Fleet) -> list[object]:
+    from fleetbrake.ingest.spans import stored_spans
+
+    return [s for s in stored_spans(wh) if s.wagon_id in fleet.registry.wagons]  # type: ignore[arg-type]
+
+
+def test_the_chunk_holds_the_partitions_the_per_span_query_reads(fleet: Fleet) -> None:
+    """One query for several spans' samples, cut per span (``chunk_tasks``), gives each
+    span the very table ``estimate_task`` reads with a query of its own."""
     with open_warehouse(fleet.db, read_only=True) as wh:
         from fleetbrake.simulation.predictions import revision
 
         rev = revision(wh, "declared")
-        keys = e.estimation_data_keys(wh)
-        wagons = [fleet.registry.wagons[w] for w in sorted(keys) if w in fleet.registry.wagons]
-        assert len(wagons) == 3
-        todo = [(w, keys[w.wagon_id], "model") for w in wagons]
+        spans = _spans(wh, fleet)
+        assert len(spans) >= 3
+        todo = [(fleet.registry.wagons[s.wagon_id], s, "model") for s in spans]  # type: ignore[attr-defined]
         chunk = e.estimation_chunk(wh, todo, rev, fleet.config, 3.0)
-        assert str(chunk).startswith("wagons ")
+        assert str(chunk).startswith("spans ")
         tasks = e.chunk_tasks(chunk)
-        for task, (wagon, key, model) in zip(tasks, todo, strict=True):
-            alone = e.estimate_task(
-                wh, wagon, rev, fleet.config, 3.0, data_key=key, model_key=model
-            )
+        for task, (wagon, span, model) in zip(tasks, todo, strict=True):
+            alone = e.estimate_task(wh, wagon, span, rev, fleet.config, 3.0, model_key=model)  # type: ignore[arg-type]
             assert task.samples.num_rows > 10_000
             assert task.samples.equals(alone.samples), wagon.wagon_id
             assert dataclasses.replace(task, samples=alone.samples) == alone
@@ -134,24 +138,23 @@ def test_the_stage_stores_what_the_per_wagon_path_computes_whatever_the_chunks(
                 rev = revision(wh, "declared")
                 report = e.estimate_wagons(wh, fleet.registry, rev, config, progress=False)
                 assert len(report.wagons_estimated) == 3 and report.rows > 30_000
+                assert len(report.spans_estimated) >= 3
             stored[name] = _rows(db)
         with open_warehouse(fleet.db, read_only=True) as wh:
             rev = revision(wh, "declared")
-            keys = e.estimation_data_keys(wh)
             alone = [
                 e.estimate_wagon(
                     e.estimate_task(
                         wh,
-                        fleet.registry.wagons[w],
+                        fleet.registry.wagons[s.wagon_id],  # type: ignore[attr-defined]
+                        s,  # type: ignore[arg-type]
                         rev,
                         fleet.config,
                         fleet.config.power_noise_w_per_sqrt_s,
-                        data_key=keys[w],
                         model_key="-",
                     )
                 )
-                for w in sorted(keys)
-                if w in fleet.registry.wagons
+                for s in _spans(wh, fleet)
             ]
     frames = [pl.DataFrame(pl.from_arrow(r.rows)) for r in alone]
     expected = pl.concat(frames).sort("wagon_id", "time_utc")
@@ -160,18 +163,17 @@ def test_the_stage_stores_what_the_per_wagon_path_computes_whatever_the_chunks(
     assert got["resolution_s"].unique().to_list() == [1]  # the stage stores every second
     got = got.drop("resolution_s")
     assert got.equals(expected.select(got.columns))  # every value, nulls and all
-    for table in ("contact_estimates", "estimated_wagons"):
+    for table in ("contact_estimates", "estimated_spans"):
         assert stored["by_one"][table].equals(stored["default"][table]), table
-    seconds = stored["default"]["estimated_wagons"].select("wagon_id", "seconds").rows()
-    assert seconds == sorted((r.wagon_id, r.seconds) for r in alone)
+    seconds = stored["default"]["estimated_spans"].select("wagon_id", "seconds").rows()
+    assert seconds == [(r.wagon_id, r.seconds) for r in alone]
 
 
 def test_a_wagon_with_stray_rows_is_replaced_and_the_others_only_inserted(
     fleet: Fleet, tmp_path: Path, rom_cache_dir: Path
 ) -> None:
-    """``replace_estimates`` skips its deletes for a batch of wagons holding no rows of the
-    revision (``estimated_wagon_ids``); a wagon with rows left over (no record of them in
-    ``estimated_wagons``) still has them replaced."""
+    """A span with rows left over (no record of them in ``estimated_spans``, as a crashed
+    older writer left them) has them replaced, not doubled."""
     from fleetbrake.simulation.predictions import revision
 
     reference = _copy(fleet, tmp_path, "reference")
@@ -182,14 +184,12 @@ def test_a_wagon_with_stray_rows_is_replaced_and_the_others_only_inserted(
             e.estimate_wagons(wh, fleet.registry, revision(wh, "declared"), fleet.config)
         with open_warehouse(db) as wh:
             rev = revision(wh, "declared")
-            assert e.estimated_wagon_ids(wh, rev.name) == set()
             wh.con.execute(f"ATTACH '{reference}' AS ref (READ_ONLY)")
             wh.con.execute(  # a wagon's first hour, as a crashed older writer left it
                 "INSERT INTO contact_estimates SELECT * FROM ref.contact_estimates "
                 "WHERE wagon_id = 'SGG-0002' ORDER BY time_utc LIMIT 3600"
             )
             wh.con.execute("DETACH ref")
-            assert e.estimated_wagon_ids(wh, rev.name) == {"SGG-0002"}
             e.estimate_wagons(
                 wh, fleet.registry, rev, dataclasses.replace(fleet.config, batch_rows=1)
             )
@@ -343,9 +343,9 @@ def test_a_state_dependent_revisions_filtered_passes_are_the_smoothed_ones_witho
         mp.setenv("FLEETBRAKE_CACHE_DIR", str(rom_cache_dir))
         with open_warehouse(fleet.db, read_only=True) as wh:
             base = revision(wh, "declared")
-            wagon_id = min(w for w in e.estimation_data_keys(wh) if w in fleet.registry.wagons)
-            wagon = fleet.registry.wagons[wagon_id]
-            task = e.estimate_task(wh, wagon, base, fleet.config, 3.0, data_key="", model_key="")
+            span = _spans(wh, fleet)[0]
+            wagon = fleet.registry.wagons[span.wagon_id]  # type: ignore[attr-defined]
+            task = e.estimate_task(wh, wagon, span, base, fleet.config, 3.0, model_key="")  # type: ignore[arg-type]
         rev = Revision(
             "fade",
             EffectSet((FrictionTemperature(fade_per_k=2.0e-3),)),

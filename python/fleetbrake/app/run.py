@@ -5,6 +5,7 @@ current model revision, raise flags; one writer at a time (contract:
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import logging
 import sys
 import time
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from fleetbrake.flags import Flag, FlagConfig, FlagReport
     from fleetbrake.fleet.registry import Registry
     from fleetbrake.ingest.files import IngestReport
+    from fleetbrake.ingest.spans import SpanKey
     from fleetbrake.warehouse.connection import Warehouse
 
 __all__ = [
@@ -89,6 +91,10 @@ class RunReport:
     ``simulate``, ``estimate`` (the virtual sensor), ``flags``; disjoint."""
     engine: str = ""
     """The engine the stages ran on (``LocalEngine(workers=2)``)."""
+    estimated_spans: list[tuple[str, dt.datetime, dt.datetime]] = field(default_factory=list)
+    """The spans estimated per second in this run, (``wagon_id``, ``span_start_utc``,
+    ``span_end_utc``): every span whose flags were judged (with a registry entry), and those
+    whose estimates changed. What a compaction of the stored estimates takes."""
 
 
 class _StageSeconds(dict[str, float]):
@@ -155,9 +161,11 @@ def run_fleet(
     instead of scanning ``logs/`` (a unit of ``fleetbrake watch``); the later stages are
     the same as without it.
 
-    The flags judge only the wagons whose flags are out of date (:func:`_wagons_to_judge`,
-    the same rule for a whole run and a unit of ``watch``): a second run over the same
-    directory judges none, a late file its wagon alone.
+    Each stage computes the spans of the wagons' data (``fleetbrake.ingest.spans``) whose
+    keys changed, and the flags judge only the spans whose flags are out of date, each
+    estimated again first (:func:`_spans_to_estimate`, the same rule for a whole run and a
+    unit of ``watch``): a second run over the same directory computes none, a late file its
+    spans alone.
     """
     from fleetbrake.flags import FlagConfig, load_flag_config
     from fleetbrake.ingest.files import load_fleet_registry
@@ -192,28 +200,33 @@ def run_fleet(
     raise AssertionError("unreachable")  # ExitStack may swallow exceptions, for mypy
 
 
-def _wagons_to_judge(
-    wh: Warehouse,
-    revision_name: str,
-    flag_config: FlagConfig,
-    ingest: IngestReport,
-    sim: SimulationReport,
-    estimated: EstimationReport,
-) -> list[str]:
-    """The wagons whose flags a run (a whole ``run`` or a unit of ``fleetbrake watch``) must
-    judge: those of its ingested files, those the simulation and the estimation recomputed,
-    and any whose stored flags are out of date otherwise
-    (:func:`fleetbrake.flags.storage.stale_wagons`: never judged, judged before their data,
+def _spans_to_estimate(
+    wh: Warehouse, revision_name: str, flag_config: FlagConfig, sim: SimulationReport
+) -> set[SpanKey]:
+    """The spans a run (a whole ``run`` or a unit of ``fleetbrake watch``) estimates again
+    besides those whose own keys changed: every span whose flags it will judge. The flags of
+    a span are always judged on per-second estimates computed in the same run (the stored
+    estimates are made per minute outside their estimate windows after the flags), so the
+    spans to estimate are a superset of the spans to judge (:func:`_spans_to_judge`): those
+    the simulation recomputed and any whose stored flags are out of date otherwise
+    (:func:`fleetbrake.flags.storage.stale_spans`: never judged, judged before their data,
     timeline or estimates were last written (a run stopped before its flags), with another
     revision or other thresholds than ``flag_config``, or their flags removed since). A
-    wagon's flags depend only on its own data, its registry entry (a changed one
-    re-simulates the wagon; a removed one is not seen), the revision and
-    the thresholds: no detector compares wagons, so the others' stored flags stand."""
-    from fleetbrake.flags.storage import stale_wagons
+    span's flags depend only on its own data, its wagon's registry entry (a changed one
+    re-simulates the wagon's spans; a removed one is not seen), the revision and the
+    thresholds: no detector compares spans, so the others' stored flags stand."""
+    from fleetbrake.flags.storage import stale_spans
 
-    wagons = {r.wagon_id for r in ingest.ingested if r.wagon_id is not None}
-    wagons |= set(sim.wagons_simulated) | set(estimated.wagons_estimated)
-    return sorted(wagons | set(stale_wagons(wh, revision_name, flag_config)))
+    simulated = {(wagon_id, start) for wagon_id, start, _ in sim.spans_simulated}
+    return simulated | set(stale_spans(wh, revision_name, flag_config))
+
+
+def _spans_to_judge(to_estimate: set[SpanKey], estimated: EstimationReport) -> set[SpanKey]:
+    """The spans whose flags a run judges: those :func:`_spans_to_estimate` gave (estimated
+    again in this run, unless their wagon has no registry entry: judged on their readings
+    only) and those the estimation found changed (their estimates newer than their flags).
+    Every one of them with an entry was estimated in this run."""
+    return to_estimate | {(wagon_id, start) for wagon_id, start, _ in estimated.spans_estimated}
 
 
 def _stages(
@@ -254,11 +267,13 @@ def _stages(
             rev = current_revision(wh, declared.solver, declared.refinement)
             sim = simulate_events(wh, registry, rev, simulation, progress=progress, engine=engine)
         with _clock(stage_s, "estimate"):
+            to_estimate = _spans_to_estimate(wh, rev.name, flag_config, sim)
             estimated = estimate_wagons(
                 wh,
                 registry,
                 rev,
                 estimation or EstimationConfig(chain=declared.chain),
+                spans=to_estimate,
                 progress=progress,
                 engine=engine,
             )
@@ -269,7 +284,7 @@ def _stages(
                 rev.name,
                 flag_config,
                 engine=engine,
-                wagons=_wagons_to_judge(wh, rev.name, flag_config, ingest, sim, estimated),
+                spans=_spans_to_judge(to_estimate, estimated),
             )
     except duckdb.Error as error:
         raise WarehouseError(f"{db_path}: {error}") from error
@@ -282,4 +297,5 @@ def _stages(
         estimation=estimated,
         stage_s=dict(stage_s),
         engine=repr(engine),
+        estimated_spans=list(estimated.spans_estimated),
     )

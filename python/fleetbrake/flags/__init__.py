@@ -9,9 +9,9 @@ simulate. One module per concern: :mod:`~fleetbrake.flags.config` (thresholds, t
 sensor's opinion :mod:`~fleetbrake.flags.estimated` (brakes from the unexplained heat power,
 sensor faults dated by the innovations), and
 :mod:`~fleetbrake.flags.judge` (the stage: :func:`raise_flags`), with
-:mod:`~fleetbrake.flags.wagon` (a wagon judged from its arrays: :func:`judge_wagon`),
-:mod:`~fleetbrake.flags.partition` (each wagon a partition the parent reads,
-:func:`judge_task` a pure function an engine runs) and :mod:`~fleetbrake.flags.storage`
+:mod:`~fleetbrake.flags.wagon` (a span judged from its arrays: :func:`judge_wagon`),
+:mod:`~fleetbrake.flags.partition` (each span of a wagon's data a partition the parent
+reads, :func:`judge_task` a pure function an engine runs) and :mod:`~fleetbrake.flags.storage`
 (its flags stored).
 """
 

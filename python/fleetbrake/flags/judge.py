@@ -1,17 +1,17 @@
-"""Judging a wagon and storing its flags: :func:`raise_flags`.
+"""Judging the spans of wagons' data and storing their flags: :func:`raise_flags`.
 
 ::
 
     from fleetbrake.flags import FlagConfig, load_flag_config, raise_flags
 
     config = load_flag_config("flags.toml")            # or FlagConfig() for the defaults
-    report = raise_flags(wh, registry, "declared", config)   # every wagon with samples
+    report = raise_flags(wh, registry, "declared", config)   # every span
     report = raise_flags(wh, registry, "declared", wagons=["SGG-0002"])
     report.flags                                        # what was stored in ``flags``
 
 The flags read what the stages before stored: the samples and events, the revision's
 ``timeline`` (the block re-anchored at every segment, ``fleetbrake.simulation``) and its
-``predictions`` of the brakings; they never simulate. How a wagon is judged (each step uses
+``predictions`` of the brakings; they never simulate. How a span is judged (each step uses
 only readings the steps before found good):
 
 1. **Sensor, from the readings alone** (:mod:`fleetbrake.flags.sensor`): out of range,
@@ -31,27 +31,30 @@ only readings the steps before found good):
    of steps 1-2.
 
 Every threshold in kelvin a model error could reach is first raised to ``residual_factor`` x
-the wagon's residual spread for the revision (:func:`~fleetbrake.flags.wagon.wagon_residual_spread`,
-computed in its partition; :meth:`FlagConfig.scaled`).
+the span's residual spread for the revision (:func:`~fleetbrake.flags.wagon.wagon_residual_spread`
+of its own brakings, computed in its partition; :meth:`FlagConfig.scaled`).
 
-A wagon without a registry entry, or whose timeline of the revision is missing or older than
-its data, is judged on its readings only (step 1; the report's notes say so). Flags are
-recomputed per wagon (a partition, :mod:`fleetbrake.flags.partition`: the parent reads a
-chunk of wagons as Arrow, one query per table, :func:`~fleetbrake.flags.partition.flag_chunk`;
-:func:`~fleetbrake.flags.partition.judge_chunk`, pure and picklable, cuts it into the wagons'
+The unit is the span (:mod:`fleetbrake.ingest.spans`: a stretch of a wagon's data without a
+gap longer than 6 h), judged alone: no detector reads beyond it
+(``docs/decisions/0009-spans.md``). A span without a registry entry, or whose timeline of the
+revision is missing or older than its data, is judged on its readings only (step 1; the
+report's notes say so). Flags are recomputed per span (a partition,
+:mod:`fleetbrake.flags.partition`: the parent reads a chunk of spans as Arrow, one query per
+table, their time ranges only, :func:`~fleetbrake.flags.partition.flag_chunk`;
+:func:`~fleetbrake.flags.partition.judge_chunk`, pure and picklable, cuts it into the spans'
 tasks and :func:`~fleetbrake.flags.partition.judge_task` judges each alone
 (:func:`~fleetbrake.flags.wagon.judge_wagon`), on an engine's workers with ``engine=``) and
-the wagons' rows of ``flags`` replaced in one transaction (:mod:`fleetbrake.flags.storage`),
-with when they were judged, with which revision and thresholds (``flagged_wagons``:
-:func:`~fleetbrake.flags.storage.stale_wagons`, the wagons whose flags are out of date, which
-``fleetbrake run`` judges); ``flag_id`` is ``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>``
-(``-2``, ... if taken), so the same data give the same ids, and a flag found again keeps its
-``detected_utc``.
+the spans' rows of ``flags`` (those starting in each) replaced in one transaction
+(:mod:`fleetbrake.flags.storage`), with when they were judged, from which data, with which
+revision and thresholds (``flagged_spans``: :func:`~fleetbrake.flags.storage.stale_spans`,
+the spans whose flags are out of date, which ``fleetbrake run`` judges); ``flag_id`` is
+``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>`` (``-2``, ... if taken), so the same data give
+the same ids, and a flag found again keeps its ``detected_utc``.
 
 The modules: this one (the stage, :func:`raise_flags`), :mod:`~fleetbrake.flags.wagon` (one
-wagon judged from its arrays), :mod:`~fleetbrake.flags.partition` (a wagon's and a chunk's
+span judged from its arrays), :mod:`~fleetbrake.flags.partition` (a span's and a chunk's
 tables, read by the parent, judged by a worker), :mod:`~fleetbrake.flags.storage` (the
-``flags`` and ``flagged_wagons`` rows).
+``flags`` and ``flagged_spans`` rows).
 """
 
 from __future__ import annotations
@@ -69,17 +72,12 @@ from fleetbrake.flags.partition import (
     judge_chunk,
 )
 from fleetbrake.flags.records import Flag, FlagReport
-from fleetbrake.flags.storage import store_flags
+from fleetbrake.flags.storage import flagged_spans, store_flags
 from fleetbrake.fleet.registry import Registry, WagonConfig
-from fleetbrake.simulation.estimates import estimated_wagons, estimation_data_keys
+from fleetbrake.ingest.spans import Span, SpanKey, orphan_spans, stored_spans
+from fleetbrake.simulation.estimates import estimated_spans
 from fleetbrake.simulation.predictions import revision
-from fleetbrake.simulation.store import (
-    Mapper,
-    data_keys,
-    sample_rows,
-    simulated_wagons,
-    wagon_chunks,
-)
+from fleetbrake.simulation.store import Mapper, simulated_spans, unit_chunks
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = ["current_estimates", "raise_flags"]
@@ -94,22 +92,25 @@ def raise_flags(
     config: FlagConfig = DEFAULT_FLAG_CONFIG,
     *,
     wagons: Iterable[str] | None = None,
+    spans: Iterable[SpanKey] | None = None,
     engine: Mapper | None = None,
     chunk_rows: int = FLAG_CHUNK_ROWS,
 ) -> FlagReport:
-    """Recompute the flags of ``wagons`` (default: every wagon with samples) from their
-    samples, events and what the simulation stored for ``revision_name`` (its timeline and
-    predictions), and replace their rows of ``flags`` in one transaction. A wagon without a
-    registry entry, or without a current timeline of the revision, is judged on its readings
-    only (a note in the report names it). Raises
+    """Recompute the flags of the spans of ``wagons`` and of ``spans`` (default, neither
+    given: every span) from their samples, events and what the simulation stored for
+    ``revision_name`` (their timeline and predictions) and the estimation (their estimates),
+    and replace their rows of ``flags`` (those starting in each span) in one transaction; the
+    flags of spans that no longer exist are removed with them. A span without a registry
+    entry, or without a current timeline of the revision, is judged on its readings only (a
+    note in the report names its wagon). Raises
     :class:`fleetbrake.simulation.predictions.UnknownRevisionError` for an unknown revision.
 
-    Each wagon is judged alone, from its own partition. The parent reads the partitions a
-    chunk of wagons at a time (about ``chunk_rows`` samples: :func:`flag_chunk`, one query
-    per table), ``engine.map`` runs :func:`judge_chunk` on each chunk (default: the builtin
-    ``map``, in this process; an engine's workers otherwise), and the parent stores every
-    wagon's flags at the end, in bulk. The flags are the same with any engine and chunk
-    size."""
+    Each span is judged alone, from its own partition. The parent reads the partitions a
+    chunk of spans at a time (about ``chunk_rows`` samples: :func:`flag_chunk`, one query
+    per table, the spans' time ranges only), ``engine.map`` runs :func:`judge_chunk` on each
+    chunk (default: the builtin ``map``, in this process; an engine's workers otherwise),
+    and the parent stores every span's flags at the end, in bulk. The flags are the same with
+    any engine and chunk size."""
     rev = revision(wh, revision_name)  # the revision must exist
     if isinstance(registry, Registry):
         wagons_by_id: Mapping[str, WagonConfig] = registry.wagons
@@ -117,21 +118,23 @@ def raise_flags(
     else:  # the entries a run stored (simulation.predictions.stored_wagons)
         wagons_by_id = registry
         default_ambient_c = WagonConfig(wagon_id="-").ambient_temp_c
-    if wagons is None:
-        wanted = [str(r[0]) for r in wh.con.execute(sql("q_flags_wagons")).fetchall()]
+    current = stored_spans(wh)
+    if wagons is not None or spans is not None:
+        only, keys = set(wagons or ()), set(spans or ())
+        wanted = [s for s in current if s.wagon_id in only or s.key in keys]
     else:
-        wanted = sorted(set(wagons))
-    report = FlagReport(wagons=wanted)
-    if not wanted:  # nothing to judge: nothing read, nothing stored
+        wanted = current
+    orphans = orphan_spans(flagged_spans(wh, revision_name), current)
+    report = FlagReport(wagons=sorted({s.wagon_id for s in wanted}))
+    if not wanted and not orphans:  # nothing to judge: nothing read, nothing stored
         return report
-    keys = data_keys(wh)
-    done = simulated_wagons(wh, revision_name)
+    done = simulated_spans(wh, revision_name)
     estimated = current_estimates(wh, revision_name)
 
-    def head(wagon_id: str) -> FlagHead:
-        wagon = wagons_by_id.get(wagon_id)
+    def head(span: Span) -> FlagHead:
+        wagon = wagons_by_id.get(span.wagon_id)
         ambient = float(wagon.ambient_temp_c if wagon else default_ambient_c)
-        simulated = done.get(wagon_id) if wagon is not None else None
+        simulated = done.get(span.key) if wagon is not None else None
         data_key: str | None = None
         if wagon is None:
             note: str | None = "no valid registry entry; only its readings were judged"
@@ -140,44 +143,46 @@ def raise_flags(
                 f"not simulated with revision {revision_name}; only its readings were "
                 "judged (the flags read the simulation's timeline: run the simulation first)"
             )
-        elif simulated.data_key != keys.get(wagon_id):
+        elif (simulated.data_key, simulated.end_utc) != (span.data_key, span.end_utc):
             note = (
                 f"its data changed since it was simulated with revision {revision_name}; "
                 "only its readings were judged (run the simulation first)"
             )
         else:
             note, data_key = None, simulated.data_key
-        return FlagHead(wagon_id, ambient, note, data_key, wagon, wagon_id in estimated)
+        return FlagHead(span, ambient, note, data_key, wagon, span.key in estimated)
 
     def chunks() -> Iterator[FlagChunk]:
-        for ids in wagon_chunks(wanted, sample_rows(wh), chunk_rows):
-            yield flag_chunk(wh, [head(w) for w in ids], revision_name, config, rev)
+        for part in unit_chunks(wanted, lambda span: span.sample_rows, chunk_rows):
+            yield flag_chunk(wh, [head(s) for s in part], revision_name, config, rev)
 
     outcomes = map(judge_chunk, chunks()) if engine is None else engine.map(judge_chunk, chunks())
     new: list[Flag] = []
+    judged: list[tuple[Span, int]] = []
     spreads: list[float] = []
     for outcome in (one for chunk in outcomes for one in chunk):
-        report.notes += outcome.notes
+        report.notes += [n for n in outcome.notes if n not in report.notes]
         new += outcome.flags
+        judged.append((outcome.span, len(outcome.flags)))
         if outcome.residual_spread_k is not None:
             spreads.append(outcome.residual_spread_k)
-    if spreads:  # for the report only: each wagon was judged with its own
+    if spreads:  # for the report only: each span was judged with its own
         report.residual_spread_k = float(statistics.median(spreads))
-    store_flags(wh, report.wagons, new, revision_name, config.key())
+    store_flags(wh, judged, new, revision_name, config.key(), orphans)
     report.flags = new
-    logger.info("flags of %d wagons judged: %d flags", len(report.wagons), len(new))
+    logger.info("flags of %d spans judged: %d flags", len(judged), len(new))
     return report
 
 
-def current_estimates(wh: Warehouse, revision_name: str) -> set[str]:
-    """The wagons whose stored virtual-sensor estimates of the revision are current with
+def current_estimates(wh: Warehouse, revision_name: str) -> set[SpanKey]:
+    """The spans whose stored virtual-sensor estimates of the revision are current with
     their data (none when the warehouse has no estimation tables)."""
     present = wh.con.execute(sql("q_flags_has_estimates")).fetchone()
     if present is None or int(present[0]) < 2:
         return set()
-    keys = estimation_data_keys(wh)
+    data = {s.key: (s.data_key, s.end_utc) for s in stored_spans(wh)}
     return {
-        wagon_id
-        for wagon_id, stored in estimated_wagons(wh, revision_name).items()
-        if keys.get(wagon_id) == stored.data_key
+        key
+        for key, stored in estimated_spans(wh, revision_name).items()
+        if data.get(key) == (stored.ledger.data_key, stored.ledger.end_utc)
     }

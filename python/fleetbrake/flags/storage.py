@@ -1,16 +1,16 @@
-"""The flags' rows in the warehouse: a wagon's findings as flags with stable ids
-(:func:`flag_ids`), its rows of ``flags`` replaced with its judgement recorded in
-``flagged_wagons`` (:func:`store_flags`), and what is stored read back (:func:`stored_flags`,
-:func:`stale_wagons`).
+"""The flags' rows in the warehouse: a span's findings as flags with stable ids
+(:func:`flag_ids`), its rows of ``flags`` (those starting in the span) replaced with its
+judgement recorded in ``flagged_spans`` (:func:`store_flags`), and what is stored read back
+(:func:`stored_flags`, :func:`stale_spans`).
 
 ``flag_id`` is ``<kind>-<wagon>-<start as YYYYMMDDTHHMMSS>`` (``-2``, ... if taken), so the
 same data give the same ids, and a flag found again keeps its ``detected_utc``.
 
 ::
 
-    from fleetbrake.flags.storage import stale_wagons, stored_flags
+    from fleetbrake.flags.storage import stale_spans, stored_flags
 
-    stale_wagons(wh, "declared", FlagConfig())   # the wagons a run must judge again
+    stale_spans(wh, "declared", FlagConfig())    # the spans a run must judge again
     stored_flags(wh)                             # every flag stored
 """
 
@@ -24,13 +24,21 @@ import polars as pl
 
 from fleetbrake.flags.config import FlagConfig
 from fleetbrake.flags.records import Finding, Flag
-from fleetbrake.simulation.store import utc_now
+from fleetbrake.ingest.spans import LedgerSpan, Span, SpanKey, span_windows
+from fleetbrake.simulation.store import ledger_spans, utc_now
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 if TYPE_CHECKING:
     import duckdb
 
-__all__ = ["flag_ids", "stale_wagons", "store_flags", "stored_flags"]
+__all__ = [
+    "flag_ids",
+    "flag_range",
+    "flagged_spans",
+    "stale_spans",
+    "store_flags",
+    "stored_flags",
+]
 
 
 def flag_ids(wagon_id: str, findings: Sequence[Finding]) -> list[Flag]:
@@ -75,19 +83,24 @@ _FLAG_SCHEMA = pl.Schema(
 )
 
 
-def stale_wagons(wh: Warehouse, revision_name: str, config: FlagConfig) -> list[str]:
-    """The wagons with samples whose stored flags are out of date for ``revision_name`` and
-    ``config`` (``q_flags_stale_wagons.sql``; ``flagged_wagons`` records each judgement):
-    never judged with the revision, judged before a file of theirs was ingested or their
-    timeline or estimates of the revision were written, judged with other thresholds
-    (:meth:`FlagConfig.key`; or before the key was recorded), or whose rows of ``flags``
-    are not the ones their judgement stored. What a run must judge besides the wagons its
-    stages changed, so that a run that stopped between its simulation and its flags leaves
-    nothing stale behind (``fleetbrake.app.run``)."""
+def stale_spans(wh: Warehouse, revision_name: str, config: FlagConfig) -> list[SpanKey]:
+    """The spans whose stored flags are out of date for ``revision_name`` and ``config``
+    (``q_flags_stale_spans.sql``; ``flagged_spans`` records each judgement): never judged
+    with the revision, judged from other data, before their timeline or estimates of the
+    revision were written, with other thresholds (:meth:`FlagConfig.key`), or whose rows of
+    ``flags`` are not the ones their judgement stored. What a run must judge besides the
+    spans its stages changed, so that a run that stopped between its simulation and its flags
+    leaves nothing stale behind (``fleetbrake.app.run``)."""
     rows = wh.con.execute(
-        sql("q_flags_stale_wagons"), {"revision": revision_name, "config_key": config.key()}
+        sql("q_flags_stale_spans"), {"revision": revision_name, "config_key": config.key()}
     ).fetchall()
-    return [str(r[0]) for r in rows]
+    return [(str(w), start) for w, start in rows]
+
+
+def flagged_spans(wh: Warehouse, revision_name: str) -> dict[SpanKey, LedgerSpan]:
+    """The spans judged with ``revision_name``: their data key, and their thresholds' key as
+    the model key."""
+    return ledger_spans(wh, "q_flags_flagged_spans", revision_name)
 
 
 def stored_flags(wh: Warehouse) -> list[Flag]:
@@ -109,33 +122,61 @@ def stored_flags(wh: Warehouse) -> list[Flag]:
     ]
 
 
+def flag_range(span: Span | LedgerSpan) -> tuple[str, dt.datetime, dt.datetime]:
+    """The time range whose flags belong to a span: those starting from its first sample to
+    a second after its last (a finding ends, and may start, on the second after a sample)."""
+    return (span.wagon_id, span.start_utc, span.end_utc + dt.timedelta(seconds=1))
+
+
 def store_flags(
     wh: Warehouse,
-    wagons: Sequence[str],
+    judged: Sequence[tuple[Span, int]],
     flags: Sequence[Flag],
     revision_name: str,
     config_key: str,
+    orphans: Sequence[LedgerSpan] = (),
 ) -> None:
-    """Replace the flags of ``wagons`` in one transaction, recording that they were judged
-    with ``revision_name`` and the thresholds of ``config_key``, and how many flags each
-    has (``flagged_wagons``); a flag identical to a stored one keeps its ``detected_utc``."""
+    """Replace the flags of the ``judged`` spans (each with its count of ``flags``) in one
+    transaction, recording that they were judged with ``revision_name`` and the thresholds of
+    ``config_key`` (``flagged_spans``), and remove the flags and judgements of the spans that
+    no longer exist (``orphans``); a flag identical to a stored one keeps its
+    ``detected_utc``."""
     now = utc_now()
-    wagon_ids = list(wagons)
+    ranges = [flag_range(span) for span, _ in judged] + [flag_range(o) for o in orphans]
+    if not ranges:
+        return
+    window = span_windows(ranges)
+    stamps = pl.DataFrame(
+        {
+            "wagon_id": [span.wagon_id for span, _ in judged],
+            "model_revision": [revision_name] * len(judged),
+            "span_start_utc": [span.start_utc for span, _ in judged],
+            "span_end_utc": [span.end_utc for span, _ in judged],
+            "data_key": [span.data_key for span, _ in judged],
+            "config_key": [config_key] * len(judged),
+            "flag_count": [count for _, count in judged],
+            "updated_utc": [now] * len(judged),
+        },
+        schema_overrides={
+            "span_start_utc": pl.Datetime("us"),
+            "span_end_utc": pl.Datetime("us"),
+            "updated_utc": pl.Datetime("us"),
+            "flag_count": pl.Int64(),
+        },
+    )
     with wh.transaction() as con:
-        old = con.execute(sql("q_flags_stored"), {"wagon_ids": wagon_ids}).fetchall()
+        old = con.execute(sql("q_flags_stored_spans"), window).fetchall()
         kept = {tuple(r[:7]): r[7] for r in old}
-        con.execute(sql("q_flags_delete"), {"wagon_ids": wagon_ids})
-        con.execute(sql("q_flags_delete_flagged_wagons"), {"wagon_ids": wagon_ids})
+        con.execute(sql("q_flags_delete_spans"), window)
+        con.execute(sql("q_flags_delete_flagged_spans"), window)
         if flags:
             _insert_flags(con, flags, kept, now)
-        judged = {
-            "wagon_ids": wagon_ids,
-            "revision": revision_name,
-            "updated_utc": now,
-            "config_key": config_key,
-        }
-        if wagon_ids:  # after the flags: each wagon's count of them is recorded
-            con.execute(sql("q_flags_insert_flagged_wagons"), judged)
+        if judged:
+            con.register("flagged_batch", stamps)
+            try:
+                con.execute(sql("q_flags_insert_flagged_spans"))
+            finally:
+                con.unregister("flagged_batch")
 
 
 def _insert_flags(

@@ -1,6 +1,7 @@
-"""One wagon judged from its arrays: :func:`judge_wagon` (the steps of
-:mod:`fleetbrake.flags.judge`), and the wagon's residual spread its thresholds scale with
-(:func:`wagon_residual_spread`). No database: the partition's tables, already read.
+"""One wagon's spans judged from their arrays (a span, the flags' partition):
+:func:`judge_wagon` (the steps of :mod:`fleetbrake.flags.judge`), and the residual spread its
+thresholds scale with (:func:`wagon_residual_spread`). No database: the partition's tables,
+already read.
 
 ::
 
@@ -229,10 +230,10 @@ out of reach."""
 
 
 def wagon_residual_spread(predictions: pl.DataFrame) -> float | None:
-    """One wagon's residual spread for a revision, K: the median over its brakings (with at
+    """A span's residual spread for a revision, K: the median over its brakings (with at
     least :data:`RESIDUAL_MIN_READINGS` valid readings) of the rms of measured - predicted
-    over each window of its ``predictions``; None without any. A function of the wagon's
-    own data and the revision only, so another wagon's late file cannot move its flags."""
+    over each window of its ``predictions``; None without any. A function of the span's
+    own data and the revision only, so a late file elsewhere cannot move its flags."""
     if predictions.height == 0:
         return None
     spread = (  # one polars query

@@ -42,6 +42,7 @@ import pyarrow as pa  # type: ignore[import-untyped]  # ships no type informatio
 from fleetbrake.engine.writer import WriteBehind
 from fleetbrake.ingest.config import EventConfig
 from fleetbrake.ingest.detection import EVENT_COLUMNS, detect_events, physical_us
+from fleetbrake.ingest.spans import SpanUpdate, update_spans
 from fleetbrake.warehouse.connection import Warehouse, reader, sql
 
 __all__ = ["EventUpdate", "Mapper", "update_events"]
@@ -64,6 +65,9 @@ class EventUpdate:
     """Events in the table afterwards."""
     changed_ids: list[str] = field(default_factory=list)
     """Ids of the events inserted by this update."""
+    spans: SpanUpdate = field(default_factory=SpanUpdate)
+    """The spans cut again after the events (:func:`~fleetbrake.ingest.spans.update_spans`:
+    where files were added, removed or replaced)."""
 
 
 _LOAD_ROWS = 200_000
@@ -169,6 +173,7 @@ def update_events(
             held += rows
         if pending:
             writer.submit(pending)
+    update.spans = update_spans(wh)  # the spans cut again where files changed
     row = con.execute(sql("q_events_count")).fetchone()
     update.total = int(row[0]) if row is not None else 0
     return update

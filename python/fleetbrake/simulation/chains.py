@@ -56,6 +56,7 @@ import numpy as np
 from fleetbrake.errors import ConfigError
 from fleetbrake.fleet.registry import WagonConfig
 from fleetbrake.ingest.config import EventConfig
+from fleetbrake.ingest.spans import SPAN_GAP_S
 from fleetbrake.model.chaintypes import ChainRule
 from fleetbrake.model.effects import Effect, EffectSet
 from fleetbrake.model.fullmodel import FullModelRunner
@@ -118,7 +119,7 @@ class ChainParams:
     (``EventConfig.max_gap_s``, 15 s), so that a gap too short to end an event does not cut
     its simulation either (a shorter value, such as 10 s, would cut the window of an event
     holding a 12 s hole)."""
-    bridge_max_s: float = 6 * 3600
+    bridge_max_s: float = SPAN_GAP_S
     """s: a gap up to this long is simulated through, speed, pressure and air interpolated
     across it (the logger sleeps while the wagon stands); after a longer one the block starts
     afresh, uniform at its first reading. It is also how far back an event's state reaches:
@@ -126,7 +127,8 @@ class ChainParams:
     would make an event's prediction depend on which other events are simulated with it).
     6 h: after that long at rest a block has lost nearly all the heat and the uneven
     field its brakings left, so a uniform start at the first reading is as good, and spans
-    stay independent of each other."""
+    stay independent of each other. The stored spans, the stages' unit of work
+    (:mod:`fleetbrake.ingest.spans`), are cut at the default."""
     anchor_s: int = 30
     """s: the field is shifted by the mean of measured - predicted over this many seconds
     before a segment (one reading would add its noise to every prediction of the segment;

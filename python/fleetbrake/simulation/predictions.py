@@ -1,6 +1,6 @@
-"""The simulation stage of ``fleetbrake run``: every wagon whose data changed is simulated
-with the current model revision, and what the next stages need is stored (contract:
-``shared/spec/interface.md``).
+"""The simulation stage of ``fleetbrake run``: every span of a wagon's data whose data changed
+is simulated with the current model revision, and what the next stages need is stored
+(contract: ``shared/spec/interface.md``).
 
 ::
 
@@ -10,31 +10,34 @@ with the current model revision, and what the next stages need is stored (contra
     rev = current_revision(wh)
     report = simulate_events(wh, registry, rev, SimulationConfig())
 
-Per wagon, with :mod:`fleetbrake.simulation.chains` (the one chain/re-anchor algorithm, its
-numbers in :class:`~fleetbrake.simulation.chains.ChainParams`):
+Per span (:mod:`fleetbrake.ingest.spans`: a stretch of a wagon's samples without a gap
+longer than 6 h), with :mod:`fleetbrake.simulation.chains` (the one chain/re-anchor
+algorithm, its numbers in :class:`~fleetbrake.simulation.chains.ChainParams`), from a uniform
+block at its first trusted reading:
 
 * ``predictions`` (``v_predictions``): each event's window, from activation until 600 s after
   release (the next activation, or a data gap), the chain carried to the activation and
   re-anchored there (``initial_state="carried"``, the default), or from a uniform block at
   the reading at activation (``"uniform"``, the paper's way); ``docs/pipeline.md`` compares;
-* ``timeline`` and ``timeline_segments``: the block at every logged second of the wagon,
+* ``timeline`` and ``timeline_segments``: the block at every logged second of the span,
   re-anchored at the start of every segment, and where and how it was: what the flags judge
   (they do not simulate);
-* ``simulated_wagons``: the keys of the wagon's data (files, samples, events) and of what it
-  was simulated with (registry entry, revision, parameters). A wagon whose keys are unchanged
-  is not simulated again (a second ``run`` adds nothing); one whose data changed (a late or
-  replaced file) has all its rows of the revision replaced, in one transaction.
+* ``simulated_spans``: the span's data key (``spans.data_key``: files, samples, events) and
+  the key of what it was simulated with (registry entry, revision, parameters). A span whose
+  keys are unchanged is not simulated again (a second ``run`` adds nothing); one whose data
+  changed (a late or replaced file) has all its rows of the revision replaced, in one
+  transaction; the rows of a span that no longer exists are deleted.
 
 The close loop re-simulates candidates with the same functions (:func:`load_wagon`,
 :func:`predict_wagon`), so its fits and the stored predictions agree.
 
-The wagon is the unit of work: the parent reads a chunk of wagons' samples and events as
-Arrow, one query per table (:func:`wagon_chunk`; :func:`wagon_task` reads one wagon's, the
-same tables), :func:`simulate_chunk` cuts it into the wagons' tasks and
-:func:`simulate_wagon` (pure, picklable, no database) turns each into the rows' columns,
-each span in one call of the reduced model's chain kernel, and the parent writes them in
-bulk, several whole wagons per transaction (``SimulationConfig.batch_rows``), on a writer
-thread while it reads the next chunks (the stages' one pipeline,
+The span is the unit of work: the parent reads a chunk of spans' samples and events as
+Arrow, one query per table, their time ranges only (:func:`wagon_chunk`; :func:`wagon_task`
+reads one span's, the same tables), :func:`simulate_chunk` cuts it into the spans' tasks and
+:func:`simulate_wagon` (pure, picklable, no database) turns each into the rows' columns, in
+one call of the reduced model's chain kernel, and the parent writes them in bulk, several
+whole spans per transaction (``SimulationConfig.batch_rows``), on a writer thread while it
+reads the next chunks (the stages' one pipeline,
 :func:`~fleetbrake.simulation.store.chunk_pipeline`); ``simulate_events(engine=...)`` runs
 the partitions on an engine's workers (:mod:`fleetbrake.engine`), the builtin ``map`` by default.
 """
@@ -42,11 +45,12 @@ the partitions on an engine's workers (:mod:`fleetbrake.engine`), the builtin ``
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import hashlib
 import json
 import logging
 import os
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 
 import polars as pl
@@ -54,6 +58,7 @@ import pyarrow as pa  # type: ignore[import-untyped]  # ships no type informatio
 
 from fleetbrake.errors import UnknownKeyError
 from fleetbrake.fleet.registry import Registry, WagonConfig
+from fleetbrake.ingest.spans import Span, SpanKey, ranges_of, stale_spans, stored_spans
 from fleetbrake.model.effects import EffectSet
 from fleetbrake.model.fullmodel import FullModelRunner
 from fleetbrake.model.rom import DEFAULT_REFINEMENT, ReducedModel
@@ -76,13 +81,11 @@ from fleetbrake.simulation.store import (
     arrow_frame,
     chunk_name,
     chunk_pipeline,
-    chunk_table,
-    data_keys,
-    forget_wagon,
-    replace_wagons,
+    forget_spans,
+    replace_spans,
     sample_parts,
-    simulated_wagons,
-    stored_wagon_ids,
+    simulated_spans,
+    span_table,
     utc_now,
     wagon_events,
     wagon_parts,
@@ -145,8 +148,10 @@ class SimulationReport:
     skipped: list[str] = field(default_factory=list)
     """Events not simulated, each with the reason (naming the event)."""
     wagons_simulated: list[str] = field(default_factory=list)
-    """The wagons whose rows were (re)computed."""
+    """The wagons some of whose spans were (re)computed."""
     timeline_rows: int = 0
+    spans_simulated: list[tuple[str, dt.datetime, dt.datetime]] = field(default_factory=list)
+    """The spans (re)computed: (``wagon_id``, ``span_start_utc``, ``span_end_utc``)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -377,36 +382,35 @@ def _model_key(wagon: WagonConfig, rev: Revision, config: SimulationConfig) -> s
 
 @dataclass(frozen=True)
 class WagonTask:
-    """One wagon's partition of the simulation stage: everything :func:`simulate_wagon`
+    """One span's partition of the simulation stage: everything :func:`simulate_wagon`
     reads, as the parent read it from the warehouse (picklable: an engine ships it to a
     worker process)."""
 
     wagon: WagonConfig
+    span: Span
     samples: pa.Table
-    """The wagon's samples (``q_simulation_wagon_samples.sql``)."""
+    """The span's samples (``q_simulation_span_samples.sql``)."""
     events: pa.Table
-    """Its braking events (``q_simulation_wagon_events.sql``)."""
+    """Its braking events (``q_simulation_span_events.sql``)."""
     rev: Revision
     config: SimulationConfig
-    data_key: str
     model_key: str
     reference: bool = False
     """Simulate segment by segment in Python (the reference) instead of one kernel call per
     span."""
 
     def __str__(self) -> str:  # how an engine names the partition in an error
-        return f"wagon {self.wagon.wagon_id}"
+        return str(self.span)
 
 
 @dataclass(frozen=True)
 class WagonResult:
-    """What :func:`simulate_wagon` hands back for the parent to write: the rows of
-    ``predictions``, ``timeline`` and ``timeline_segments`` as Arrow tables, and the keys the
-    wagon was simulated from."""
+    """What :func:`simulate_wagon` hands back for the parent to write: the span's rows of
+    ``predictions``, ``timeline`` and ``timeline_segments`` as Arrow tables, and the keys it
+    was simulated from."""
 
-    wagon_id: str
+    span: Span
     revision: str
-    data_key: str
     model_key: str
     predictions: pa.Table
     timeline: pa.Table
@@ -414,10 +418,18 @@ class WagonResult:
     events: int
     skipped: list[str]
 
-    def rows(self) -> WagonRows:
+    @property
+    def wagon_id(self) -> str:
+        return self.span.wagon_id
+
+    def write(self) -> WagonWrite:
         """The rows to write, the Arrow tables as they came (DuckDB inserts them as they
-        are)."""
-        return WagonRows(self.predictions, self.timeline, self.segments, self.events)
+        are), with the span's keys."""
+        rows = WagonRows(self.predictions, self.timeline, self.segments, self.events)
+        span = self.span
+        return WagonWrite(
+            span.wagon_id, rows, span.data_key, self.model_key, span.start_utc, span.end_utc
+        )
 
     def row_count(self) -> int:
         """Rows it writes, in every table (what a transaction's batch is sized by)."""
@@ -427,32 +439,33 @@ class WagonResult:
 def wagon_task(
     wh: Warehouse,
     wagon: WagonConfig,
+    span: Span,
     rev: Revision,
     config: SimulationConfig,
     *,
-    data_key: str,
     model_key: str,
     reference: bool = False,
 ) -> WagonTask:
-    """The wagon's partition, read from the warehouse (by the parent: workers never open
+    """The span's partition, read from the warehouse (by the parent: workers never open
     it)."""
-    params = {"wagon_id": wagon.wagon_id}
+    params = {"wagon_id": wagon.wagon_id, "from_utc": span.start_utc, "to_utc": span.end_utc}
     return WagonTask(
         wagon=wagon,
-        samples=wh.con.sql(sql("q_simulation_wagon_samples"), params=params).to_arrow_table(),
-        events=wh.con.sql(sql("q_simulation_wagon_events"), params=params).to_arrow_table(),
+        span=span,
+        samples=wh.con.sql(sql("q_simulation_span_samples"), params=params).to_arrow_table(),
+        events=wh.con.sql(sql("q_simulation_span_events"), params=params).to_arrow_table(),
         rev=rev,
         config=config,
-        data_key=data_key,
         model_key=model_key,
         reference=reference,
     )
 
 
 def simulate_wagon(task: WagonTask) -> WagonResult:
-    """One wagon simulated from its partition's arrays, no database: a pure function of the
+    """One span simulated from its partition's arrays, no database: a pure function of the
     task (the model is made, or read from the reduced-model cache, once per process), so an
-    engine can run it in a worker process."""
+    engine can run it in a worker process. The span starts from a uniform block at its first
+    trusted reading: it stands alone."""
     wagon, config = task.wagon, task.config
     spans = WagonSeries.spans_from_frame(
         wagon.wagon_id,
@@ -466,9 +479,8 @@ def simulate_wagon(task: WagonTask) -> WagonResult:
         WagonData(wagon, spans), model, task.rev, config, reference=task.reference
     )
     return WagonResult(
-        wagon_id=wagon.wagon_id,
+        span=task.span,
         revision=task.rev.name,
-        data_key=task.data_key,
         model_key=task.model_key,
         predictions=result.predictions.to_arrow(),
         timeline=result.timeline.to_arrow(),
@@ -480,14 +492,15 @@ def simulate_wagon(task: WagonTask) -> WagonResult:
 
 @dataclass(frozen=True)
 class WagonChunk:
-    """Several wagons' partitions of the simulation stage read together: the chunk's
-    samples and events as one Arrow table each, with ``wagon_id`` (``q_simulation_chunk_*``,
-    in stored order), and each wagon's entry and keys. :func:`chunk_tasks` cuts it into the
-    wagons' :class:`WagonTask` (the tables :func:`wagon_task` reads: a test compares them),
-    which :func:`simulate_chunk` simulates one by one. Picklable."""
+    """Several spans' partitions of the simulation stage read together: the chunk's samples
+    and events as one Arrow table each, with ``part_ix`` (``q_simulation_chunk_span_*``, only the
+    spans' time ranges, in stored order), and each span's entry and model key.
+    :func:`chunk_tasks` cuts it into the spans' :class:`WagonTask` (the tables
+    :func:`wagon_task` reads: a test compares them), which :func:`simulate_chunk` simulates
+    one by one. Picklable."""
 
-    wagons: tuple[tuple[WagonConfig, str, str], ...]
-    """(entry, data key, model key) of each wagon, in order."""
+    units: tuple[tuple[WagonConfig, Span, str], ...]
+    """(entry, span, model key) of each span, in order."""
     samples: pa.Table
     events: pa.Table
     rev: Revision
@@ -495,25 +508,25 @@ class WagonChunk:
     reference: bool = False
 
     def __str__(self) -> str:  # how an engine names the partition in an error
-        return chunk_name([w.wagon_id for w, _, _ in self.wagons])
+        return chunk_name([span.label for _, span, _ in self.units])
 
 
 def wagon_chunk(
     wh: Warehouse,
-    wagons: Iterable[tuple[WagonConfig, str, str]],
+    units: Iterable[tuple[WagonConfig, Span, str]],
     rev: Revision,
     config: SimulationConfig,
     *,
     reference: bool = False,
 ) -> WagonChunk:
-    """The chunk's partitions, read from the warehouse with one query per table (by the
-    parent: workers never open it)."""
-    todo = tuple(wagons)
-    ids = [w.wagon_id for w, _, _ in todo]
+    """The chunk's partitions, read from the warehouse with one query per table, the spans'
+    time ranges only (by the parent: workers never open it)."""
+    todo = tuple(units)
+    ranges = ranges_of(span for _, span, _ in todo)
     return WagonChunk(
-        wagons=todo,
-        samples=chunk_table(wh, "q_simulation_chunk_samples", ids),
-        events=chunk_table(wh, "q_simulation_chunk_events", ids),
+        units=todo,
+        samples=span_table(wh, "q_simulation_chunk_span_samples", ranges),
+        events=span_table(wh, "q_simulation_chunk_span_events", ranges),
         rev=rev,
         config=config,
         reference=reference,
@@ -521,30 +534,55 @@ def wagon_chunk(
 
 
 def chunk_tasks(chunk: WagonChunk) -> list[WagonTask]:
-    """The chunk cut into its wagons' tasks, each wagon's rows sorted as the per-wagon
-    queries sort them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
-    ids = [wagon.wagon_id for wagon, _, _ in chunk.wagons]
-    samples = sample_parts(chunk.samples, ids)
-    events = wagon_parts(chunk.events, ids, ["start_utc"])
+    """The chunk cut into its spans' tasks, each span's rows sorted as the per-span queries
+    sort them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
+    labels = [span.label for _, span, _ in chunk.units]
+    samples = sample_parts(chunk.samples, labels, "part_ix")
+    events = wagon_parts(chunk.events, labels, ["start_utc"], positions_of=labels, index="part_ix")
     return [
         WagonTask(
             wagon=wagon,
-            samples=samples[wagon.wagon_id],
-            events=events[wagon.wagon_id],
+            span=span,
+            samples=samples[span.label],
+            events=events[span.label],
             rev=chunk.rev,
             config=chunk.config,
-            data_key=data_key,
             model_key=model_key,
             reference=chunk.reference,
         )
-        for wagon, data_key, model_key in chunk.wagons
+        for wagon, span, model_key in chunk.units
     ]
 
 
 def simulate_chunk(chunk: WagonChunk) -> list[WagonResult]:
-    """Each wagon of the chunk simulated (:func:`simulate_wagon`), in order: a pure function
+    """Each span of the chunk simulated (:func:`simulate_wagon`), in order: a pure function
     of the chunk, so an engine can run it in a worker process."""
     return [simulate_wagon(task) for task in chunk_tasks(chunk)]
+
+
+def _forced_spans(
+    wh: Warehouse,
+    spans: Sequence[Span],
+    wagons: Iterable[str] | None,
+    event_ids: Iterable[str] | None,
+) -> set[SpanKey] | None:
+    """The spans a caller forces (those of ``wagons``, those holding ``event_ids``); None:
+    none forced, the stale spans are simulated."""
+    if wagons is None and event_ids is None:
+        return None
+    forced = set(wagons or ())
+    keys = {s.key for s in spans if s.wagon_id in forced}
+    if event_ids is not None:
+        ids = sorted(set(event_ids))
+        rows = wh.con.execute(sql("q_simulation_event_spans"), {"event_ids": ids}).fetchall()
+        held = {(str(w), t) for w, t in rows}
+        keys |= {
+            s.key
+            for s in spans
+            for w, t in held
+            if s.wagon_id == w and s.start_utc <= t <= s.end_utc
+        }
+    return keys
 
 
 def simulate_events(
@@ -559,73 +597,55 @@ def simulate_events(
     engine: Mapper | None = None,
     reference: bool = False,
 ) -> SimulationReport:
-    """Simulate with ``rev`` every wagon whose data, registry entry or simulation parameters
-    changed since it was last simulated with it (or, forced, the wagons of ``event_ids`` and
-    ``wagons``), storing its event windows and timeline; each wagon whole in one transaction.
+    """Simulate with ``rev`` every span (:mod:`fleetbrake.ingest.spans`) whose data,
+    registry entry or simulation parameters changed since it was last simulated with it (or,
+    forced, the spans of ``wagons`` and those holding ``event_ids``), storing its event
+    windows and timeline; each span whole in one transaction. The results of spans that no
+    longer exist (merged by a file landing between them) are deleted first.
 
-    Each wagon is a partition: the parent reads a chunk of wagons with one query per table
-    (:func:`wagon_chunk`), ``engine.map`` runs :func:`simulate_chunk` on it (default: the
-    builtin ``map``, in this process; an engine's workers otherwise), and the parent writes the
-    results in bulk as they come back, several whole wagons per transaction (up to
-    ``config.batch_rows`` rows), committed on a writer thread while it reads and hands out the
-    next chunks (:func:`~fleetbrake.simulation.store.chunk_pipeline`). ``reference``: the
-    segment-by-segment simulation instead of one kernel call per span (the same rows, to
-    rounding)."""
+    Each span is a partition: the parent reads a chunk of spans with one query per table,
+    their time ranges only (:func:`wagon_chunk`), ``engine.map`` runs :func:`simulate_chunk`
+    on it (default: the builtin ``map``, in this process; an engine's workers otherwise), and
+    the parent writes the results in bulk as they come back, several whole spans per
+    transaction (up to ``config.batch_rows`` rows), committed on a writer thread while it
+    reads and hands out the next chunks (:func:`~fleetbrake.simulation.store.chunk_pipeline`).
+    ``reference``: the segment-by-segment simulation instead of one kernel call per span (the
+    same rows, to rounding)."""
     config = config or SimulationConfig()
     wagons_by_id = registry.wagons if isinstance(registry, Registry) else registry
     report = SimulationReport()
-    keys = data_keys(wh)
-    done = simulated_wagons(wh, rev.name)
-    only = wagons is not None or event_ids is not None
-    forced: set[str] = set(wagons or ())
-    if event_ids is not None:
-        ids = sorted(set(event_ids))
-        rows = wh.con.execute(sql("q_simulation_event_wagons"), {"event_ids": ids}).fetchall()
-        forced |= {r[0] for r in rows}
-    if not only:
-        for wagon_id in sorted(set(done) - set(keys)):  # its samples are gone
-            forget_wagon(wh, wagon_id, rev.name)
-    todo = []
-    for wagon_id, data_key in keys.items():
-        wagon = wagons_by_id.get(wagon_id)
-        if only and wagon_id not in forced:
-            continue
-        if wagon is None:
+    spans = stored_spans(wh)
+    forced = _forced_spans(wh, spans, wagons, event_ids)
+    ledger = simulated_spans(wh, rev.name)
+    model_keys = {w: _model_key(c, rev, config) for w, c in wagons_by_id.items()}
+    unregistered = sorted({s.wagon_id for s in spans} - set(wagons_by_id))
+    for wagon_id in unregistered:
+        if forced is None or any(k[0] == wagon_id for k in forced):
             events = wagon_events(wh, wagon_id)["event_id"].to_list()
             report.skipped += [
                 f"event {e}: wagon {wagon_id} has no valid registry entry" for e in events
             ]
-            continue
-        model_key = _model_key(wagon, rev, config)
-        stored = done.get(wagon_id)
-        if (
-            wagon_id in forced
-            or stored is None
-            or (stored.data_key, stored.model_key)
-            != (
-                data_key,
-                model_key,
-            )
-        ):
-            todo.append((wagon, data_key, model_key))
+    wanted = spans if forced is None else [s for s in spans if s.key in forced]
+    todo, orphans = stale_spans(wanted, ledger, lambda s: model_keys.get(s.wagon_id), forced or ())
+    if forced is None:
+        forget_spans(wh, rev.name, ranges_of(orphans))
     if not todo:
         return report
     show = progress if progress is not None else os.isatty(1)
     from rich.progress import Progress
 
-    by_id = {wagon.wagon_id: (wagon, data_key, model_key) for wagon, data_key, model_key in todo}
-    holding = stored_wagon_ids(wh, rev.name)  # the others' rows are only inserted
+    units = [(wagons_by_id[span.wagon_id], span, key) for span, key in todo]
 
-    def read(source: Warehouse, ids: list[str]) -> WagonChunk:
-        return wagon_chunk(source, [by_id[w] for w in ids], rev, config, reference=reference)
+    def read(source: Warehouse, part: list[tuple[WagonConfig, Span, str]]) -> WagonChunk:
+        return wagon_chunk(source, part, rev, config, reference=reference)
 
     def write(batch: list[WagonResult]) -> None:
-        writes = [WagonWrite(r.wagon_id, r.rows(), r.data_key, r.model_key) for r in batch]
-        replace_wagons(wh, rev.name, writes, delete=any(w.wagon_id in holding for w in batch))
+        replace_spans(wh, rev.name, [r.write() for r in batch])
 
     results = chunk_pipeline(
         wh,
-        list(by_id),
+        units,
+        unit_rows=lambda unit: unit[1].sample_rows,
         read=read,
         compute=simulate_chunk,
         write=write,
@@ -635,16 +655,19 @@ def simulate_events(
         engine=engine,
     )
     with Progress(disable=not show, transient=True) as bar:
-        task = bar.add_task("simulating wagons", total=len(todo))
+        task = bar.add_task("simulating spans", total=len(units))
         for result in results:
             logger.info(
-                "wagon %s: %d events and %d timeline seconds simulated with revision %s",
-                result.wagon_id,
+                "%s: %d events and %d timeline seconds simulated with revision %s",
+                result.span,
                 result.events,
                 result.timeline.num_rows,
                 result.revision,
             )
-            report.wagons_simulated.append(result.wagon_id)
+            if result.wagon_id not in report.wagons_simulated:
+                report.wagons_simulated.append(result.wagon_id)
+            span = result.span
+            report.spans_simulated.append((span.wagon_id, span.start_utc, span.end_utc))
             report.events_simulated += result.events
             report.prediction_rows += result.predictions.num_rows
             report.timeline_rows += result.timeline.num_rows

@@ -1,15 +1,16 @@
-"""What the simulation stage stores per wagon and revision, and how the next stages read it.
+"""What the simulation stage stores per span and revision, and how the next stages read it.
 
 Tables (``warehouse/sql/schema_pipeline.sql``): ``predictions`` (the event windows, behind
 ``v_predictions``), ``timeline`` (the block at every logged second) with ``timeline_segments``
-(where and how it was re-anchored), and ``simulated_wagons`` (what each wagon was simulated
-from). A wagon's rows of one revision are replaced together, in one transaction.
+(where and how it was re-anchored), and ``simulated_spans`` (what each span was simulated
+from; :mod:`fleetbrake.ingest.spans`). A span's rows of one revision are replaced
+together, in one transaction (:func:`replace_spans`).
 
 ::
 
-    from fleetbrake.simulation.store import load_timeline
+    from fleetbrake.simulation.store import stored_timeline
 
-    stored = load_timeline(wh, "SGG-0001", "declared")   # None if never simulated
+    stored = stored_timeline("SGG-0001", "declared", data_key, segments, values)
     for span in stored.spans:
         span.start_utc, span.end_utc, span.segments, span.values
 """
@@ -17,9 +18,9 @@ from). A wagon's rows of one revision are replaced together, in one transaction.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import numpy as np
 import polars as pl
@@ -30,9 +31,11 @@ from fleetbrake.engine.writer import WriteBehind
 from fleetbrake.simulation.series import strictly_increasing
 from fleetbrake.warehouse.connection import Warehouse, reader, sql
 
+if TYPE_CHECKING:
+    from fleetbrake.ingest.spans import LedgerSpan, SpanKey
+
 __all__ = [
     "Mapper",
-    "SimulatedWagon",
     "StoredTimeline",
     "TimelineSpan",
     "WagonRows",
@@ -41,19 +44,16 @@ __all__ = [
     "arrow_frame",
     "chunk_pipeline",
     "chunk_table",
-    "data_keys",
-    "forget_wagon",
-    "load_timeline",
-    "replace_wagon",
-    "replace_wagons",
+    "forget_spans",
+    "ledger_spans",
+    "replace_spans",
     "sample_parts",
-    "sample_rows",
-    "simulated_wagons",
+    "simulated_spans",
+    "span_table",
     "stored_timeline",
-    "stored_wagon_ids",
     "table_rows",
+    "unit_chunks",
     "utc_now",
-    "wagon_chunks",
     "wagon_events",
     "wagon_part",
     "wagon_parts",
@@ -74,13 +74,15 @@ class Mapper(Protocol):
 
 C = TypeVar("C")
 R = TypeVar("R")
+U = TypeVar("U")
 
 
 def chunk_pipeline(
     wh: Warehouse,
-    wagon_ids: Sequence[str],
+    units: Sequence[U],
     *,
-    read: Callable[[Warehouse, list[str]], C],
+    unit_rows: Callable[[U], int],
+    read: Callable[[Warehouse, list[U]], C],
     compute: Callable[[C], list[R]],
     write: Callable[[list[R]], None],
     result_rows: Callable[[R], int],
@@ -88,45 +90,33 @@ def chunk_pipeline(
     batch_rows: int,
     engine: Mapper | None = None,
 ) -> Iterator[R]:
-    """The pipeline of a stage that computes whole wagons and stores their rows (the
-    simulation, the estimate): ``wagon_ids`` in chunks of about ``chunk_rows`` samples
-    (:func:`wagon_chunks`), each chunk ``read`` on a second connection (:func:`reader`: the
-    parent's reads, one query per table), ``compute``d by ``engine.map`` (default: the
-    builtin ``map``, in this process; an engine's workers otherwise: a pure, picklable
-    function of the chunk returning one result per wagon, in order), and the results
-    ``write``n in batches of whole wagons of at most ``batch_rows`` rows (``result_rows``
-    each; one batch may exceed it with its first wagon), one batch per call, on the writer's
+    """The pipeline of a stage that computes whole units (spans) and stores their rows (the
+    simulation, the estimate): ``units`` in chunks of about ``chunk_rows`` samples
+    (:func:`unit_chunks`, ``unit_rows`` each), each chunk ``read`` on a second connection
+    (:func:`reader`: the parent's reads, one query per table), ``compute``d by ``engine.map``
+    (default: the builtin ``map``, in this process; an engine's workers otherwise: a pure,
+    picklable function of the chunk returning one result per unit, in order), and the results
+    ``write``n in batches of whole units of at most ``batch_rows`` rows (``result_rows``
+    each; one batch may exceed it with its first unit), one batch per call, on the writer's
     thread (:class:`WriteBehind`), while the next chunks are read and computed. Yields each
-    result as it comes back, in the order of ``wagon_ids``; the last batch is committed
+    result as it comes back, in the order of ``units``; the last batch is committed
     before the generator ends."""
-    counts = sample_rows(wh)
     pending: list[R] = []
     held = 0
     with reader(wh) as source, WriteBehind(write) as writer:
-        chunks = (read(source, ids) for ids in wagon_chunks(wagon_ids, counts, chunk_rows))
+        chunks = (read(source, part) for part in unit_chunks(units, unit_rows, chunk_rows))
         done = map(compute, chunks) if engine is None else engine.map(compute, chunks)
         for results in done:
             for result in results:
                 rows = result_rows(result)
                 if pending and held + rows > batch_rows:
-                    writer.submit(pending)  # whole wagons per transaction, on its thread
+                    writer.submit(pending)  # whole units per transaction, on its thread
                     pending, held = [], 0
                 pending.append(result)
                 held += rows
                 yield result
         writer.submit(pending)
         writer.wait()
-
-
-@dataclass(frozen=True)
-class SimulatedWagon:
-    """A row of ``simulated_wagons``."""
-
-    wagon_id: str
-    data_key: str
-    model_key: str
-    events: int
-    simulated_utc: dt.datetime
 
 
 def arrow_frame(table: pa.Table) -> pl.DataFrame:
@@ -143,7 +133,7 @@ def table_rows(table: pl.DataFrame | pa.Table) -> int:
 
 @dataclass
 class WagonRows:
-    """Everything one wagon's simulation with one revision stores (polars frames with the
+    """Everything one span's simulation with one revision stores (polars frames with the
     columns of the tables, or Arrow tables as a worker handed them back: DuckDB inserts
     those as they are, a fifth cheaper than polars frames)."""
 
@@ -168,61 +158,74 @@ class TimelineSpan:
 
 @dataclass
 class StoredTimeline:
-    """A wagon's timeline as one revision's simulation stored it."""
+    """A wagon's timeline (or one span's) as one revision's simulation stored it."""
 
     wagon_id: str
     revision: str
     data_key: str
-    """The wagon's data as it was simulated (compare :func:`data_keys`)."""
+    """The data as they were simulated (``simulated_spans.data_key``)."""
     spans: list[TimelineSpan] = field(default_factory=list)
 
 
-def data_keys(wh: Warehouse) -> dict[str, str]:
-    """Each wagon with samples: a key of its data (files, samples, events) as they are now."""
-    rows = wh.con.execute(sql("q_simulation_wagon_data")).fetchall()
-    return {str(wagon_id): str(key) for wagon_id, key in rows}
+def ledger_spans(wh: Warehouse, query: str, revision: str) -> dict[SpanKey, LedgerSpan]:
+    """A stage's ledger of ``revision`` (``query``: ``q_*_spans.sql`` returning wagon, span
+    start and end, data key, model key and when written, first), by span."""
+    from fleetbrake.ingest.spans import LedgerSpan
+
+    rows = wh.con.execute(sql(query), {"revision": revision}).fetchall()
+    out = {}
+    for r in rows:
+        row = LedgerSpan(str(r[0]), r[1], r[2], str(r[3]), str(r[4]), r[5])
+        out[row.key] = row
+    return out
 
 
-def simulated_wagons(wh: Warehouse, revision: str) -> dict[str, SimulatedWagon]:
-    """The wagons simulated with ``revision``, and from what."""
-    rows = wh.con.execute(sql("q_simulation_simulated_wagons"), {"revision": revision}).fetchall()
-    return {str(r[0]): SimulatedWagon(str(r[0]), r[1], r[2], int(r[3]), r[4]) for r in rows}
+def simulated_spans(wh: Warehouse, revision: str) -> dict[SpanKey, LedgerSpan]:
+    """The spans simulated with ``revision``, and from what."""
+    return ledger_spans(wh, "q_simulation_simulated_spans", revision)
 
 
-def sample_rows(wh: Warehouse) -> dict[str, int]:
-    """Each wagon with samples: how many it has (what the stages' chunks are sized by)."""
-    rows = wh.con.execute(sql("q_simulation_wagon_sample_rows")).fetchall()
-    return {str(wagon_id): int(n) for wagon_id, n in rows}
-
-
-def wagon_chunks(
-    wagon_ids: Sequence[str], rows: Mapping[str, int], max_rows: int
-) -> Iterator[list[str]]:
-    """``wagon_ids`` in order, cut into chunks of about ``max_rows`` samples (``rows``: each
-    wagon's count, :func:`sample_rows`), at least one wagon each: the stages read a chunk's
-    partitions with one query per table instead of one per wagon and table."""
-    chunk: list[str] = []
+def unit_chunks(
+    units: Sequence[U], rows_of: Callable[[U], int], max_rows: int
+) -> Iterator[list[U]]:
+    """``units`` in order, cut into chunks of about ``max_rows`` samples (``rows_of``: each
+    unit's count), at least one unit each: the stages read a chunk's partitions with one
+    query per table instead of one per unit and table."""
+    chunk: list[U] = []
     held = 0
-    for wagon_id in wagon_ids:
-        n = rows.get(wagon_id, 0)
+    for unit in units:
+        n = rows_of(unit)
         if chunk and held + n > max_rows:
             yield chunk
             chunk, held = [], 0
-        chunk.append(wagon_id)
+        chunk.append(unit)
         held += n
     if chunk:
         yield chunk
 
 
-def chunk_name(wagon_ids: Sequence[str]) -> str:
-    """How an engine names a chunk of whole wagons in an error: ``wagon W`` or ``wagons W, V``."""
-    return f"wagon {wagon_ids[0]}" if len(wagon_ids) == 1 else "wagons " + ", ".join(wagon_ids)
+def chunk_name(labels: Sequence[str]) -> str:
+    """How an engine names a chunk of spans in an error: ``span S`` or ``spans S, T``."""
+    return f"span {labels[0]}" if len(labels) == 1 else "spans " + ", ".join(labels)
 
 
 def chunk_table(wh: Warehouse, name: str, wagon_ids: Sequence[str], **params: str) -> pa.Table:
     """The rows of ``wagon_ids`` that the chunk query ``name`` (``q_*_chunk_*.sql``, with a
-    ``wagon_id`` column, or ``wagon_ix``: :func:`wagon_parts`) reads, as Arrow, in stored order (:func:`wagon_part` cuts it)."""
+    ``wagon_id`` column, or ``wagon_ix``: :func:`wagon_parts`) reads, as Arrow, in stored
+    order (:func:`wagon_part` cuts it)."""
     values: dict[str, object] = {"wagon_ids": list(wagon_ids), **params}
+    return wh.con.sql(sql(name), params=values).to_arrow_table()
+
+
+def span_table(
+    wh: Warehouse, name: str, ranges: Sequence[tuple[str, dt.datetime, dt.datetime]], **params: str
+) -> pa.Table:
+    """The rows of the spans ``ranges`` (wagon, first and last sample) that the chunk query
+    ``name`` (``q_*_chunk_span_*.sql``, with ``part_ix``, the span's 1-based position in
+    ``ranges``: :func:`wagon_parts`) reads, their time ranges only, as Arrow, in stored order."""
+    from fleetbrake.ingest.spans import span_windows
+
+    values: dict[str, object] = {**span_windows(ranges), **params}
     return wh.con.sql(sql(name), params=values).to_arrow_table()
 
 
@@ -243,19 +246,21 @@ def wagon_parts(
     drop: Sequence[str] = (),
     *,
     positions_of: Sequence[str] | None = None,
+    index: str = "wagon_ix",
 ) -> dict[str, pa.Table]:
     """:func:`wagon_part` of each of ``wagon_ids`` (an empty table for a wagon without
     rows). The stored order holds each wagon's rows in a few runs (its files were written
     together), so the table is cut at the runs of ``wagon_id`` (one pass, no comparison of
     every row with every wagon) and each wagon's runs are joined and sorted. A table read
-    with ``wagon_ix`` (its wagon's 1-based position in ``positions_of``, the list the query
-    was given: ``q_simulation_chunk_samples.sql``, the flags' large chunk queries) is cut at
-    the runs of the positions, and loses ``wagon_ix`` instead. The parent reads and ships the
+    with ``index`` (``part_ix``: a span's 1-based position in ``positions_of``, the list the
+    query was given, ``q_simulation_chunk_samples.sql`` and the other chunk queries of
+    spans; ``wagon_ix``: a wagon's) is cut at the runs of the positions, and loses ``index``
+    instead (``wagon_ids`` then names the parts: spans' labels). The parent reads and ships the
     4-byte position instead of the name (per 100 wagon-days 794 MB of Arrow shipped instead
     of 899, the flags' reads 1.21 processor-s instead of 1.36:
     ``docs/decisions/0007-reading-and-writing-in-chunks.md``), and the worker never makes a
     name per row (cutting by positions takes half the processor time of cutting by names)."""
-    key = "wagon_id" if positions_of is None else "wagon_ix"
+    key = "wagon_id" if positions_of is None else index
     column = table.column(key)
     runs: dict[str, list[pa.Table]] = {w: [] for w in wagon_ids}
     if table.num_rows:
@@ -281,13 +286,16 @@ def wagon_parts(
     return parts
 
 
-def sample_parts(table: pa.Table, wagon_ids: Sequence[str]) -> dict[str, pa.Table]:
-    """Each wagon's samples of a chunk read by ``q_simulation_chunk_samples.sql`` for
-    ``wagon_ids`` (with ``wagon_ix``), in the order of the per-wagon query
-    (time, then file) and without ``file_id``: :func:`wagon_parts` as every stage that reads
-    samples by chunks cuts them."""
+def sample_parts(
+    table: pa.Table, names: Sequence[str], index: str = "wagon_ix"
+) -> dict[str, pa.Table]:
+    """Each part's samples of a chunk read by ``q_simulation_chunk_samples.sql`` for the
+    wagons ``names`` (with ``wagon_ix``), or by ``q_simulation_chunk_span_samples.sql`` for
+    the spans of the labels ``names`` (``index="part_ix"``), in the order of the per-wagon
+    and per-span queries (time, then file) and without ``file_id``: :func:`wagon_parts` as
+    every stage that reads samples by chunks cuts them."""
     return wagon_parts(
-        table, wagon_ids, ["time_utc", "file_id"], ["file_id"], positions_of=wagon_ids
+        table, names, ["time_utc", "file_id"], ["file_id"], positions_of=names, index=index
     )
 
 
@@ -321,13 +329,15 @@ def wagon_events(wh: Warehouse, wagon_id: str) -> pl.DataFrame:
 
 @dataclass(frozen=True)
 class WagonWrite:
-    """One wagon's rows of a revision and the keys it was simulated from, to be stored
-    whole (:func:`replace_wagons`)."""
+    """One span's rows of a revision and the keys it was simulated from, to be stored whole
+    (:func:`replace_spans`)."""
 
     wagon_id: str
     rows: WagonRows
     data_key: str
     model_key: str
+    span_start_utc: dt.datetime
+    span_end_utc: dt.datetime
 
     @property
     def row_count(self) -> int:
@@ -335,53 +345,42 @@ class WagonWrite:
         return table_rows(rows.predictions) + table_rows(rows.timeline) + table_rows(rows.segments)
 
 
-def replace_wagon(
-    wh: Warehouse,
-    wagon_id: str,
-    revision: str,
-    rows: WagonRows,
-    *,
-    data_key: str,
-    model_key: str,
-) -> None:
-    """Replace the wagon's rows of ``revision`` in every table of the stage, in one
-    transaction, recording the keys it was simulated from."""
-    replace_wagons(wh, revision, [WagonWrite(wagon_id, rows, data_key, model_key)])
+_STAGE_TABLES = ("predictions", "timeline", "timeline_segments", "simulated_spans")
+"""The simulation's tables, each with its range delete ``q_simulation_delete_span_<table>``."""
 
 
-def stored_wagon_ids(wh: Warehouse, revision: str) -> set[str]:
-    """The wagons holding rows of ``revision`` in any table of the stage: the ones
-    :func:`replace_wagons` must delete before it inserts."""
-    rows = wh.con.execute(sql("q_simulation_stored_wagon_ids"), {"revision": revision}).fetchall()
-    return {str(r[0]) for r in rows}
-
-
-def replace_wagons(
-    wh: Warehouse, revision: str, wagons: Sequence[WagonWrite], *, delete: bool = True
-) -> None:
-    """Replace the rows of ``revision`` of every wagon of ``wagons`` in every table of the
-    stage, all in one transaction (each wagon whole-old or whole-new whatever happens), one
-    bulk delete and one bulk insert per table, recording the keys each was simulated from.
-
-    ``delete=False``: none of the wagons holds rows of ``revision`` (:func:`stored_wagon_ids`),
-    so the deletes, each a scan of its whole table (which grows with the fleet), are skipped."""
-    if not wagons:
+def replace_spans(wh: Warehouse, revision: str, spans: Sequence[WagonWrite]) -> None:
+    """Replace the rows of ``revision`` of every span of ``spans`` in every table of the
+    stage, all in one transaction (each span whole-old or whole-new whatever happens), one
+    bulk delete (by the spans' time ranges) and one bulk insert per table, recording the keys
+    each was simulated from (``simulated_spans``)."""
+    if not spans:
         return
-    if len({w.wagon_id for w in wagons}) != len(wagons):
-        raise ValueError("replace_wagons: a wagon given twice")
+    if len({(w.wagon_id, w.span_start_utc) for w in spans}) != len(spans):
+        raise ValueError("replace_spans: a span given twice")
     batches = (
         ("prediction_batch", "predictions", "q_simulation_insert_predictions"),
         ("timeline_batch", "timeline", "q_simulation_insert_timeline"),
         ("segment_batch", "segments", "q_simulation_insert_timeline_segments"),
     )
-    key = {"wagon_ids": [w.wagon_id for w in wagons], "revision": revision}
     now = utc_now()
+    ledger = pa.table(
+        {
+            "wagon_id": pa.array([w.wagon_id for w in spans], pa.string()),
+            "model_revision": pa.array([revision] * len(spans), pa.string()),
+            "span_start_utc": pa.array([w.span_start_utc for w in spans], pa.timestamp("us")),
+            "span_end_utc": pa.array([w.span_end_utc for w in spans], pa.timestamp("us")),
+            "data_key": pa.array([w.data_key for w in spans], pa.string()),
+            "model_key": pa.array([w.model_key for w in spans], pa.string()),
+            "events": pa.array([w.rows.events for w in spans], pa.int64()),
+            "simulated_utc": pa.array([now] * len(spans), pa.timestamp("us")),
+        }
+    )
+    ranges = [(w.wagon_id, w.span_start_utc, w.span_end_utc) for w in spans]
     with wh.transaction() as con:
-        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
-            if delete:
-                con.execute(sql(f"q_simulation_delete_{table}_wagons"), key)
+        _delete_ranges(con, revision, ranges)
         for name, attribute, statement in batches:
-            frames = [frame for w in wagons if table_rows(frame := getattr(w.rows, attribute))]
+            frames = [frame for w in spans if table_rows(frame := getattr(w.rows, attribute))]
             if not frames:
                 continue
             con.register(name, _concat(frames))
@@ -389,18 +388,23 @@ def replace_wagons(
                 con.execute(sql(statement))
             finally:
                 con.unregister(name)
-        for w in wagons:
-            con.execute(
-                sql("q_simulation_insert_simulated_wagon"),
-                {
-                    "wagon_id": w.wagon_id,
-                    "revision": revision,
-                    "data_key": w.data_key,
-                    "model_key": w.model_key,
-                    "events": w.rows.events,
-                    "simulated_utc": now,
-                },
-            )
+        con.register("simulated_batch", ledger)
+        try:
+            con.execute(sql("q_simulation_insert_simulated_spans"))
+        finally:
+            con.unregister("simulated_batch")
+
+
+def _delete_ranges(
+    con: Any, revision: str, ranges: Sequence[tuple[str, dt.datetime, dt.datetime]]
+) -> None:
+    from fleetbrake.ingest.spans import envelope, span_windows
+
+    params = {**span_windows(ranges), "revision": revision}
+    for table in _STAGE_TABLES:
+        timed = table in ("predictions", "timeline")
+        values = {**params, **envelope(ranges)} if timed else params
+        con.execute(sql(f"q_simulation_delete_span_{table}"), values)
 
 
 def _concat(tables: list[pl.DataFrame | pa.Table]) -> pl.DataFrame | pa.Table:
@@ -417,25 +421,15 @@ def _concat(tables: list[pl.DataFrame | pa.Table]) -> pl.DataFrame | pa.Table:
     return pl.concat(frames, how="vertical")
 
 
-def forget_wagon(wh: Warehouse, wagon_id: str, revision: str) -> None:
-    """Remove every row the stage stored for the wagon and revision (its data are gone)."""
+def forget_spans(
+    wh: Warehouse, revision: str, ranges: Sequence[tuple[str, dt.datetime, dt.datetime]]
+) -> None:
+    """Remove every row the stage stored for ``revision`` in the spans' time ranges (spans
+    that no longer exist: merged, cut again or gone), in one transaction."""
+    if not ranges:
+        return
     with wh.transaction() as con:
-        for table in ("predictions", "timeline", "timeline_segments", "simulated_wagons"):
-            con.execute(
-                sql(f"q_simulation_delete_{table}"), {"wagon_id": wagon_id, "revision": revision}
-            )
-
-
-def load_timeline(wh: Warehouse, wagon_id: str, revision: str) -> StoredTimeline | None:
-    """The wagon's stored timeline of ``revision``, by span; None if it was never simulated
-    with it."""
-    done = simulated_wagons(wh, revision).get(wagon_id)
-    if done is None:
-        return None
-    params = {"wagon_id": wagon_id, "revision": revision}
-    segments = wh.con.sql(sql("q_simulation_timeline_segments"), params=params).pl()
-    values = wh.con.sql(sql("q_simulation_timeline"), params=params).pl()
-    return stored_timeline(wagon_id, revision, done.data_key, segments, values)
+        _delete_ranges(con, revision, ranges)
 
 
 def stored_timeline(
@@ -443,8 +437,8 @@ def stored_timeline(
 ) -> StoredTimeline:
     """A wagon's stored timeline from its rows of ``timeline_segments`` (with
     ``span_start_utc``, ``span_end_utc``) and ``timeline`` as read by
-    ``q_simulation_timeline_segments.sql`` and ``q_simulation_timeline.sql``, cut by span
-    (what :func:`load_timeline` returns, without a database: the flags' workers call it)."""
+    ``q_flags_span_segments.sql`` and ``q_flags_span_timeline.sql``, cut by span (no
+    database: the flags' workers call it)."""
     stored = StoredTimeline(wagon_id, revision, data_key)
     if segments.height == 0:
         return stored
@@ -468,7 +462,7 @@ def _by_span(
 ) -> list[tuple[tuple[dt.datetime, dt.datetime], pl.DataFrame]]:
     """``segments`` grouped by (``span_start_utc``, ``span_end_utc``) in the order each span
     first appears, without those two columns: slices when each span's rows are consecutive
-    (as ``q_simulation_timeline_segments.sql`` orders them), else a polars ``group_by``."""
+    (as ``q_flags_span_segments.sql`` orders them), else a polars ``group_by``."""
     starts = segments["span_start_utc"]
     ends = segments["span_end_utc"]
     if not (starts.has_nulls() or ends.has_nulls()):

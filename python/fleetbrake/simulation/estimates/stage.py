@@ -1,29 +1,25 @@
 """The estimation stage of ``fleetbrake run`` and ``close-loop`` (:func:`estimate_wagons`):
-which wagons changed since they were estimated with a revision (:func:`model_key`, the
-stored data keys), their partitions estimated on the engine and their rows written by the
-parent, several whole wagons per transaction."""
+which spans changed since they were estimated with a revision (:func:`model_key`, the
+spans' data keys), their partitions estimated on the engine and their rows written by the
+parent, several whole spans per transaction."""
 
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import hashlib
 import json
 import logging
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 
 from fleetbrake.fleet.registry import Registry, WagonConfig
+from fleetbrake.ingest.spans import Span, SpanKey, ranges_of, stale_spans, stored_spans
 from fleetbrake.simulation.estimates.config import EstimationConfig
 from fleetbrake.simulation.estimates.noise import revision_power_noise
-from fleetbrake.simulation.estimates.store import (
-    estimated_wagon_ids,
-    estimated_wagons,
-    estimation_chunk,
-    estimation_data_keys,
-    forget_wagon,
-    replace_estimates,
-)
+from fleetbrake.simulation.estimates.spans import forget_span_estimates, replace_span_estimates
+from fleetbrake.simulation.estimates.store import estimated_spans, estimation_chunk
 from fleetbrake.simulation.estimates.wagon import EstimateChunk, EstimateResult, estimate_chunk
 from fleetbrake.simulation.predictions import Revision
 from fleetbrake.simulation.store import Mapper, chunk_pipeline
@@ -39,6 +35,10 @@ class EstimationReport:
     """What the estimation stage did."""
 
     wagons_estimated: list[str] = field(default_factory=list)
+    """The wagons some of whose spans were (re)estimated."""
+    spans_estimated: list[tuple[str, dt.datetime, dt.datetime]] = field(default_factory=list)
+    """The spans (re)estimated, per second: (``wagon_id``, ``span_start_utc``,
+    ``span_end_utc``)."""
     rows: int = 0
     """Rows written to ``contact_estimates``."""
     power_noise_w_per_sqrt_s: float | None = None
@@ -49,7 +49,7 @@ class EstimationReport:
 
 
 def model_key(wagon: WagonConfig, rev: Revision, config: EstimationConfig, power: float) -> str:
-    """What a wagon's stored estimates depend on besides its data (its σ_v is a function of
+    """What a span's stored estimates depend on besides its data (its σ_v is a function of
     its data, or given)."""
     estimator = dataclasses.asdict(config.estimator)
     estimator.pop("noise")
@@ -84,55 +84,51 @@ def estimate_wagons(
     config: EstimationConfig | None = None,
     *,
     wagons: Iterable[str] | None = None,
+    spans: Collection[SpanKey] = (),
     progress: bool | None = None,
     engine: Mapper | None = None,
 ) -> EstimationReport:
-    """Estimate with ``rev`` every wagon whose data, registry entry, the revision's σ_w or
-    the configuration changed since it was last estimated with it (or, forced, ``wagons``),
-    storing a row per logged second; each wagon whole in one transaction, several per
-    transaction up to ``config.batch_rows`` rows. Each wagon's results depend on its own
-    data and the revision only (:func:`wagon_noise`, :func:`revision_power_noise`)."""
+    """Estimate with ``rev`` every span (:mod:`fleetbrake.ingest.spans`) whose data,
+    registry entry, the revision's σ_w or the configuration changed since it was last
+    estimated with it, and the spans of ``spans`` (those the flags judge in this run: their
+    flags are judged on estimates computed in the same run), or, forced, every span of
+    ``wagons`` and no other; storing a row per logged second, each span whole in one
+    transaction, several per transaction up to ``config.batch_rows`` rows. The rows of spans
+    that no longer exist are deleted first. Each span stands alone: its results depend on its
+    own data and the revision only (:func:`wagon_noise`, :func:`revision_power_noise`)."""
     config = config or EstimationConfig()
     wagons_by_id = registry.wagons if isinstance(registry, Registry) else registry
     report = EstimationReport()
-    keys = estimation_data_keys(wh)
-    done = estimated_wagons(wh, rev.name)
-    forced = set(wagons or ())
-    if wagons is None:
-        for wagon_id in sorted(set(done) - set(keys)):  # its samples are gone
-            forget_wagon(wh, wagon_id)
-    candidates = [w for w in keys if w in wagons_by_id]
-    report.skipped = [f"wagon {w}: no valid registry entry" for w in keys if w not in wagons_by_id]
-    if not candidates:
-        return report
+    current = stored_spans(wh)
+    ledger = {key: row.ledger for key, row in estimated_spans(wh, rev.name).items()}
+    if wagons is not None:
+        only = set(wagons)
+        current = [s for s in current if s.wagon_id in only]
+    held = {s.wagon_id for s in current}
+    report.skipped = [
+        f"wagon {w}: no valid registry entry" for w in sorted(held - set(wagons_by_id))
+    ]
     power, report.noise_method = revision_power_noise(wh, rev, config)
-    report.power_noise_w_per_sqrt_s = power
-    todo = []
-    for wagon_id in candidates:
-        if wagons is not None and wagon_id not in forced:
-            continue
-        wagon_key = model_key(wagons_by_id[wagon_id], rev, config, power)
-        stored = done.get(wagon_id)
-        if (
-            wagon_id in forced
-            or stored is None
-            or (stored.data_key, stored.model_key) != (keys[wagon_id], wagon_key)
-        ):
-            todo.append((wagons_by_id[wagon_id], keys[wagon_id], wagon_key))
+    keys = {w: model_key(entry, rev, config, power) for w, entry in wagons_by_id.items()}
+    forced = {s.key for s in current} if wagons is not None else set(spans)
+    todo, orphans = stale_spans(current, ledger, lambda s: keys.get(s.wagon_id), forced)
+    if wagons is None:
+        forget_span_estimates(wh, rev.name, ranges_of(orphans))
     if not todo:
         return report
-    holding = estimated_wagon_ids(wh, rev.name)  # the others' rows are only inserted
-    by_id = {wagon.wagon_id: (wagon, data_key, key) for wagon, data_key, key in todo}
+    report.power_noise_w_per_sqrt_s = power
+    units = [(wagons_by_id[span.wagon_id], span, key) for span, key in todo]
 
-    def read(source: Warehouse, ids: list[str]) -> EstimateChunk:
-        return estimation_chunk(source, [by_id[w] for w in ids], rev, config, power)
+    def read(source: Warehouse, part: list[tuple[WagonConfig, Span, str]]) -> EstimateChunk:
+        return estimation_chunk(source, part, rev, config, power)
 
     def write(batch: list[EstimateResult]) -> None:
-        replace_estimates(wh, rev.name, batch, delete=any(r.wagon_id in holding for r in batch))
+        replace_span_estimates(wh, rev.name, batch)
 
     results = chunk_pipeline(
         wh,
-        list(by_id),
+        units,
+        unit_rows=lambda unit: unit[1].sample_rows,
         read=read,
         compute=estimate_chunk,
         write=write,
@@ -145,16 +141,20 @@ def estimate_wagons(
     from rich.progress import Progress
 
     with Progress(disable=not show, transient=True) as bar:
-        task = bar.add_task("estimating wagons", total=len(todo))
+        task = bar.add_task("estimating spans", total=len(units))
         for result in results:
             logger.info(
-                "wagon %s: %d seconds estimated with revision %s (%.0f %% steady)",
-                result.wagon_id,
+                "%s: %d seconds estimated with revision %s (%.0f %% steady)",
+                result.span or f"wagon {result.wagon_id}",
                 result.seconds,
                 result.revision,
                 100 * result.frozen_fraction,
             )
-            report.wagons_estimated.append(result.wagon_id)
+            if result.wagon_id not in report.wagons_estimated:
+                report.wagons_estimated.append(result.wagon_id)
+            span = result.span
+            assert span is not None  # the stage's tasks are spans
+            report.spans_estimated.append((span.wagon_id, span.start_utc, span.end_utc))
             report.rows += result.seconds
             bar.advance(task)
     return report

@@ -1,13 +1,12 @@
 """The estimation stage's tables (``warehouse/sql/schema_estimates.sql``): the partitions read
-for the workers (:func:`estimate_task`, :func:`estimation_chunk`), the keys each wagon was
-estimated from (``estimated_wagons``, :func:`estimated_wagons`), a revision's fitted noise
+for the workers (:func:`estimate_task`, :func:`estimation_chunk`: spans), the keys each span
+was estimated from (``estimated_spans``, :func:`estimated_spans`), a revision's fitted noise
 (``estimator_noise``, :func:`stored_noise`, :func:`store_noise`), and the rows written
 (:func:`replace_estimates`: whole wagons, one transaction) and read back
 (:func:`wagon_estimates`)."""
 
 from __future__ import annotations
 
-import datetime as dt
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -15,22 +14,21 @@ import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.ingest.spans import LedgerSpan, Span, SpanKey, ranges_of
 from fleetbrake.model.estimator import EstimatorNoise
 from fleetbrake.simulation.estimates.config import EstimationConfig
 from fleetbrake.simulation.estimates.rows import ESTIMATE_SCHEMA
 from fleetbrake.simulation.estimates.wagon import EstimateChunk, EstimateResult, EstimateTask
 from fleetbrake.simulation.predictions import Revision
-from fleetbrake.simulation.store import chunk_table, utc_now
+from fleetbrake.simulation.store import span_table, utc_now
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
-    "EstimatedWagon",
+    "EstimatedSpan",
     "StoredNoise",
     "estimate_task",
-    "estimated_wagon_ids",
-    "estimated_wagons",
+    "estimated_spans",
     "estimation_chunk",
-    "estimation_data_keys",
     "forget_wagon",
     "replace_estimates",
     "store_noise",
@@ -40,16 +38,13 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class EstimatedWagon:
-    """A row of ``estimated_wagons``."""
+class EstimatedSpan:
+    """A row of ``estimated_spans``: the span as estimated (``ledger``) and its noise."""
 
-    wagon_id: str
-    data_key: str
-    model_key: str
+    ledger: LedgerSpan
     seconds: int
-    created_utc: dt.datetime
     measurement_k: float | None = None
-    """σ_v it was estimated with (the wagon's own unless given)."""
+    """σ_v it was estimated with (the span's own unless given)."""
     power_w_per_sqrt_s: float | None = None
     """σ_w it was estimated with (the revision's)."""
 
@@ -69,31 +64,33 @@ class StoredNoise:
 def estimate_task(
     wh: Warehouse,
     wagon: WagonConfig,
+    span: Span,
     rev: Revision,
     config: EstimationConfig,
     power_noise_w_per_sqrt_s: float,
     *,
-    data_key: str,
     model_key: str,
 ) -> EstimateTask:
-    """The wagon's partition, read from the warehouse by the parent."""
-    samples = wh.con.sql(
-        sql("q_simulation_wagon_samples"), params={"wagon_id": wagon.wagon_id}
-    ).to_arrow_table()
-    return EstimateTask(wagon, samples, rev, config, power_noise_w_per_sqrt_s, data_key, model_key)
+    """The span's partition, read from the warehouse by the parent."""
+    params = {"wagon_id": wagon.wagon_id, "from_utc": span.start_utc, "to_utc": span.end_utc}
+    samples = wh.con.sql(sql("q_simulation_span_samples"), params=params).to_arrow_table()
+    return EstimateTask(
+        wagon, samples, rev, config, power_noise_w_per_sqrt_s, span.data_key, model_key, span
+    )
 
 
 def estimation_chunk(
     wh: Warehouse,
-    wagons: Iterable[tuple[WagonConfig, str, str]],
+    units: Iterable[tuple[WagonConfig, Span, str]],
     rev: Revision,
     config: EstimationConfig,
     power_noise_w_per_sqrt_s: float,
 ) -> EstimateChunk:
-    """The chunk's partitions, read from the warehouse with one query (by the parent: the
-    workers never open it)."""
-    todo = tuple(wagons)
-    samples = chunk_table(wh, "q_simulation_chunk_samples", [w.wagon_id for w, _, _ in todo])
+    """The chunk's partitions, read from the warehouse with one query, the spans' time ranges
+    only (by the parent: the workers never open it)."""
+    todo = tuple(units)
+    ranges = ranges_of(s for _, s, _ in todo)
+    samples = span_table(wh, "q_simulation_chunk_span_samples", ranges)
     return EstimateChunk(todo, samples, rev, config, power_noise_w_per_sqrt_s)
 
 
@@ -126,25 +123,14 @@ def store_noise(wh: Warehouse, revision: str, stored: StoredNoise) -> None:
     )
 
 
-def estimation_data_keys(wh: Warehouse) -> dict[str, str]:
-    """Each wagon with samples: a key of its files and samples as they are now."""
-    rows = wh.con.execute(sql("q_estimates_wagon_data")).fetchall()
-    return {str(wagon_id): str(key) for wagon_id, key in rows}
-
-
-def estimated_wagons(wh: Warehouse, revision: str) -> dict[str, EstimatedWagon]:
-    """The wagons estimated with ``revision``, and from what."""
-    rows = wh.con.execute(sql("q_estimates_estimated_wagons"), {"revision": revision}).fetchall()
-    return {
-        str(r[0]): EstimatedWagon(str(r[0]), r[1], r[2], int(r[3]), r[4], r[5], r[6]) for r in rows
-    }
-
-
-def estimated_wagon_ids(wh: Warehouse, revision: str) -> set[str]:
-    """The wagons holding rows of ``revision`` in ``contact_estimates`` or
-    ``estimated_wagons``: the ones :func:`replace_estimates` must delete before it inserts."""
-    rows = wh.con.execute(sql("q_estimates_stored_wagon_ids"), {"revision": revision}).fetchall()
-    return {str(r[0]) for r in rows}
+def estimated_spans(wh: Warehouse, revision: str) -> dict[SpanKey, EstimatedSpan]:
+    """The spans estimated with ``revision``, from what and with which noise."""
+    rows = wh.con.execute(sql("q_estimates_estimated_spans"), {"revision": revision}).fetchall()
+    out = {}
+    for r in rows:
+        row = LedgerSpan(str(r[0]), r[1], r[2], str(r[3]), str(r[4]), r[5])
+        out[row.key] = EstimatedSpan(row, int(r[6]), r[7], r[8])
+    return out
 
 
 def replace_estimates(

@@ -1,9 +1,10 @@
-"""The estimate of one wagon (the stage's computation, no database): its logged seconds as
-the estimator's series (:func:`estimator_series`, a frozen sensor's readings dropped,
-:func:`frozen_readings`), its noise (:func:`wagon_noise`), its estimate under a revision
-(:func:`wagon_estimate`) and the partitions an engine runs (:func:`estimate_wagon` on an
-:class:`EstimateTask`, :func:`estimate_chunk` on an :class:`EstimateChunk`), whose rows the
-parent writes."""
+"""The estimate of one span of a wagon (the stage's computation, no database): its logged
+seconds as the estimator's series (:func:`estimator_series`, a frozen sensor's readings
+dropped, :func:`frozen_readings`), its noise (:func:`wagon_noise`), its estimate under a
+revision (:func:`wagon_estimate`) and the partitions an engine runs (:func:`estimate_wagon`
+on an :class:`EstimateTask`, :func:`estimate_chunk` on an :class:`EstimateChunk`), whose rows
+the parent writes. Each span stands alone: the filter starts from its prior at the span's
+first reading, and σ_v is the span's own (``docs/decisions/0009-spans.md``)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import polars as pl
 import pyarrow as pa  # type: ignore[import-untyped]  # ships no type information
 
 from fleetbrake.fleet.registry import WagonConfig
+from fleetbrake.ingest.spans import Span
 from fleetbrake.model.estimator import (
     ContactEstimate,
     EstimatorNoise,
@@ -145,21 +147,23 @@ def frozen_readings(
 
 @dataclass(frozen=True)
 class EstimateTask:
-    """One wagon's partition of the estimation stage: everything :func:`estimate_wagon`
+    """One span's partition of the estimation stage: everything :func:`estimate_wagon`
     reads (picklable: an engine ships it to a worker)."""
 
     wagon: WagonConfig
     samples: pa.Table
-    """The wagon's samples (``q_simulation_wagon_samples.sql``)."""
+    """The span's samples (``q_simulation_span_samples.sql``)."""
     rev: Revision
     config: EstimationConfig
     power_noise_w_per_sqrt_s: float
-    """The revision's σ_w (σ_v is the wagon's, :func:`wagon_noise`)."""
+    """The revision's σ_w (σ_v is the span's, :func:`wagon_noise`)."""
     data_key: str
     model_key: str
+    span: Span | None = None
+    """The span (None: samples of another range, estimated alone, not to be stored)."""
 
     def __str__(self) -> str:  # how an engine names the partition in an error
-        return f"wagon {self.wagon.wagon_id}"
+        return f"wagon {self.wagon.wagon_id}" if self.span is None else str(self.span)
 
 
 @dataclass(frozen=True)
@@ -177,6 +181,8 @@ class EstimateResult:
     """Share of the seconds the filter ran at its steady state (the fast path)."""
     noise: EstimatorNoise | None = None
     """The noise it was estimated with (None: no seconds)."""
+    span: Span | None = None
+    """The span estimated (its task's)."""
 
     @property
     def seconds(self) -> int:
@@ -208,8 +214,10 @@ def wagon_estimate(
 
 
 def estimate_wagon(task: EstimateTask) -> EstimateResult:
-    """One wagon estimated from its partition, no database: a pure function of the task (the
-    reduced model made, or read from its cache, once per process)."""
+    """One span estimated from its partition, no database: a pure function of the task (the
+    reduced model made, or read from its cache, once per process). The filter starts at the
+    span's first reading and σ_v comes from the span's readings: the rows depend on the
+    span's data and the revision only, never on the order its files landed."""
     wagon = task.wagon
     series, t0 = estimator_series(
         wagon, arrow_frame(task.samples), task.config.chain, config=task.config
@@ -224,49 +232,51 @@ def estimate_wagon(task: EstimateTask) -> EstimateResult:
         rows=estimate_rows(wagon.wagon_id, task.rev.name, t0, est),
         frozen_fraction=0.0 if est is None else est.frozen_fraction,
         noise=None if est is None else noise,
+        span=task.span,
     )
 
 
 @dataclass(frozen=True)
 class EstimateChunk:
-    """Several wagons' partitions of the estimation stage read together: the chunk's samples
-    as one Arrow table with ``wagon_ix`` and ``file_id`` (``q_simulation_chunk_samples.sql``,
-    in stored order), and each wagon's entry and keys. :func:`chunk_tasks` cuts it into the
-    wagons' :class:`EstimateTask` (the tables :func:`~fleetbrake.simulation.estimates.store.estimate_task` reads: a test compares
-    them), which :func:`estimate_chunk` estimates one by one. Picklable."""
+    """Several spans' partitions of the estimation stage read together: the chunk's samples
+    as one Arrow table with ``part_ix`` and ``file_id`` (``q_simulation_chunk_span_samples.sql``,
+    the spans' time ranges only, in stored order), and each span's entry and model key.
+    :func:`chunk_tasks` cuts it into the spans' :class:`EstimateTask` (the tables
+    :func:`~fleetbrake.simulation.estimates.store.estimate_task` reads: a test compares them),
+    which :func:`estimate_chunk` estimates one by one. Picklable."""
 
-    wagons: tuple[tuple[WagonConfig, str, str], ...]
-    """(entry, data key, model key) of each wagon, in order."""
+    units: tuple[tuple[WagonConfig, Span, str], ...]
+    """(entry, span, model key) of each span, in order."""
     samples: pa.Table
     rev: Revision
     config: EstimationConfig
     power_noise_w_per_sqrt_s: float
 
     def __str__(self) -> str:  # how an engine names the partition in an error
-        return chunk_name([w.wagon_id for w, _, _ in self.wagons])
+        return chunk_name([span.label for _, span, _ in self.units])
 
 
 def chunk_tasks(chunk: EstimateChunk) -> list[EstimateTask]:
-    """The chunk cut into its wagons' tasks, each wagon's samples sorted as the per-wagon
+    """The chunk cut into its spans' tasks, each span's samples sorted as the per-span
     query sorts them (:func:`fleetbrake.simulation.store.wagon_parts`)."""
-    ids = [wagon.wagon_id for wagon, _, _ in chunk.wagons]
-    samples = sample_parts(chunk.samples, ids)
+    samples = sample_parts(chunk.samples, [span.label for _, span, _ in chunk.units], "part_ix")
     return [
         EstimateTask(
             wagon,
-            samples[wagon.wagon_id],
+            samples[span.label],
             chunk.rev,
             chunk.config,
             chunk.power_noise_w_per_sqrt_s,
-            data_key,
+            span.data_key,
             model_key,
+            span,
         )
-        for wagon, data_key, model_key in chunk.wagons
+        for wagon, span, model_key in chunk.units
     ]
 
 
 def estimate_chunk(chunk: EstimateChunk) -> list[EstimateResult]:
-    """Each wagon of the chunk estimated (:func:`estimate_wagon`), in order: a pure function
+    """Each span of the chunk estimated (:func:`estimate_wagon`), in order: a pure function
     of the chunk, so an engine can run it in a worker process."""
     return [estimate_wagon(task) for task in chunk_tasks(chunk)]
 
@@ -274,11 +284,11 @@ def estimate_chunk(chunk: EstimateChunk) -> list[EstimateResult]:
 def wagon_noise(
     series: EstimatorSeries, config: EstimationConfig, power_noise_w_per_sqrt_s: float
 ) -> EstimatorNoise:
-    """The noise a wagon is estimated with: ``config.noise`` when given; else σ_v from the
-    wagon's own readings (:func:`~fleetbrake.model.estimator.measurement_noise`, at least
+    """The noise a span is estimated with: ``config.noise`` when given; else σ_v from the
+    series' own readings (the span's) (:func:`~fleetbrake.model.estimator.measurement_noise`, at least
     ``min_measurement_noise_k``; the estimator's default with fewer than 10 second
     differences) and the revision's σ_w, the rest (σ_q, the manoeuvre test's) ``config.
-    estimator.noise``'s. A function of the wagon's data alone."""
+    estimator.noise``'s. A function of the series' data alone."""
     if config.noise is not None:
         return config.noise
     sigma_v = reading_noise_k(series.time_s, series.reading_c, config)

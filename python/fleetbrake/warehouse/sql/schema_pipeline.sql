@@ -36,7 +36,7 @@ CREATE TABLE IF NOT EXISTS predictions (
     flux_w_m2                DOUBLE    NOT NULL   -- the heat input the model used
 );
 
--- The block simulated through each wagon's whole data, per model revision, at every logged
+-- The block simulated through each span of a wagon's data, per model revision, at every logged
 -- second: the timeline the flags judge (fleetbrake.simulation.chains). Re-anchored to the
 -- measurement at the start of every segment (timeline_segments), so measured - predicted
 -- starts at zero in each and shows what the model cannot explain.
@@ -65,17 +65,6 @@ CREATE TABLE IF NOT EXISTS timeline_segments (
     reference_c    DOUBLE    NOT NULL   -- the field's reference temperature after it
 );
 
--- Which wagons were simulated with which revision, and from what (incremental runs: a wagon
--- is simulated again when its data or what it is simulated with changed).
-CREATE TABLE IF NOT EXISTS simulated_wagons (
-    wagon_id       VARCHAR   NOT NULL,
-    model_revision VARCHAR   NOT NULL,
-    data_key       VARCHAR   NOT NULL,  -- the wagon's files, samples and events as simulated
-    model_key      VARCHAR   NOT NULL,  -- its registry entry, the revision, the parameters
-    events         BIGINT    NOT NULL,  -- event windows stored in predictions
-    simulated_utc  TIMESTAMP NOT NULL
-);
-
 -- One row per anomaly raised.
 CREATE TABLE IF NOT EXISTS flags (
     flag_id      VARCHAR   NOT NULL PRIMARY KEY,
@@ -89,21 +78,6 @@ CREATE TABLE IF NOT EXISTS flags (
     detected_utc TIMESTAMP NOT NULL
 );
 
--- When each wagon's flags were last judged (every judged wagon, flagged or not), with which
--- revision: `run` (and each unit of `fleetbrake watch`) judges the wagons whose files,
--- timeline or estimates were written since, or whose flags were judged with other thresholds
--- or have been removed (q_flags_stale_wagons.sql), not the whole fleet.
-CREATE TABLE IF NOT EXISTS flagged_wagons (
-    wagon_id       VARCHAR   NOT NULL,
-    model_revision VARCHAR   NOT NULL,
-    updated_utc    TIMESTAMP NOT NULL   -- when its flags were judged (rewritten every time)
-);
--- The flag configuration the wagon was judged with (FlagConfig.key(): a hash of every
--- threshold) and how many flags that stored (null in databases made before they were
--- recorded: such a wagon is judged again once).
-ALTER TABLE flagged_wagons ADD COLUMN IF NOT EXISTS config_key VARCHAR;
-ALTER TABLE flagged_wagons ADD COLUMN IF NOT EXISTS flag_count BIGINT;
-
 -- The registry entries the last `run` used (so that commands given only --db, like
 -- close-loop, simulate each wagon as `run` did).
 CREATE TABLE IF NOT EXISTS wagon_registry (
@@ -111,4 +85,71 @@ CREATE TABLE IF NOT EXISTS wagon_registry (
     config_json VARCHAR   NOT NULL,  -- the WagonConfig's fields, JSON
     source      VARCHAR   NOT NULL,  -- the fleet.toml it came from
     updated_utc TIMESTAMP NOT NULL
+);
+
+-- The spans of each wagon's data: maximal stretches of its samples without a gap longer than
+-- ChainParams.bridge_max_s (6 h), the cut the simulation makes. The unit of work of the
+-- simulation, the estimate and the flags: a stage recomputes a span whose data_key changed.
+-- Maintained after the event detection from the files that changed (spanned_files), over the
+-- samples of the affected time ranges only (fleetbrake.ingest.spans).
+CREATE TABLE IF NOT EXISTS spans (
+    wagon_id       VARCHAR   NOT NULL,
+    span_start_utc TIMESTAMP NOT NULL,  -- its first sample
+    span_end_utc   TIMESTAMP NOT NULL,  -- its last sample
+    sample_rows    BIGINT    NOT NULL,  -- samples in it (what the stages' chunks are sized by)
+    data_key       VARCHAR   NOT NULL,  -- its files (identity, bytes, rows in it), its
+                                        -- samples' count and its events as detected
+    updated_utc    TIMESTAMP NOT NULL
+);
+
+-- The ingested files as the spans were last cut from them: a file added, removed or replaced
+-- since marks its time range for cutting again.
+CREATE TABLE IF NOT EXISTS spanned_files (
+    file_id   BIGINT    NOT NULL,
+    wagon_id  VARCHAR   NOT NULL,
+    sha256    VARCHAR   NOT NULL,
+    rows      BIGINT    NOT NULL,
+    first_utc TIMESTAMP NOT NULL,
+    last_utc  TIMESTAMP NOT NULL
+);
+
+-- Which spans were simulated with which revision, and from what (a span is simulated again
+-- when its data_key or what it is simulated with changed; the rows of a span that no longer
+-- exists are deleted).
+CREATE TABLE IF NOT EXISTS simulated_spans (
+    wagon_id       VARCHAR   NOT NULL,
+    model_revision VARCHAR   NOT NULL,
+    span_start_utc TIMESTAMP NOT NULL,
+    span_end_utc   TIMESTAMP NOT NULL,
+    data_key       VARCHAR   NOT NULL,  -- spans.data_key as simulated
+    model_key      VARCHAR   NOT NULL,  -- its registry entry, the revision, the parameters
+    events         BIGINT    NOT NULL,  -- event windows stored in predictions
+    simulated_utc  TIMESTAMP NOT NULL
+);
+
+-- Which spans were estimated with which revision, from what and with which noise.
+CREATE TABLE IF NOT EXISTS estimated_spans (
+    wagon_id           VARCHAR   NOT NULL,
+    model_revision     VARCHAR   NOT NULL,
+    span_start_utc     TIMESTAMP NOT NULL,
+    span_end_utc       TIMESTAMP NOT NULL,
+    data_key           VARCHAR   NOT NULL,  -- spans.data_key as estimated
+    model_key          VARCHAR   NOT NULL,  -- registry entry, revision, sigma_w, configuration
+    seconds            BIGINT    NOT NULL,  -- seconds estimated
+    measurement_k      DOUBLE,              -- sigma_v, the span's own unless given
+    power_w_per_sqrt_s DOUBLE,              -- sigma_w, the revision's
+    created_utc        TIMESTAMP NOT NULL
+);
+
+-- When each span's flags were last judged, with which revision, data and thresholds, and how
+-- many flags (those starting in the span) that stored.
+CREATE TABLE IF NOT EXISTS flagged_spans (
+    wagon_id       VARCHAR   NOT NULL,
+    model_revision VARCHAR   NOT NULL,
+    span_start_utc TIMESTAMP NOT NULL,
+    span_end_utc   TIMESTAMP NOT NULL,
+    data_key       VARCHAR   NOT NULL,  -- spans.data_key as judged
+    config_key     VARCHAR   NOT NULL,  -- FlagConfig.key()
+    flag_count     BIGINT    NOT NULL,
+    updated_utc    TIMESTAMP NOT NULL
 );

@@ -1,7 +1,0 @@
--- The segments of one wagon's timeline as revision $revision simulated it, by time.
--- Parameters: $wagon_id, $revision.
-SELECT span_start_utc, span_end_utc, start_utc, stop_utc, kind, event_id, anchor, shift_k,
-       reference_c
-FROM timeline_segments
-WHERE wagon_id = $wagon_id AND model_revision = $revision
-ORDER BY start_utc;
