@@ -28,8 +28,6 @@ import datetime as dt
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
-import polars as pl
-
 from fleetbrake.warehouse.connection import Warehouse, sql
 
 __all__ = [
@@ -208,15 +206,10 @@ def update_spans(wh: Warehouse, gap_s: float = SPAN_GAP_S) -> SpanUpdate:
             for s in stored.get(wagon_id, [])
             if s.start_utc <= b and s.end_utc >= a and s.key not in fresh
         ]
-    batch = cut.with_columns(
-        pl.lit(dt.datetime.now(dt.UTC).replace(tzinfo=None))
-        .cast(pl.Datetime("us"))
-        .alias("updated_utc")
-    )
     with wh.transaction() as con:
         con.execute(sql("q_spans_delete"), window)
-        if batch.height:
-            con.register("span_batch", batch)
+        if cut.height:
+            con.register("span_batch", cut)
             try:
                 con.execute(sql("q_spans_insert"))
             finally:

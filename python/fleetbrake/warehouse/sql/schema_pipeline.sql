@@ -97,9 +97,8 @@ CREATE TABLE IF NOT EXISTS spans (
     span_start_utc TIMESTAMP NOT NULL,  -- its first sample
     span_end_utc   TIMESTAMP NOT NULL,  -- its last sample
     sample_rows    BIGINT    NOT NULL,  -- samples in it (what the stages' chunks are sized by)
-    data_key       VARCHAR   NOT NULL,  -- its files (identity, bytes, rows in it), its
-                                        -- samples' count and its events as detected
-    updated_utc    TIMESTAMP NOT NULL
+    data_key       VARCHAR   NOT NULL   -- its files (identity, bytes, rows in it), its
+                                        -- samples' count and its events
 );
 
 -- The ingested files as the spans were last cut from them: a file added, removed or replaced
