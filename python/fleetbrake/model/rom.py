@@ -28,25 +28,34 @@ probe output (``fleetbrake.model.rom.first_order_lag``).
 The face maximum is taken over the friction-face nodes that attained it in training, plus
 their neighbours (``face_max_nodes``); the a-posteriori check covers it.
 
-Building a model at the default mesh takes about a minute, so built models are cached on disk,
-keyed by everything they depend on: in ``$FLEETBRAKE_CACHE_DIR/rom``, else
-``~/.cache/fleetbrake/rom`` (or the ``cache_dir`` a caller passes). ``FLEETBRAKE_CACHE_DIR`` is
-the one environment variable the package reads. An entry is written to a temporary file of
-its own in the same directory and renamed into place, so processes building the same model at
-once each leave a whole file, and a reader never sees a partial one. The mesh's fineness is
-an explicit parameter (``refinement``, :data:`DEFAULT_REFINEMENT` unless given).
+Building a model at the default mesh takes about 15 processor-seconds (most of it the full
+model's training run), so a model is built once for its inputs and kept, under a key that
+hashes everything it depends on (:func:`cache_key`: geometry, material, mesh options, probes,
+nominal convection, :data:`ROM_VERSION`). The package ships the default block's model at the
+default mesh (``fleetbrake/model/data``, written by ``python -m fleetbrake.model.romdata``,
+:mod:`fleetbrake.model.romdata`), so a fresh install builds none for a fleet of default
+wagons. Other models are built on demand and cached on disk: in ``$FLEETBRAKE_CACHE_DIR/rom``,
+else ``~/.cache/fleetbrake/rom`` (or the ``cache_dir`` a caller passes).
+``FLEETBRAKE_CACHE_DIR`` is the one environment variable the package reads. An entry is
+written to a temporary file of its own in the same directory and renamed into place, so
+processes building the same model at once each leave a whole file, and a reader never sees a
+partial one. The mesh's fineness is an explicit parameter (``refinement``,
+:data:`DEFAULT_REFINEMENT` unless given).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import secrets
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, is_dataclass
+from importlib import resources
+from importlib.resources.abc import Traversable
 from pathlib import Path
-from typing import Literal
+from typing import IO, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -75,12 +84,18 @@ __all__ = [
     "CACHE_DIR_ENV",
     "DEFAULT_REFINEMENT",
     "ROM_VERSION",
+    "SHIPPED_MODELS",
     "ReducedModel",
     "RomBatch",
     "RomSimulation",
+    "cache_key",
     "default_cache_dir",
     "first_order_lag",
+    "shipped_name",
+    "wagon_model_inputs",
 ]
+
+logger = logging.getLogger(__name__)
 
 ROM_VERSION = 3
 """Bumped whenever the construction changes, so that cached models are rebuilt."""
@@ -93,6 +108,9 @@ CACHE_DIR_ENV = "FLEETBRAKE_CACHE_DIR"
 """The environment variable naming the directory of built reduced models (documented; the
 only one the package reads)."""
 
+
+SHIPPED_MODELS: Traversable = resources.files("fleetbrake.model.data")
+"""Where the package's shipped reduced models are (:func:`shipped_name` of their keys)."""
 
 RomScheme = Literal["exact", "crank-nicolson"]
 
@@ -119,6 +137,49 @@ def default_cache_dir() -> Path:
     """``$FLEETBRAKE_CACHE_DIR``, else ``~/.cache/fleetbrake``."""
     env = os.environ.get(CACHE_DIR_ENV)
     return Path(env) if env else Path.home() / ".cache" / "fleetbrake"
+
+
+def cache_key(
+    model_factory: Mapping[str, object],
+    probes_m: ArrayLike,
+    h_nominal: Mapping[str, float] | None = None,
+) -> str:
+    """The key of the reduced model of ``model_factory`` (the keyword arguments of
+    :class:`BlockModel`) for the probes and nominal convection (None: the declared model's):
+    a hash of all of them and :data:`ROM_VERSION`."""
+    probes = np.asarray(probes_m, dtype=np.float64).reshape(-1, 3)
+    h0 = h_nominal if h_nominal is not None else dict.fromkeys(AIR_FACES, DEFAULT_CONVECTION_W_M2K)
+    key_src = {
+        "factory": {
+            k: (asdict(v) if is_dataclass(v) and not isinstance(v, type) else v)
+            for k, v in sorted(model_factory.items())
+        },
+        "probes": np.round(probes, 9).tolist(),
+        "h_nominal": dict(sorted(h0.items())),
+        "rom_version": ROM_VERSION,
+    }
+    return hashlib.sha256(json.dumps(key_src, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def shipped_name(key: str) -> str:
+    """The file name of the shipped reduced model of ``key`` in :data:`SHIPPED_MODELS`."""
+    return f"rom-{key[:32]}.npz"
+
+
+def wagon_model_inputs(
+    wagon: WagonConfig, refinement: float
+) -> tuple[dict[str, object], list[tuple[float, float, float]]]:
+    """The block model's keyword arguments and the probes of a wagon's reduced model: its
+    block on the mesh of ``refinement``, graded towards the sensor seat, the one probe."""
+    sensor = wagon.sensor_point_m
+    factory: dict[str, object] = {
+        "geometry": wagon.geometry,
+        "material": wagon.block_material,
+        "element": "hex20",
+        "refinement": float(refinement),
+        "sensor_m": sensor,
+    }
+    return factory, [sensor]
 
 
 @dataclass(frozen=True)
@@ -310,10 +371,11 @@ class ReducedModel:
         }
 
     # ------------------------------------------------------------------ persistence
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, *, compressed: bool = False) -> None:
         """Write the model to ``path`` atomically: to a temporary file of its own in the same
         directory (a unique name, so concurrent writers never share one), flushed, then
-        renamed into place; a reader sees the old file, or a whole new one."""
+        renamed into place; a reader sees the old file, or a whole new one. ``compressed``:
+        deflated (the shipped models)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         # pid and random token: unique among processes and threads; created exclusively ("x"),
@@ -321,7 +383,7 @@ class ReducedModel:
         temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(8)}.tmp")
         try:
             with open(temporary, "xb") as fh:
-                np.savez(
+                (np.savez_compressed if compressed else np.savez)(
                     fh,
                     meta=np.array(json.dumps(self.meta)),
                     **{k: getattr(self, k) for k in self._ARRAYS},
@@ -334,13 +396,46 @@ class ReducedModel:
             raise
 
     @classmethod
-    def load(cls, path: str | Path) -> ReducedModel:
+    def load(cls, path: str | Path | IO[bytes], *, key: str | None = None) -> ReducedModel:
+        """The model saved at ``path``; ValueError when it is of another :data:`ROM_VERSION`
+        or (``key`` given) was built for another key."""
+        name = getattr(path, "name", path)
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             arrays = {k: data[k] for k in data.files if k != "meta"}
         if meta.get("rom_version") != ROM_VERSION:
-            raise ValueError(f"{path}: reduced model of version {meta.get('rom_version')}")
+            raise ValueError(f"{name}: reduced model of version {meta.get('rom_version')}")
+        if key is not None and meta.get("cache_key") != key:
+            raise ValueError(f"{name}: reduced model of key {meta.get('cache_key')}, not {key}")
         return cls(arrays, meta)
+
+    @classmethod
+    def build_keyed(
+        cls,
+        model_factory: Mapping[str, object],
+        probes_m: ArrayLike,
+        *,
+        h_nominal: Mapping[str, float] | None = None,
+    ) -> ReducedModel:
+        """Build the reduced model of ``model_factory`` (the keyword arguments of
+        :class:`BlockModel`) for the probes, its :func:`cache_key` in ``meta["cache_key"]``."""
+        model = BlockModel(**model_factory)  # type: ignore[arg-type]
+        rom = cls.build(model, probes_m, h_nominal=h_nominal)
+        rom.meta["cache_key"] = cache_key(model_factory, probes_m, h_nominal)
+        return rom
+
+    @classmethod
+    def shipped(cls, key: str) -> ReducedModel | None:
+        """The package's shipped model of ``key``, or None (none shipped, or unreadable)."""
+        entry = SHIPPED_MODELS.joinpath(shipped_name(key))
+        if not entry.is_file():
+            return None
+        try:
+            with entry.open("rb") as fh:
+                return cls.load(fh, key=key)
+        except (OSError, ValueError, KeyError) as error:
+            logger.warning("shipped reduced model %s unusable, built instead: %s", entry, error)
+            return None
 
     @classmethod
     def cached(
@@ -352,30 +447,20 @@ class ReducedModel:
         cache_dir: str | Path | None = None,
     ) -> ReducedModel:
         """The reduced model for a block model described by ``model_factory`` (the keyword
-        arguments of :class:`BlockModel`, with ``geometry`` and ``material`` dataclasses),
-        from the disk cache when one was built for the same inputs, else built and stored.
-        The key covers everything the reduced model depends on (geometry, material, mesh
-        options, probes, nominal convection, construction version)."""
-        probes = np.asarray(probes_m, dtype=np.float64).reshape(-1, 3)
-        key_src = {
-            "factory": {
-                k: (asdict(v) if is_dataclass(v) and not isinstance(v, type) else v)
-                for k, v in sorted(model_factory.items())
-            },
-            "probes": np.round(probes, 9).tolist(),
-            "h_nominal": dict(sorted((h_nominal or {}).items())),
-            "rom_version": ROM_VERSION,
-        }
-        key = hashlib.sha256(json.dumps(key_src, sort_keys=True, default=str).encode()).hexdigest()
+        arguments of :class:`BlockModel`, with ``geometry`` and ``material`` dataclasses): the
+        package's shipped one when it ships one of the same :func:`cache_key`, else from the
+        disk cache when one was built for the same inputs, else built and stored."""
+        key = cache_key(model_factory, probes_m, h_nominal)
+        shipped = cls.shipped(key)
+        if shipped is not None:
+            return shipped
         path = Path(cache_dir or default_cache_dir()) / "rom" / f"{key[:32]}.npz"
         if path.exists():
             try:
                 return cls.load(path)
             except (OSError, ValueError, KeyError):
                 path.unlink(missing_ok=True)  # a damaged or outdated entry is rebuilt
-        model = BlockModel(**model_factory)  # type: ignore[arg-type]
-        rom = cls.build(model, probes, h_nominal=h_nominal)
-        rom.meta["cache_key"] = key
+        rom = cls.build_keyed(model_factory, probes_m, h_nominal=h_nominal)
         rom.save(path)
         return rom
 
@@ -389,17 +474,10 @@ class ReducedModel:
     ) -> ReducedModel:
         """The reduced model of a wagon's block with its sensor seat as the one probe, at the
         declared model's nominal convection, on the mesh of ``refinement`` (1.0: the default
-        mesh, about 21,000 nodes); cached on disk (``cache_dir``, else
+        mesh, about 21,000 nodes): shipped, or cached on disk (``cache_dir``, else
         :func:`default_cache_dir`)."""
-        sensor = wagon.sensor_point_m
-        factory = {
-            "geometry": wagon.geometry,
-            "material": wagon.block_material,
-            "element": "hex20",
-            "refinement": float(refinement),
-            "sensor_m": sensor,
-        }
-        return cls.cached(factory, [sensor], cache_dir=cache_dir)
+        factory, probes = wagon_model_inputs(wagon, refinement)
+        return cls.cached(factory, probes, cache_dir=cache_dir)
 
     # ------------------------------------------------------------------ simulation
     def simulate(
