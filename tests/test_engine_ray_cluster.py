@@ -1,7 +1,7 @@
 """``--engine ray`` on a cluster of two nodes (``ray.cluster_utils.Cluster``: a head and a
 second node of one CPU each, on this machine): ``run`` stores the public views of a run on the
 local engine, ``close-loop`` reports what one on the local engine reports, and the tasks ran
-on both nodes."""
+on both nodes. About 45 s, the cluster's start included."""
 
 from __future__ import annotations
 
@@ -196,7 +196,6 @@ def test_run_on_two_nodes_stores_the_views_of_a_run_on_the_local_engine(runs: Ru
     assert differences(tables, views(runs.dbs["local"])) == []
 
 
-@pytest.mark.slow
 @pytest.mark.usefixtures("rom_env")
 def test_close_loop_on_two_nodes_reports_and_stores_what_the_local_engine_does(
     cluster: Any, runs: Runs, tmp_path: Path
