@@ -208,3 +208,45 @@ def test_spans_are_the_unit_of_simulation_estimate_and_flags(
         ours, theirs = _rows_in(db, span), _rows_in(fresh, span)
         for table in ("predictions", "timeline", "contact_estimates"):
             assert ours[table] == theirs[table], (span, table)
+
+
+def test_a_spans_estimates_replace_an_older_closed_loop_revisions(tmp_path: Path) -> None:
+    """The stage's writes by span keep what ``replace_estimates`` keeps: storing a newer
+    revision's estimates of a wagon's span deletes the wagon's estimates of older closed-loop
+    revisions (``declared`` and the current one stay); writing a span again replaces its rows,
+    at every resolution, and its ledger row."""
+    from fleetbrake.ingest.spans import Span
+    from fleetbrake.model.estimator import EstimatorNoise
+    from fleetbrake.simulation.estimates import EstimateResult, replace_span_estimates
+    from fleetbrake.warehouse.connection import open_warehouse
+    from test_estimates_retention import WAGONS, _record_revision, _rows, stored
+
+    def results(revision: str, wagons: tuple[str, ...] = WAGONS) -> list[EstimateResult]:
+        out = []
+        for w in wagons:
+            rows = _rows(w, revision)
+            times = rows.column("time_utc").to_pylist()
+            span = Span(w, times[0], times[-1], rows.num_rows, "data")
+            noise = EstimatorNoise()
+            out.append(EstimateResult(w, revision, "data", "model", rows, 0.0, noise, span))
+        return out
+
+    with open_warehouse(tmp_path / "fleet.duckdb") as wh:
+        _record_revision(wh, "declared", None)
+        replace_span_estimates(wh, "declared", results("declared"))
+        _record_revision(wh, "r1-a", "declared")
+        replace_span_estimates(wh, "r1-a", results("r1-a"))
+        _record_revision(wh, "r2-b", "r1-a")
+        replace_span_estimates(wh, "r2-b", results("r2-b", WAGONS[:1]))
+        assert set(stored(wh)) == {
+            (WAGONS[0], "declared"),
+            (WAGONS[0], "r2-b"),
+            (WAGONS[1], "declared"),
+            (WAGONS[1], "r1-a"),  # not estimated with r2-b yet: kept until it is
+        }
+        replace_span_estimates(wh, "declared", results("declared"))  # again: replaced
+        assert stored(wh)[(WAGONS[0], "declared")] == 30
+        ((ledger,),) = wh.con.execute(
+            "SELECT count(*) FROM estimated_spans WHERE model_revision = 'declared'"
+        ).fetchall()
+        assert ledger == len(WAGONS)

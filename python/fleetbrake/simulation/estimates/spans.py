@@ -31,7 +31,10 @@ def _delete(
 def replace_span_estimates(wh: Warehouse, revision: str, results: Sequence[EstimateResult]) -> None:
     """Replace the rows of ``revision`` of every span of ``results``, all in one transaction
     (each span whole-old or whole-new whatever happens): one delete by the spans' time
-    ranges and one bulk insert per table (Arrow in), recording the keys and noise of each."""
+    ranges and one bulk insert per table (Arrow in), recording the keys and noise of each.
+    The wagons' estimates of a revision a closed loop made before the current one are
+    deleted with them (estimates are kept for ``declared`` and the current revision:
+    ``q_estimates_delete_superseded.sql``)."""
     if not results:
         return
     spans = [r.span for r in results if r.span is not None]
@@ -61,8 +64,13 @@ def replace_span_estimates(wh: Warehouse, revision: str, results: Sequence[Estim
         }
     )
     ranges = [(s.wagon_id, s.start_utc, s.end_utc) for s in spans]
+    wagon_ids = sorted({s.wagon_id for s in spans})
     with wh.transaction() as con:
         _delete(con, revision, ranges)
+        # a closed loop's older revision: its estimates of these wagons replaced by these
+        con.execute(
+            sql("q_estimates_delete_superseded"), {"wagon_ids": wagon_ids, "revision": revision}
+        )
         batches = [("estimated_batch", stamps, "q_estimates_insert_estimated_spans")]
         if tables:
             rows = tables[0] if len(tables) == 1 else pa.concat_tables(tables)
