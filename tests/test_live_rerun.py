@@ -201,11 +201,10 @@ def _expected(db: Path, wagon: str) -> dict[str, int]:
                 "AND model_revision = ?",
                 revision,
             )
-            if "v_contact_estimates" in views:
+            if "v_contact_estimates" in views:  # every logged second's estimate (recomputed
+                # where the warehouse holds the minute's row)
                 counts["/wagon/temperature/estimated_contact_mean_c"] += count(
-                    f"SELECT count(contact_mean_c) FROM v_contact_estimates WHERE {where} "
-                    "AND model_revision = ?",
-                    revision,
+                    f"SELECT count(DISTINCT time_utc) FROM samples WHERE {where}"
                 )
         counts["flags"] = int(
             con.execute("SELECT count(*) FROM v_flags WHERE wagon_id = ?", [wagon]).fetchall()[0][0]
