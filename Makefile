@@ -8,7 +8,7 @@ STAMP := $(VENV)/.fleetbrake-installed
 DEMO_OUT ?= demo-out
 export CARGO_TERM_COLOR ?= never
 
-.PHONY: help setup build wheel demo test test-all test-rust test-python lint format docs bench clean
+.PHONY: help setup build wheel demo test test-all test-rust test-python lint format docs bench rom-data clean
 
 help:  ## list the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "} {printf "  %-12s %s\n", $$1, $$2}'
@@ -77,6 +77,9 @@ docs: setup  ## regenerate docs/configuration.md from the configuration classes
 	$(VENV)/bin/fleetbrake config > docs/configuration.md.new \
 		&& mv docs/configuration.md.new docs/configuration.md \
 		|| { rm -f docs/configuration.md.new; exit 1; }
+
+rom-data: setup  ## rebuild the reduced models the package ships (python/fleetbrake/model/data)
+	$(PY) -m fleetbrake.model.romdata
 
 bench: build  ## the solver benchmark against scikit-fem (see docs/benchmarks.md)
 	$(VENV)/bin/fleetbrake bench solver --json

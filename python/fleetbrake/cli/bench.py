@@ -292,3 +292,39 @@ def bench_watch_command(
     print_figures(figures, typer.echo)
     if json_out:
         typer.echo(json.dumps(figures))
+
+
+@bench_app.command("flags")
+def bench_flags_command(
+    json_out: JsonFlag = False,
+    fleets: Annotated[int, typer.Option("--fleets", help="Fleets with anomalies.")] = 4,
+    clean_fleets: Annotated[
+        int, typer.Option("--clean-fleets", help="Fleets without any anomaly.")
+    ] = 2,
+    wagons: Annotated[int, typer.Option("--wagons", help="Registered wagons a fleet.")] = 10,
+    days: Annotated[int, typer.Option("--days", help="UTC days a fleet.")] = 2,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the first fleet.")] = 100,
+    solver: Annotated[
+        str, typer.Option("--solver", help="What writes the fleets: rom or full (FE).")
+    ] = "rom",
+    workdir: WorkdirOption = None,
+    refinement: RefinementOption = 1.0,
+) -> None:
+    """Flags' precision, recall, detection delay and false flags per 100 wagon-days, per
+    class, on generated fleets scored against their truth (generation and runs not timed)."""
+    from fleetbrake.bench.flags import bench_flags, print_figures
+
+    with blas_single_thread():
+        figures = bench_flags(
+            fleets,
+            clean_fleets,
+            wagons=wagons,
+            days=days,
+            seed=seed,
+            solver=solver,
+            refinement=refinement,
+            workdir=workdir,
+        )
+    print_figures(figures, typer.echo)
+    if json_out:
+        typer.echo(json.dumps(figures))
